@@ -1,0 +1,29 @@
+# anycity: the commands a newcomer runs. See README.md.
+VENV ?= .venv
+PY := $(VENV)/bin/python
+PIP := $(PY) -m pip
+export OMP_WAIT_POLICY ?= PASSIVE
+
+.PHONY: setup test test-all bench lint quickstart clean
+
+setup:
+	@test -x $(PY) || python3 -m venv $(VENV)
+	$(PIP) install -q --upgrade pip
+	@# torch first: the local CPU build here; a CUDA torch already installed on a GPU machine stays.
+	@$(PY) -c "import torch" 2>/dev/null || $(PIP) install -q torch==2.13.0
+	$(PIP) install -q -e ".[dev,wan,cpu]"
+
+test:
+	$(PY) -m pytest -m "not slow" tests
+
+test-all:
+	$(PY) -m pytest tests
+
+bench:
+	@for f in benchmarks/*.py; do echo "== $$f"; $(PY) $$f || exit 1; done
+
+lint:
+	$(VENV)/bin/ruff check src tests benchmarks
+
+clean:
+	rm -rf runs .pytest_cache

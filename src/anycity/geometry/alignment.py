@@ -1,0 +1,43 @@
+"""Similarity (Sim(3)) alignment of point sets and camera trajectories (Umeyama, 1991)."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+
+def umeyama(src: Tensor, dst: Tensor, weights: Tensor | None = None, with_scale: bool = True) -> tuple[Tensor, Tensor, Tensor]:
+    """Least-squares s, R, t with ``dst ≈ s * R @ src + t``.
+
+    Args:
+        src, dst: ``[..., N, 3]`` corresponding points (N >= 3, not collinear for a unique R).
+        weights: ``[..., N]`` non-negative weights, or None.
+    Returns:
+        s ``[...]``, R ``[..., 3, 3]``, t ``[..., 3]``.
+    """
+    if src.shape != dst.shape or src.shape[-1] != 3:
+        raise ValueError(f"umeyama: src and dst must both be [..., N, 3], got {tuple(src.shape)} and {tuple(dst.shape)}")
+    w = torch.ones(src.shape[:-1], dtype=src.dtype, device=src.device) if weights is None else weights
+    w = w / w.sum(-1, keepdim=True).clamp_min(1e-12)
+    mu_s = (w[..., None] * src).sum(-2)
+    mu_d = (w[..., None] * dst).sum(-2)
+    xs, xd = src - mu_s[..., None, :], dst - mu_d[..., None, :]
+    cov = (w[..., None, None] * xd[..., :, None] * xs[..., None, :]).sum(-3)  # [..., 3, 3]
+    U, S, Vh = torch.linalg.svd(cov)
+    d = torch.sign(torch.det(U) * torch.det(Vh))
+    D = torch.ones_like(S)
+    D[..., 2] = d
+    R = U @ torch.diag_embed(D) @ Vh
+    var_s = (w * (xs * xs).sum(-1)).sum(-1)
+    s = (S * D).sum(-1) / var_s.clamp_min(1e-12) if with_scale else torch.ones_like(var_s)
+    t = mu_d - s[..., None] * (R @ mu_s[..., None])[..., 0]
+    return s, R, t
+
+
+def sim3_matrix(s: Tensor, R: Tensor, t: Tensor) -> Tensor:
+    """s ``[...]``, R ``[..., 3, 3]``, t ``[..., 3]`` -> ``[..., 4, 4]`` matrix of p -> s R p + t."""
+    T = torch.zeros(*R.shape[:-2], 4, 4, dtype=R.dtype, device=R.device)
+    T[..., :3, :3] = s[..., None, None] * R
+    T[..., :3, 3] = t
+    T[..., 3, 3] = 1
+    return T

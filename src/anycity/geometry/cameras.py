@@ -1,0 +1,81 @@
+"""Camera matrices: world-to-camera <-> camera-to-world, intrinsics under resize and crop.
+
+Conventions: OpenCV camera frame (x right, y down, z forward), ``w2c``/``c2w`` are ``[..., 4, 4]``,
+``K`` is ``[..., 3, 3]`` in pixels with pixel centres at +0.5 (the top-left pixel covers [0, 1)).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+
+def invert_rigid(T: Tensor) -> Tensor:
+    """Inverse of ``[..., 4, 4]`` rigid (or similarity-free) transforms via R^T, without a general inverse."""
+    R, t = T[..., :3, :3], T[..., :3, 3:]
+    Rt = R.transpose(-1, -2)
+    out = torch.zeros_like(T)
+    out[..., :3, :3] = Rt
+    out[..., :3, 3:] = -Rt @ t
+    out[..., 3, 3] = 1
+    return out
+
+
+def w2c_to_c2w(w2c: Tensor) -> Tensor:
+    """``[..., 4, 4]`` world-to-camera -> camera-to-world."""
+    return invert_rigid(w2c)
+
+
+def c2w_to_w2c(c2w: Tensor) -> Tensor:
+    """``[..., 4, 4]`` camera-to-world -> world-to-camera."""
+    return invert_rigid(c2w)
+
+
+def to_homogeneous(Rt: Tensor) -> Tensor:
+    """``[..., 3, 4]`` -> ``[..., 4, 4]`` by appending the row [0, 0, 0, 1]."""
+    bottom = torch.zeros(*Rt.shape[:-2], 1, 4, dtype=Rt.dtype, device=Rt.device)
+    bottom[..., 0, 3] = 1
+    return torch.cat([Rt, bottom], dim=-2)
+
+
+def camera_centers(w2c: Tensor) -> Tensor:
+    """``[..., 4, 4]`` world-to-camera -> ``[..., 3]`` camera centres in world coordinates."""
+    R, t = w2c[..., :3, :3], w2c[..., :3, 3:]
+    return (-R.transpose(-1, -2) @ t)[..., 0]
+
+
+def make_intrinsics(fx, fy, cx, cy) -> Tensor:
+    """Scalars or ``[...]`` tensors -> ``[..., 3, 3]`` pinhole K."""
+    fx, fy, cx, cy = torch.broadcast_tensors(*(torch.as_tensor(v, dtype=torch.float32) for v in (fx, fy, cx, cy)))
+    K = torch.zeros(*fx.shape, 3, 3, dtype=fx.dtype)
+    K[..., 0, 0], K[..., 1, 1], K[..., 0, 2], K[..., 1, 2], K[..., 2, 2] = fx, fy, cx, cy, 1
+    return K
+
+
+def rescale_intrinsics(K: Tensor, sx: float | Tensor, sy: float | Tensor) -> Tensor:
+    """K of an image resized by (sx, sy) = (new_w / old_w, new_h / old_h).
+
+    With pixel centres at +0.5 the continuous image plane scales exactly: fx, cx scale by sx; fy, cy by sy.
+    """
+    S = torch.ones(*K.shape[:-2], 3, dtype=K.dtype, device=K.device)
+    S[..., 0] = S[..., 0] * sx
+    S[..., 1] = S[..., 1] * sy
+    return S[..., :, None] * K
+
+
+def crop_intrinsics(K: Tensor, x0: float | Tensor, y0: float | Tensor) -> Tensor:
+    """K of the crop whose top-left corner is pixel (x0, y0) of the original image."""
+    out = K.clone()
+    out[..., 0, 2] = out[..., 0, 2] - x0
+    out[..., 1, 2] = out[..., 1, 2] - y0
+    return out
+
+
+def focal_to_fov(focal: Tensor, size: float | Tensor) -> Tensor:
+    """Focal length in pixels and image side in pixels -> full field of view in radians."""
+    return 2 * torch.atan(size / (2 * focal))
+
+
+def fov_to_focal(fov: Tensor, size: float | Tensor) -> Tensor:
+    """Full field of view (radians) and image side in pixels -> focal length in pixels."""
+    return size / (2 * torch.tan(fov / 2))
