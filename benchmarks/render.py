@@ -1,0 +1,146 @@
+"""Renderer benchmark: forward and forward+backward wall time and peak memory per backend.
+
+    python benchmarks/render.py [--threads 2] [--repeats 5] [--cases 10k,100k,800k] [--backends torch,cpu]
+
+Each case runs in its own subprocess so that the peak RSS is that case's alone. Times are the minimum over
+``--repeats`` runs after one warm-up. Scenes: random anisotropic Gaussians filling the view frustum, sized so that
+100k Gaussians at 256x256 give about 40 footprint-box overlaps per pixel (the figure printed as "ovl/px").
+The dense float64 reference of the tests runs on a small case for scale. Peers quoted in the printed footer come
+from shared/research/renderer.md (same 2-core machine class): gsplat-pytorch (Mxbonn) 2287 ms fwd+bwd on the
+100k case.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing as mp
+import resource
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+CASES = {"10k": (10_000, 256, 256), "100k": (100_000, 256, 256), "800k": (800_000, 448, 448)}
+PEER_MS = {"100k": 2287.0}  # gsplat-pytorch, fwd+bwd, 2 threads (research notes)
+
+
+def make_scene(n: int, width: int, height: int, seed: int = 0, dtype=torch.float32):
+    """N Gaussians uniformly in the frustum at z in [4, 8], footprints of ~0.6 px std (plus eps2d) at 256²."""
+    from anycity.structures import Gaussians
+
+    g = torch.Generator().manual_seed(seed)
+    f = 0.9 * width
+    z = 4 + 4 * torch.rand(n, generator=g)
+    u = torch.rand(n, generator=g) * width
+    v = torch.rand(n, generator=g) * height
+    means = torch.stack([(u - width / 2) * z / f, (v - height / 2) * z / f, z], -1)
+    base = 0.25 * z / f  # ~0.25 px std once projected, before the 0.3 px² low-pass
+    scales = base[:, None] * torch.exp(0.4 * torch.randn(n, 3, generator=g))
+    gauss = Gaussians(
+        means=means[None].to(dtype),
+        quats=torch.randn(1, n, 4, generator=g).to(dtype),
+        scales=scales[None].to(dtype),
+        opacities=(0.1 + 0.9 * torch.rand(1, n, generator=g))[None, 0].to(dtype),
+        sh=(0.5 * torch.randn(1, n, 1, 3, generator=g)).to(dtype),
+    )
+    K = torch.tensor([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1]], dtype=dtype)[None, None]
+    return gauss, torch.eye(4, dtype=dtype)[None, None], K
+
+
+def _time(fn, repeats: int) -> float:
+    fn()
+    best = float("inf")
+    for _ in range(repeats):
+        t = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t)
+    return best * 1e3
+
+
+def run_case(case: str, backend: str, threads: int, repeats: int, queue) -> None:
+    torch.set_num_threads(threads)
+    from anycity.render import render
+    from anycity.render.projection import project_gaussians
+
+    n, w, h = CASES[case] if case in CASES else (500, 64, 64)
+    g, w2c, K = make_scene(n, w, h, dtype=torch.float64 if backend == "reference" else torch.float32)
+    params = [g.means, g.quats, g.scales, g.opacities, g.sh]
+    for p in params:
+        p.requires_grad_(True)
+    if backend == "reference":
+        sys.path.insert(0, str(ROOT / "tests"))
+        from helpers.render_reference import render_reference as fwd_fn
+
+        def fwd():
+            return fwd_fn(g, w2c, K, w, h)
+    else:
+        def fwd():
+            return render(g, w2c, K, w, h, backend=backend)
+
+    with torch.no_grad():
+        proj = project_gaussians(*[p.detach() for p in params], torch.ones(1, n, dtype=torch.bool), w2c, K, w, h,
+                                 0.01, 1e10, False)
+        r = proj.radius[proj.visible].double()
+        overlaps = float((2 * r[:, 0]) * (2 * r[:, 1])).__class__ if False else float(((2 * r[:, 0]) * (2 * r[:, 1])).sum()) / (w * h)
+
+    def fwd_only():
+        with torch.no_grad():
+            fwd()
+
+    def fwd_bwd():
+        out = fwd()
+        (out.rgb.sum() + out.depth.mean() + out.alpha.sum()).backward()
+        for p in params:
+            p.grad = None
+
+    reps = 1 if backend == "reference" else repeats
+    t_f = _time(fwd_only, reps)
+    t_fb = _time(fwd_bwd, reps)
+    rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    queue.put(dict(case=case, backend=backend, n=n, size=f"{w}x{h}", overlaps=overlaps, fwd_ms=t_f, fwdbwd_ms=t_fb,
+                   peak_rss_mb=rss_mb))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--cases", default="10k,100k,800k")
+    ap.add_argument("--backends", default="auto-available")
+    ap.add_argument("--json", help="also write the rows to this file")
+    args = ap.parse_args()
+    sys.path.insert(0, str(ROOT / "src"))
+    from anycity.render.api import _cpu_backend_available
+
+    backends = args.backends.split(",") if args.backends != "auto-available" else (
+        ["torch"] + (["cpu"] if _cpu_backend_available() else []))
+    jobs = [(c, b) for c in args.cases.split(",") for b in backends] + [("small", "reference"), ("small", "torch")]
+    ctx = mp.get_context("spawn")
+    rows = []
+    print(f"threads={args.threads} repeats={args.repeats} (min of N; peak RSS is the whole process)")
+    print(f"{'case':>6} {'backend':>9} {'N':>8} {'size':>8} {'ovl/px':>7} {'fwd ms':>9} {'fwd+bwd ms':>11} {'peak MB':>8}")
+    for case, backend in jobs:
+        q = ctx.Queue()
+        p = ctx.Process(target=run_case, args=(case, backend, args.threads, args.repeats, q))
+        p.start()
+        p.join()
+        if p.exitcode != 0:
+            print(f"{case:>6} {backend:>9}  failed (exit {p.exitcode})")
+            continue
+        r = q.get()
+        rows.append(r)
+        print(f"{r['case']:>6} {r['backend']:>9} {r['n']:>8} {r['size']:>8} {r['overlaps']:>7.1f} "
+              f"{r['fwd_ms']:>9.1f} {r['fwdbwd_ms']:>11.1f} {r['peak_rss_mb']:>8.0f}")
+    for r in rows:
+        if r["case"] in PEER_MS:
+            print(f"{r['case']} {r['backend']}: {PEER_MS[r['case']] / r['fwdbwd_ms']:.1f}x faster fwd+bwd than "
+                  f"gsplat-pytorch ({PEER_MS[r['case']]:.0f} ms, research notes); target <= 250 ms (torch backend)")
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=1))
+
+
+if __name__ == "__main__":
+    main()

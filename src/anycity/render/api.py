@@ -1,0 +1,173 @@
+"""``render()``: differentiable rasterisation of 3D Gaussians into B x V pinhole cameras.
+
+Backends share one contract (all inputs already validated, ``valid`` filled, ``background`` expanded)::
+
+    fn(means [B,N,3], quats [B,N,4], scales [B,N,3], opacities [B,N], sh [B,N,K,3], valid [B,N] bool,
+       w2c [B,V,4,4], K [B,V,3,3], width, height, background [B,V,3], near, far, render_normals)
+       -> (rgb [B,V,3,H,W], depth [B,V,1,H,W], alpha [B,V,1,H,W], normal [B,V,3,H,W] or None)
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Literal
+
+import torch
+from torch import Tensor
+
+from anycity.structures import Gaussians, RenderOutput
+
+Backend = Literal["auto", "torch", "gsplat", "cpu"]
+
+# name -> "module:function"; imported on first use so that optional dependencies stay optional.
+_BACKENDS = {
+    "torch": "anycity.render.torch_backend:render_torch",
+    "gsplat": "anycity.render.gsplat_backend:render_gsplat",
+    "cpu": "anycity.render.cpu_backend:render_cpu",
+}
+
+
+def _module_available(name: str) -> bool:
+    try:
+        importlib.import_module(name)
+    except ImportError:
+        return False
+    return True
+
+
+def resolve_backend(backend: str, device: torch.device, dtype: torch.dtype = torch.float32) -> str:
+    """The backend ``render`` would use for tensors on ``device``: "auto" -> gsplat on CUDA when installed, else
+    the fused "cpu" kernels for float32 CPU tensors when numba is installed, else "torch"."""
+    if backend not in ("auto", *_BACKENDS):
+        raise ValueError(f"backend: expected one of {['auto', *_BACKENDS]}, got {backend!r}")
+    if backend != "auto":
+        return backend
+    if device.type == "cuda" and _module_available("gsplat"):
+        return "gsplat"
+    if device.type == "cpu" and dtype == torch.float32 and _cpu_backend_available():
+        return "cpu"
+    return "torch"
+
+
+def _cpu_backend_available() -> bool:
+    return importlib.util.find_spec("anycity.render.cpu_backend") is not None and _module_available("numba")
+
+
+def _load(backend: str):
+    module, fn = _BACKENDS[backend].split(":")
+    try:
+        return getattr(importlib.import_module(module), fn)
+    except ImportError as e:
+        extra = {"gsplat": "pip install 'anycity[gsplat]' (needs CUDA)", "cpu": "pip install 'anycity[cpu]' (numba)"}
+        raise ValueError(f"backend={backend!r} is not available ({e}); install it with {extra.get(backend, '')} "
+                         "or use backend='torch'") from e
+
+
+def _check_cameras(name: str, t: Tensor, shape: tuple, text: str, like: Tensor) -> None:
+    if not isinstance(t, Tensor) or tuple(t.shape[-2:]) != shape[-2:] or t.dim() != 4 or t.shape[0] != shape[0]:
+        got = tuple(t.shape) if isinstance(t, Tensor) else type(t).__name__
+        raise ValueError(f"{name}: expected shape {text} with B={shape[0]} (the Gaussians' batch), got {got}")
+    if t.device != like.device:
+        raise ValueError(f"{name}: on {t.device}, but the Gaussians are on {like.device}; move both to one device")
+    if not bool(torch.isfinite(t).all()):
+        raise ValueError(f"{name}: contains NaN or infinite values")
+
+
+def render(
+    gaussians: Gaussians,
+    w2c: Tensor,
+    K: Tensor,
+    width: int,
+    height: int,
+    *,
+    background: Tensor | None = None,
+    near: float = 0.01,
+    far: float = 1e10,
+    render_normals: bool = False,
+    backend: Backend = "auto",
+) -> RenderOutput:
+    """Rasterise B Gaussian scenes into V cameras each.
+
+    Semantics follow gsplat's ``rasterization`` (``rasterize_mode="classic"``, ``render_mode="RGB+ED"``):
+
+    - EWA projection ``Σ2D = J W Σ Wᵀ Jᵀ`` with the Jacobian taken at x/z, y/z clamped to the image extent plus
+      30 % of the half field of view (Inria's 1.3 × tan(fov/2) for a centred principal point), then a 0.3 px²
+      low-pass added to both diagonal terms.
+    - Footprint: per axis ``ceil(3.33 · sqrt(Σ2D[i,i]))`` pixels; Gaussians with camera z outside [near, far],
+      a non-positive-definite Σ2D, or a footprint that misses the image are culled.
+    - Pixel centres at (j + 0.5, i + 0.5); ``σ = ½ dᵀ Σ2D⁻¹ d``, ``α = min(0.99, o · e^(−σ))``; a Gaussian is skipped
+      at a pixel when σ < 0 or α < 1/255. Front-to-back compositing by camera z stops *before* the Gaussian that
+      would bring the transmittance T to ≤ 1e-4. α is capped at 0.99 as in Inria and gsplat ≥ 1.6 (1.5.x used 0.999).
+    - Colour from SH (degree from K) evaluated with the view direction from the camera centre to the mean, plus
+      0.5, clamped at 0. The background is composited with the final transmittance: ``rgb += T · bg``.
+    - Depth is the alpha-normalised expected camera z, ``Σ wᵢ zᵢ / max(α, 1e-10)`` (0 where nothing is hit).
+    - Normals (``render_normals=True``): each Gaussian's normal is the axis of its smallest scale, flipped to face
+      the camera, in the camera frame, alpha-blended like colour (not renormalised).
+    - ``valid=False`` Gaussians contribute nothing.
+
+    Args:
+        gaussians: B scenes of N Gaussians (``anycity.structures.Gaussians``).
+        w2c: ``[B, V, 4, 4]`` world-to-camera (OpenCV: x right, y down, z forward).
+        K: ``[B, V, 3, 3]`` pinhole intrinsics in pixels of the rendered image.
+        width, height: image size in pixels.
+        background: ``[3]``, ``[B, V, 3]`` or None (black).
+        near, far: culling planes on camera z.
+        render_normals: also return ``normal``.
+        backend: "torch" (tiled pure PyTorch, CPU and CUDA, float32/float64), "gsplat" (CUDA, needs the
+            ``gsplat`` extra), "cpu" (fused numba kernels, float32 CPU), or "auto" (gsplat for CUDA tensors when
+            installed, cpu for float32 CPU tensors when numba is installed, else torch).
+
+    Returns:
+        ``RenderOutput`` with rgb ``[B, V, 3, H, W]``, depth ``[B, V, 1, H, W]``, alpha ``[B, V, 1, H, W]``
+        and normal ``[B, V, 3, H, W]`` or None. Differentiable w.r.t. means, quats, scales, opacities and sh.
+
+    Example::
+
+        >>> import torch
+        >>> from anycity.render import render
+        >>> from anycity.structures import Gaussians
+        >>> g = Gaussians(means=torch.tensor([[[0.0, 0.0, 3.0]]]), quats=torch.tensor([[[1.0, 0, 0, 0]]]),
+        ...               scales=torch.full((1, 1, 3), 0.2), opacities=torch.ones(1, 1), sh=torch.ones(1, 1, 1, 3))
+        >>> K = torch.tensor([[[[32.0, 0, 16], [0, 32.0, 16], [0, 0, 1]]]])
+        >>> out = render(g, torch.eye(4)[None, None], K, 32, 32, backend="torch")
+        >>> out.rgb.shape, round(out.alpha.max().item(), 2)
+        (torch.Size([1, 1, 3, 32, 32]), 0.99)
+    """
+    if not isinstance(gaussians, Gaussians):
+        raise ValueError(f"gaussians: expected anycity.structures.Gaussians, got {type(gaussians).__name__}")
+    gaussians.validate()
+    means = gaussians.means
+    B = means.shape[0]
+    for name, value in (("width", width), ("height", height)):
+        if not isinstance(value, int) or isinstance(value, bool) or value <= 0:
+            raise ValueError(f"{name}: expected a positive int, got {value!r}")
+    V = w2c.shape[1] if isinstance(w2c, Tensor) and w2c.dim() == 4 else -1
+    _check_cameras("w2c", w2c, (B, V, 4, 4), "[B, V, 4, 4]", means)
+    _check_cameras("K", K, (B, V, 3, 3), "[B, V, 3, 3]", means)
+    if K.shape[1] != V:
+        raise ValueError(f"K: expected V={V} cameras like w2c, got shape {tuple(K.shape)}")
+    det = torch.linalg.det(w2c[..., :3, :3].double())
+    if not bool((det.abs() > 1e-9).all()):
+        raise ValueError("w2c: rotation block is singular (not an invertible camera); pass world-to-camera matrices")
+    if not bool(((K[..., 0, 0] > 0) & (K[..., 1, 1] > 0)).all()):
+        raise ValueError("K: focal lengths K[...,0,0] and K[...,1,1] must be > 0 (intrinsics in pixels)")
+    if not (0 <= near < far):
+        raise ValueError(f"near/far: expected 0 <= near < far, got near={near}, far={far}")
+    dtype = means.dtype
+    if background is None:
+        bg = torch.zeros(B, V, 3, dtype=dtype, device=means.device)
+    else:
+        bg = torch.as_tensor(background, dtype=dtype, device=means.device)
+        if bg.shape not in ((3,), (B, V, 3)):
+            raise ValueError(f"background: expected shape [3] or [B, V, 3] = {(B, V, 3)}, got {tuple(bg.shape)}")
+        bg = bg.expand(B, V, 3)
+    valid = gaussians.valid
+    if valid is None:
+        valid = torch.ones(means.shape[:2], dtype=torch.bool, device=means.device)
+    name = resolve_backend(backend, means.device, dtype)
+    fn = _load(name)
+    rgb, depth, alpha, normal = fn(
+        means, gaussians.quats, gaussians.scales, gaussians.opacities, gaussians.sh, valid,
+        w2c.to(dtype), K.to(dtype), width, height, bg, float(near), float(far), render_normals,
+    )
+    return RenderOutput(rgb=rgb, depth=depth, alpha=alpha, normal=normal)
