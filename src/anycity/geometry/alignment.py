@@ -6,7 +6,9 @@ import torch
 from torch import Tensor
 
 
-def umeyama(src: Tensor, dst: Tensor, weights: Tensor | None = None, with_scale: bool = True) -> tuple[Tensor, Tensor, Tensor]:
+def umeyama(
+    src: Tensor, dst: Tensor, weights: Tensor | None = None, with_scale: bool = True
+) -> tuple[Tensor, Tensor, Tensor]:
     """Least-squares s, R, t with ``dst ≈ s * R @ src + t``.
 
     Args:
@@ -16,7 +18,8 @@ def umeyama(src: Tensor, dst: Tensor, weights: Tensor | None = None, with_scale:
         s ``[...]``, R ``[..., 3, 3]``, t ``[..., 3]``.
     """
     if src.shape != dst.shape or src.shape[-1] != 3:
-        raise ValueError(f"umeyama: src and dst must both be [..., N, 3], got {tuple(src.shape)} and {tuple(dst.shape)}")
+        raise ValueError(f"umeyama: src and dst must both be [..., N, 3], got {tuple(src.shape)} and "
+                         f"{tuple(dst.shape)}")
     w = torch.ones(src.shape[:-1], dtype=src.dtype, device=src.device) if weights is None else weights
     w = w / w.sum(-1, keepdim=True).clamp_min(1e-12)
     mu_s = (w[..., None] * src).sum(-2)

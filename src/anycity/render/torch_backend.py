@@ -61,28 +61,36 @@ def tile_ranges(proj: Projected, tile: int, tiles_x: int, tiles_y: int):
 def bin_gaussians(proj: Projected, tile: int, tiles_x: int, tiles_y: int):
     """Sorted (tile, Gaussian) pairs.
 
+    Visible Gaussians are first sorted by camera z (as int32: positive float32 bits sort like the floats), their
+    pairs enumerated in that order, and the pairs then stably sorted by an int32 tile id, which leaves each tile's
+    run in depth order. (Two int32 sorts beat one int64 (tile << 32 | z) sort by ~2x on CPU.)
+
     Returns:
         vis ``[M]``: flat [C*N] index of each visible Gaussian.
         pair_gauss ``[P]``: index into ``vis`` of each pair, sorted by (camera, tile, z).
         counts ``[C*tiles]``: pairs per tile; offsets ``[C*tiles]``: start of each tile's run in the sorted pairs.
     """
     C, N = proj.visible.shape
+    n_tiles_total = C * tiles_x * tiles_y
+    if n_tiles_total >= 2**31:
+        raise ValueError(f"too many tiles ({n_tiles_total}) for int32 tile ids; render fewer or smaller images")
     vis, x0, x1, y0, y1 = tile_ranges(proj, tile, tiles_x, tiles_y)
+    z_bits = proj.features[..., 3].detach().flatten().index_select(0, vis).float().view(torch.int32)
+    by_depth = torch.sort(z_bits, stable=True).indices
+    x0, x1, y0, y1 = (v.index_select(0, by_depth).int() for v in (x0, x1, y0, y1))
     w = x1 - x0
     n_tiles = w * (y1 - y0)
-    pair_gauss = torch.repeat_interleave(torch.arange(vis.numel(), device=vis.device), n_tiles)
-    start = torch.cumsum(n_tiles, 0) - n_tiles
-    k = torch.arange(pair_gauss.numel(), device=vis.device) - start[pair_gauss]
-    wg = w[pair_gauss]
-    tx = x0[pair_gauss] + k % wg
-    ty = y0[pair_gauss] + torch.div(k, wg, rounding_mode="floor")
-    cam = torch.div(vis, N, rounding_mode="floor")[pair_gauss]
-    tile_id = cam * (tiles_x * tiles_y) + ty * tiles_x + tx
-    z_bits = proj.features[..., 3].detach().flatten().index_select(0, vis).float().view(torch.int32).long()
-    key = (tile_id << 32) | z_bits[pair_gauss]
-    key, order = torch.sort(key, stable=True)
-    pair_gauss = pair_gauss[order]
-    counts = torch.bincount(key >> 32, minlength=C * tiles_x * tiles_y)
+    first_tile = torch.div(vis.index_select(0, by_depth), N, rounding_mode="floor").int() * (tiles_x * tiles_y)
+    first_tile += y0 * tiles_x + x0
+    starts = torch.cumsum(n_tiles, 0, dtype=torch.int32) - n_tiles
+    pair_gauss = torch.repeat_interleave(by_depth, n_tiles)  # pairs in depth order
+    k = torch.arange(pair_gauss.numel(), dtype=torch.int32, device=vis.device) - torch.repeat_interleave(starts, n_tiles)
+    wg = torch.repeat_interleave(w, n_tiles)
+    row = torch.div(k, wg, rounding_mode="floor")
+    tile_id = torch.repeat_interleave(first_tile, n_tiles) + row * tiles_x + (k - row * wg)
+    tile_id, order = torch.sort(tile_id, stable=True)
+    pair_gauss = pair_gauss.index_select(0, order)
+    counts = torch.bincount(tile_id, minlength=n_tiles_total)
     offsets = torch.cumsum(counts, 0) - counts
     return vis, pair_gauss, counts, offsets
 
@@ -145,7 +153,6 @@ def _composite_chunk(table, pair_gauss, tiles, offsets, counts, P, pad_slot, neg
     g = pair_gauss.index_select(0, idx.flatten())
     rows = table.index_select(1, g).view(-1, *idx.shape)  # [6 + D, t, P]
     mx, my, a, b, c, opacity = rows[:6]
-    feats = rows[6:].permute(1, 2, 0)  # [t, P, D]
 
     local = tiles % (tiles_x * tiles_y)
     centre_x = ((local % tiles_x).to(rows.dtype) + 0.5) * tile
@@ -155,41 +162,54 @@ def _composite_chunk(table, pair_gauss, tiles, offsets, counts, P, pad_slot, neg
     sigma0 = 0.5 * (a * mx * mx + c * my * my) + b * mx * my - torch.log(opacity.clamp_min(ALPHA_MIN))
     sigma0 = torch.where(idx == pad_slot, torch.full_like(sigma0, math.inf), sigma0)
     coeffs = torch.stack([sigma0, -(a * mx + b * my), -(b * mx + c * my), 0.5 * a, b, 0.5 * c], 1)  # [t, 6, P]
-    feats1 = torch.cat([feats, torch.ones_like(feats[..., :1])], -1)  # alpha = Σ w rides along as a channel
-    return _Composite.apply(coeffs, feats1, neg_monomials)
+    feats = rows[6:].transpose(0, 1)  # [t, D, P]
+    feats_t = torch.cat([feats, torch.ones_like(feats[:, :1])], 1)  # [t, D+1, P]; alpha = Σ w rides along
+    return _Composite.apply(coeffs, feats_t, neg_monomials)
 
 
 class _Composite(torch.autograd.Function):
     """Front-to-back alpha compositing of one chunk with a hand-written backward.
 
     Forward: ``α = min(0.99, e)`` where ``e = exp(-(M @ coeffs)) = o·e^(-σ)`` and ``e >= 1/255`` (else 0),
-    ``w_i = α_i Π_{j<i} (1 - α_j)`` up to (excluding) the Gaussian that brings T to <= 1e-4, ``out = w @ feats``.
-    Backward, with g = dL/dw: ``dL/dα_k · (1 - α_k) = g_k w_k (1 - α_k)/α_k - S_k``, ``S_k = Σ_{i>k} g_i w_i``, and
-    ``dα/dσ = -α`` where α is neither clamped nor cut, so ``dL/dσ_k = α_k S_k / (1 - α_k) - g_k w_k``.
-    Only α and w are saved (the autograd version kept about eight tensors of this size).
+    ``w_i = α_i T_i`` with ``T_i = Π_{j<i} (1 - α_j)``, for the Gaussians before the one that brings T to <= 1e-4;
+    ``out = w @ feats``. Since T is non-increasing the kept Gaussians are a prefix, and for them
+    ``T_i = T_{i+1} / (1 - α_i)``, so ``u = T · keep = threshold(cumprod(1 - α), 1e-4) / (1 - α)``.
+
+    Backward, with g = dL/dw and S_k = Σ_{i>k} g_i w_i: ``dL/dα_k = g_k u_k - S_k / (1 - α_k)`` and dα/dσ = -α where
+    α is neither clamped nor cut (α' = that α, else 0), so ``dL/dσ_k = α'_k (S_k / (1 - α_k) - g_k u_k)``.
+
+    CPU notes (per 1M-element chunk, 1 thread): in-place elementwise ops cost ~0.1 ms but building a bool mask and
+    multiplying by it ~1.1 ms, and ``masked_fill_`` ~3.8 ms, so every cut here is a ``threshold``. The small-output
+    batched matmuls are ~4x faster with the P-long operand transposed (``[t, D+1, P] @ [t, P, tile²]``).
     """
 
     @staticmethod
-    def forward(ctx, coeffs: Tensor, feats: Tensor, neg_monomials: Tensor) -> Tensor:
+    def forward(ctx, coeffs: Tensor, feats_t: Tensor, neg_monomials: Tensor) -> Tensor:
         alpha = torch.matmul(neg_monomials, coeffs).exp_()  # [t, tile², P]
-        alpha.masked_fill_(alpha < ALPHA_MIN, 0.0).clamp_max_(ALPHA_MAX)
-        T_incl = torch.cumprod(1 - alpha, -1)
-        w = torch.empty_like(alpha)
-        w[..., 0] = 1.0
-        w[..., 1:] = T_incl[..., :-1]  # exclusive transmittance
-        w.mul_(alpha).masked_fill_(T_incl <= T_MIN, 0.0)
-        ctx.save_for_backward(alpha, w, feats, neg_monomials)
-        return torch.matmul(w, feats)
+        F.threshold(alpha, _below(ALPHA_MIN, alpha.dtype), 0.0, inplace=True)
+        # α' (α where neither cut nor clamped, else 0) before clamping: -threshold(-e, -0.99) keeps e < 0.99.
+        alpha_active = F.threshold(alpha.neg(), -ALPHA_MAX, 0.0, inplace=True).neg_()
+        alpha.clamp_max_(ALPHA_MAX)
+        one_minus = 1 - alpha
+        u = F.threshold(torch.cumprod(one_minus, -1), T_MIN, 0.0, inplace=True).div_(one_minus)
+        w = u * alpha
+        ctx.save_for_backward(alpha, alpha_active, u, feats_t, neg_monomials)
+        return torch.bmm(feats_t, w.transpose(1, 2)).transpose(1, 2)  # [t, tile², D+1]
 
     @staticmethod
     def backward(ctx, grad_out: Tensor):
-        alpha, w, feats, neg_monomials = ctx.saved_tensors
+        alpha, alpha_active, u, feats_t, neg_monomials = ctx.saved_tensors
         grad_out = grad_out.contiguous()
-        grad_feats = torch.matmul(w.transpose(-1, -2), grad_out)
-        gw = torch.matmul(grad_out, feats.transpose(-1, -2)).mul_(w)  # g_k w_k, [t, tile², P]
-        suffix = gw.sum(-1, keepdim=True) - gw.cumsum(-1)  # S_k = Σ_{i>k} g_i w_i
-        active = (alpha > 0) & (alpha < ALPHA_MAX)
-        # dL/dσ (σ = -(M @ coeffs)), then through the matmul.
-        grad_sigma = suffix.mul_(alpha).div_(1 - alpha).sub_(gw).masked_fill_(~active, 0.0)
+        gu = torch.bmm(grad_out, feats_t).mul_(u)  # g_k u_k, [t, tile², P]
+        gw = gu * alpha
+        suffix = gw.cumsum(-1).neg_().add_(gw.sum(-1, keepdim=True))  # S_k = Σ_{i>k} g_i w_i
+        grad_sigma = suffix.div_(1 - alpha).sub_(gu).mul_(alpha_active)  # dL/d(σ - log o)
         grad_coeffs = torch.matmul(neg_monomials.t(), grad_sigma).neg_()  # M = -neg_monomials
-        return grad_coeffs, grad_feats, None
+        grad_feats_t = torch.bmm(grad_out.transpose(1, 2), u.mul_(alpha))  # u is dead after this: reuse it as w
+        return grad_coeffs, grad_feats_t, None
+
+
+def _below(x: float, dtype: torch.dtype) -> float:
+    """The largest value of ``dtype`` below x, so that ``threshold(v, _below(x))`` keeps exactly v >= x."""
+    t = torch.tensor(x, dtype=dtype)
+    return float(torch.nextafter(t, torch.zeros_like(t)))

@@ -2,46 +2,16 @@
 
 from __future__ import annotations
 
-import math
-
 import pytest
 import torch
 from helpers.render_reference import render_reference
+from helpers.scenes import make_cameras, make_gaussians
 
 from anycity.render import render, resolve_backend
 from anycity.render.torch_backend import render_torch
 from anycity.structures import Gaussians
 
 F64 = torch.float64
-
-
-def make_gaussians(B=1, N=80, K=1, seed=0, dtype=F64, z=4.0, spread=(1.0, 0.7, 0.5), scale=(0.01, 0.2)):
-    g = torch.Generator().manual_seed(seed)
-    means = torch.randn(B, N, 3, generator=g, dtype=dtype) * torch.tensor(spread, dtype=dtype)
-    means[..., 2] += z
-    return Gaussians(
-        means=means,
-        quats=torch.randn(B, N, 4, generator=g, dtype=dtype),
-        scales=scale[0] + (scale[1] - scale[0]) * torch.rand(B, N, 3, generator=g, dtype=dtype),
-        opacities=0.05 + 0.9 * torch.rand(B, N, generator=g, dtype=dtype),
-        sh=0.5 * torch.randn(B, N, K, 3, generator=g, dtype=dtype),
-    )
-
-
-def make_cameras(B=1, V=1, width=40, height=32, dtype=F64, seed=1):
-    """V different cameras per scene: small rotations and translations around a look-down-+z camera."""
-    g = torch.Generator().manual_seed(seed)
-    w2c = torch.eye(4, dtype=dtype).repeat(B, V, 1, 1)
-    for b in range(B):
-        for v in range(V):
-            ang = 0.15 * torch.randn(3, generator=g, dtype=dtype)
-            Rx = torch.tensor([[1, 0, 0], [0, math.cos(ang[0]), -math.sin(ang[0])], [0, math.sin(ang[0]), math.cos(ang[0])]], dtype=dtype)
-            Ry = torch.tensor([[math.cos(ang[1]), 0, math.sin(ang[1])], [0, 1, 0], [-math.sin(ang[1]), 0, math.cos(ang[1])]], dtype=dtype)
-            w2c[b, v, :3, :3] = Rx @ Ry
-            w2c[b, v, :3, 3] = 0.3 * torch.randn(3, generator=g, dtype=dtype)
-    f = 1.1 * width
-    K = torch.tensor([[f, 0, width / 2 + 1.3], [0, 1.05 * f, height / 2 - 0.7], [0, 0, 1]], dtype=dtype)
-    return w2c, K.repeat(B, V, 1, 1)
 
 
 def _loss_weights(B, V, H, W, normals, dtype=F64, seed=3):
@@ -221,11 +191,11 @@ def test_auto_backend_resolution():
         (lambda a: a["K"].__setitem__((0, 0, 0, 0), 0.0), "K"),
         (lambda a: a.update(background=torch.zeros(4, dtype=F64)), "background"),
         (lambda a: a.update(near=2.0, far=1.0), "near"),
-        (lambda a: a.update(gaussians=Gaussians(a["gaussians"].means[..., :2], *list(vars(a["gaussians"]).values())[1:])),
+        (lambda a: a.update(gaussians=Gaussians(**{**vars(a["gaussians"]), "means": a["gaussians"].means[..., :2]})),
          "means"),
         (lambda a: a["gaussians"].opacities.__setitem__((0, 0), float("inf")), "opacities"),
-        (lambda a: a.update(gaussians=Gaussians(*list(vars(a["gaussians"]).values())[:4],
-                                                sh=torch.zeros(1, 10, 5, 3, dtype=F64))), "sh"),
+        (lambda a: a.update(gaussians=Gaussians(**{**vars(a["gaussians"]), "sh": torch.zeros(1, 10, 5, 3, dtype=F64)})),
+         "sh"),
         (lambda a: a.update(gaussians="not gaussians"), "gaussians"),
     ],
 )

@@ -1,0 +1,54 @@
+"""VGGT's 9-D camera encoding ``absT_quaR_FoV`` <-> ``w2c`` / ``K``.
+
+Layout of the last dim: ``[t (3), quaternion (4, **xyzw**, VGGT's order), fov_h, fov_w]`` where ``[R|t]`` is
+the OpenCV world-to-camera transform and the fields of view are full angles in radians. The principal point
+is the image centre ``(W/2, H/2)`` in pixel units (pixel centres at +0.5, so this is the geometric centre).
+The quaternion is the only place in the package that uses xyzw; it never leaves this module.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from anycity.geometry.cameras import focal_to_fov, fov_to_focal, to_homogeneous
+from anycity.geometry.rotations import quat_to_rotmat, rotmat_to_quat, wxyz_to_xyzw, xyzw_to_wxyz
+
+POSE_ENCODING_DIM = 9
+
+
+def _check_hw(image_size_hw) -> tuple[int, int]:
+    if len(image_size_hw) != 2 or min(image_size_hw) <= 0:
+        raise ValueError(f"image_size_hw: expected (H, W) with positive sides, got {tuple(image_size_hw)}")
+    return int(image_size_hw[0]), int(image_size_hw[1])
+
+
+def extri_intri_to_pose_encoding(w2c: Tensor, K: Tensor, image_size_hw: tuple[int, int]) -> Tensor:
+    """``w2c [..., 4, 4]`` (or ``[..., 3, 4]``) and pixel ``K [..., 3, 3]`` -> ``[..., 9]`` encoding.
+
+    Only fx, fy of ``K`` are used; a principal point off the centre is not representable.
+    """
+    h, w = _check_hw(image_size_hw)
+    if w2c.shape[-1] != 4 or w2c.shape[-2] not in (3, 4):
+        raise ValueError(f"w2c: expected [..., 4, 4] or [..., 3, 4], got {tuple(w2c.shape)}")
+    quat = wxyz_to_xyzw(rotmat_to_quat(w2c[..., :3, :3]))
+    fov_h = focal_to_fov(K[..., 1, 1], h)
+    fov_w = focal_to_fov(K[..., 0, 0], w)
+    return torch.cat([w2c[..., :3, 3], quat, fov_h[..., None], fov_w[..., None]], dim=-1).float()
+
+
+def pose_encoding_to_extri_intri(enc: Tensor, image_size_hw: tuple[int, int]) -> tuple[Tensor, Tensor]:
+    """``[..., 9]`` encoding -> ``w2c [..., 4, 4]`` and ``K [..., 3, 3]`` in pixels of an ``(H, W)`` image.
+
+    The quaternion need not be unit norm (the camera head does not normalise it).
+    """
+    h, w = _check_hw(image_size_hw)
+    if enc.shape[-1] != POSE_ENCODING_DIM:
+        raise ValueError(f"pose encoding: expected last dim 9 (t, quat xyzw, fov_h, fov_w), got {tuple(enc.shape)}")
+    R = quat_to_rotmat(xyzw_to_wxyz(enc[..., 3:7]))
+    w2c = to_homogeneous(torch.cat([R, enc[..., :3, None]], dim=-1))
+    fy = fov_to_focal(enc[..., 7], h)
+    fx = fov_to_focal(enc[..., 8], w)
+    zero, one = torch.zeros_like(fx), torch.ones_like(fx)
+    K = torch.stack([fx, zero, zero + w / 2, zero, fy, zero + h / 2, zero, zero, one], dim=-1)
+    return w2c, K.unflatten(-1, (3, 3))

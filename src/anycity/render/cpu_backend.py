@@ -1,0 +1,184 @@
+"""Fused CPU backend (``backend="cpu"``): numba kernels for projection + SH, binning, compositing and backward.
+
+One ``torch.autograd.Function`` runs, on float32 CPU tensors:
+
+1. ``project_fwd``: 3-D Gaussians -> per (camera, Gaussian) screen-space rows, tile boxes, depths.
+2. ``depth_order`` + ``bin_pairs``: radix sort by depth, counting sort of (tile, Gaussian) pairs by tile.
+3. ``raster_fwd``: per 8x16 tile, front-to-back blending of rgb, z (and normals); writes the final images.
+4. backward: ``raster_bwd`` (back to front, one gradient row per pair) then ``project_bwd`` (per Gaussian, sums
+   its pairs in a fixed order and chains through projection and SH). No atomics: gradients are bitwise identical
+   for any thread count.
+
+Semantics are those of ``anycity.render.api.render`` (the torch backend is the reference). Kernels compile on
+first use (a few seconds, announced once on stderr) and are cached next to this file's ``__pycache__`` or in
+``NUMBA_CACHE_DIR``. Threads follow ``torch.get_num_threads()``. numba's OpenMP pool is not fork-safe, so calling
+this inside a forked worker (e.g. ``DataLoader(num_workers>0)``) raises instead of hanging.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import threading
+
+import numba
+import numpy as np
+import torch
+from torch import Tensor
+
+from anycity.render import _cpu_project as _proj
+from anycity.render import _cpu_raster as _rast
+
+_log = logging.getLogger(__name__)
+_BIN_CHUNKS = 8  # fixed split of the binning work: results do not depend on the thread count
+_kernels: dict[int, tuple] = {}
+_lock = threading.Lock()
+_state = {"pid": None, "announced": False}
+
+
+def raster_kernels(D: int):
+    """(forward, backward) compositing kernels for D feature channels (4: rgb+z, 7: + normals)."""
+    with _lock:
+        if D not in _kernels:
+            _kernels[D] = _rast.make_raster_kernels(D)
+        return _kernels[D]
+
+
+def _dispatchers(D: int) -> list:
+    return [_proj.project_fwd, _proj.project_bwd, _rast.depth_order, _rast.bin_pairs, *raster_kernels(D)]
+
+
+def _announce_compile(D: int) -> None:
+    """Tell the user once when the kernels are about to be compiled rather than loaded from the cache."""
+    if _state["announced"]:
+        return
+    cold = []
+    for disp in _dispatchers(D):
+        if disp.signatures:
+            continue
+        try:
+            cached = os.path.exists(disp._cache._cache_file._index_path)
+        except AttributeError:  # numba internals moved: say nothing rather than guess
+            cached = True
+        if not cached:
+            cold.append(disp.__name__)
+    if cold:
+        _state["announced"] = True
+        _log.warning("anycity: compiling the fused CPU render kernels (%s); first use only, about 10-20 s, "
+                     "cached afterwards", ", ".join(cold))
+
+
+def _guard_process() -> None:
+    """numba's OpenMP thread pool does not survive fork(): refuse to run in a forked child."""
+    worker = torch.utils.data.get_worker_info()
+    pid = os.getpid()
+    if worker is not None or (_state["pid"] is not None and _state["pid"] != pid):
+        where = f"DataLoader worker {worker.id}" if worker is not None else "a forked child process"
+        raise RuntimeError(
+            f"render(backend='cpu') called in {where}: numba's OpenMP thread pool is not fork-safe. Render in the "
+            "main process, pass backend='torch' inside workers, or use multiprocessing_context='spawn'")
+    _state["pid"] = pid
+
+
+def _set_threads() -> None:
+    n = max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS))
+    if numba.get_num_threads() != n:
+        numba.set_num_threads(n)
+
+
+def _camera_table(w2c: Tensor, K: Tensor, width: int, height: int) -> np.ndarray:
+    """``[C, 23]`` float64: R (9), t (3), fx, fy, cx, cy, camera centre (3), x/z and y/z clamp limits (4)."""
+    w2c = w2c.detach().double().reshape(-1, 4, 4)
+    K = K.detach().double().reshape(-1, 3, 3)
+    R, t = w2c[:, :3, :3], w2c[:, :3, 3]
+    fx, fy, cx, cy = K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2]
+    centre = -torch.einsum("cji,cj->ci", R, t)
+    hx, hy = 0.3 * 0.5 * width / fx, 0.3 * 0.5 * height / fy  # projection.FOV_CLAMP
+    lims = torch.stack([-cx / fx - hx, (width - cx) / fx + hx, -cy / fy - hy, (height - cy) / fy + hy], -1)
+    table = torch.cat([R.reshape(-1, 9), t, torch.stack([fx, fy, cx, cy], -1), centre, lims], -1)
+    return np.ascontiguousarray(table.numpy())
+
+
+def _np(t: Tensor) -> np.ndarray:
+    return t.detach().contiguous().numpy()
+
+
+class _FusedRender(torch.autograd.Function):
+    """means, quats, scales, opacities, sh -> rgb, depth, alpha, normal (see the module docstring)."""
+
+    @staticmethod
+    def forward(ctx, means, quats, scales, opacities, sh, valid, w2c, K, width, height, background, near, far,
+                normals):
+        B, N = means.shape[:2]
+        V = w2c.shape[1]
+        C, D = B * V, (7 if normals else 4)
+        tiles_x, tiles_y = math.ceil(width / _rast.TX), math.ceil(height / _rast.TY)
+        cams = _camera_table(w2c, K, width, height)
+        arrays = [_np(t) for t in (means, quats, scales, opacities, sh)]
+        P = np.empty((C * N, _rast.QBASE + D), np.float32)
+        z = np.empty(C * N, np.float32)
+        rect = np.empty((C * N, 4), np.int32)
+        ntiles = np.empty(C * N, np.int64)
+        ext_y = np.empty(C * N, np.float32)
+        _proj.project_fwd(*arrays, _np(valid), cams, V, width, height, near, far, tiles_x, tiles_y,
+                          P, z, rect, ntiles, ext_y)
+        order = _rast.depth_order(z, ntiles)
+        Q, tile_off, slot, pstart = _rast.bin_pairs(order, rect, ntiles, P, ext_y, max(N, 1), tiles_x, tiles_y,
+                                                    _BIN_CHUNKS)
+        rgb = np.empty((C, 3, height, width), np.float32)
+        depth = np.empty((C, 1, height, width), np.float32)
+        alpha = np.empty((C, 1, height, width), np.float32)
+        normal = np.empty((C, 3, height, width) if normals else (1, 3, 1, 1), np.float32)
+        t_final = np.empty((C, height, width), np.float32)
+        last = np.empty((C, height, width), np.float32)
+        bg = _np(background.reshape(C, 3))
+        fwd, _ = raster_kernels(D)
+        fwd(Q, tile_off, tiles_x, tiles_y, width, height, bg, rgb, depth, alpha, normal, t_final, last)
+
+        ctx.save_for_backward(means, quats, scales, opacities, sh)
+        ctx.state = (cams, V, D, tiles_x, tiles_y, width, height, ntiles, pstart, Q, tile_off, slot, bg, t_final,
+                     last, depth)
+        out = [torch.from_numpy(a).unflatten(0, (B, V)) for a in (rgb, depth, alpha, normal)]
+        if not normals:
+            ctx.mark_non_differentiable(out[3])
+        return tuple(out)
+
+    @staticmethod
+    def backward(ctx, g_rgb, g_depth, g_alpha, g_normal):
+        cams, V, D, tiles_x, tiles_y, width, height, ntiles, pstart, Q, tile_off, slot, bg, t_final, last, depth = \
+            ctx.state
+        means, quats, scales, opacities, sh = ctx.saved_tensors
+        C = cams.shape[0]
+
+        def grad(g, shape):
+            return np.zeros(shape, np.float32) if g is None else _np(g.float()).reshape(shape)
+
+        img3, img1 = (C, 3, height, width), (C, 1, height, width)
+        G = np.empty((Q.shape[0], _rast.QBASE + D), np.float32)
+        _, bwd = raster_kernels(D)
+        _set_threads()
+        bwd(Q, tile_off, slot, tiles_x, tiles_y, width, height, bg, t_final, last, depth,
+            grad(g_rgb, img3), grad(g_depth, img1), grad(g_alpha, img1),
+            grad(g_normal, img3) if D == 7 else grad(None, (1, 3, 1, 1)), G)
+        outs = [torch.empty_like(t) for t in (means, quats, scales, opacities, sh)]
+        _proj.project_bwd(*[_np(t) for t in (means, quats, scales, opacities, sh)], cams, V, ntiles, pstart, G,
+                          *[o.numpy() for o in outs])
+        return (*outs, None, None, None, None, None, None, None, None, None)
+
+
+def render_cpu(means, quats, scales, opacities, sh, valid, w2c, K, width, height, background, near, far,
+               render_normals):
+    """Backend entry point (contract in ``anycity.render.api``); float32 CPU tensors only."""
+    for name, t in (("means", means), ("w2c", w2c)):
+        if t.device.type != "cpu" or t.dtype != torch.float32:
+            raise ValueError(f"backend='cpu': {name} must be a float32 CPU tensor, got {t.dtype} on {t.device}; "
+                             "use backend='torch' for other dtypes or devices")
+    _guard_process()
+    _set_threads()
+    D = 7 if render_normals else 4
+    if not _state["announced"]:
+        _announce_compile(D)
+    rgb, depth, alpha, normal = _FusedRender.apply(
+        means, quats, scales, opacities, sh, valid, w2c, K, width, height, background, near, far, render_normals)
+    return rgb, depth, alpha, (normal if render_normals else None)
