@@ -140,7 +140,8 @@ def main() -> None:
             continue
         r = q.get()
         rows.append(r)
-        print(f"{r['case']:>6} {r['backend']:>9} {r['n']:>8} {r['size']:>8} {r['overlaps']:>7.1f} {r['int_overlaps']:>7.1f} "
+        print(f"{r['case']:>6} {r['backend']:>9} {r['n']:>8} {r['size']:>8} {r['overlaps']:>7.1f} "
+              f"{r['int_overlaps']:>7.1f} "
               f"{r['fwd_ms']:>9.1f} {r['fwdbwd_ms']:>11.1f} {r['peak_rss_mb']:>8.0f}")
     for r in rows:
         if r["case"] in PEER_MS:

@@ -119,27 +119,26 @@ def project_fwd(means, quats, scales, opac, sh, valid, cams, V, width, height, n
             b = c // V
             ntiles[e] = 0
             z_out[e] = 1.0
-            cam = cams[c]
             m0, m1, m2 = means[b, n, 0], means[b, n, 1], means[b, n, 2]
-            x = cam[0] * m0 + cam[1] * m1 + cam[2] * m2 + cam[9]
-            y = cam[3] * m0 + cam[4] * m1 + cam[5] * m2 + cam[10]
-            z = cam[6] * m0 + cam[7] * m1 + cam[8] * m2 + cam[11]
+            x = cams[c, 0] * m0 + cams[c, 1] * m1 + cams[c, 2] * m2 + cams[c, 9]
+            y = cams[c, 3] * m0 + cams[c, 4] * m1 + cams[c, 5] * m2 + cams[c, 10]
+            z = cams[c, 6] * m0 + cams[c, 7] * m1 + cams[c, 8] * m2 + cams[c, 11]
             o = opac[b, n]
             if not (valid[b, n] and z > 0 and z >= near and z <= far and o >= ALPHA_MIN):
                 continue
-            fx, fy, cx, cy = cam[12], cam[13], cam[14], cam[15]
+            fx, fy, cx, cy = cams[c, 12], cams[c, 13], cams[c, 14], cams[c, 15]
             _quat_rot(quats[b, n, 0], quats[b, n, 1], quats[b, n, 2], quats[b, n, 3], rot)
             s0, s1, s2 = scales[b, n, 0], scales[b, n, 1], scales[b, n, 2]
-            u = min(max(x / z, cam[19]), cam[20])
-            v = min(max(y / z, cam[21]), cam[22])
+            u = min(max(x / z, cams[c, 19]), cams[c, 20])
+            v = min(max(y / z, cams[c, 21]), cams[c, 22])
             # rows of J R (J = [[fx/z, 0, -fx u/z], [0, fy/z, -fy v/z]])
             j00, j02, j11, j12 = fx / z, -fx * u / z, fy / z, -fy * v / z
             ca = cb = cc = 0.0
             for k in range(3):  # column k of M = rot diag(s): A[:, k] = (J R) M[:, k]
                 sk = s0 if k == 0 else (s1 if k == 1 else s2)
-                w0 = (cam[0] * rot[k] + cam[1] * rot[3 + k] + cam[2] * rot[6 + k]) * sk
-                w1 = (cam[3] * rot[k] + cam[4] * rot[3 + k] + cam[5] * rot[6 + k]) * sk
-                w2 = (cam[6] * rot[k] + cam[7] * rot[3 + k] + cam[8] * rot[6 + k]) * sk
+                w0 = (cams[c, 0] * rot[k] + cams[c, 1] * rot[3 + k] + cams[c, 2] * rot[6 + k]) * sk
+                w1 = (cams[c, 3] * rot[k] + cams[c, 4] * rot[3 + k] + cams[c, 5] * rot[6 + k]) * sk
+                w2 = (cams[c, 6] * rot[k] + cams[c, 7] * rot[3 + k] + cams[c, 8] * rot[6 + k]) * sk
                 a0 = j00 * w0 + j02 * w2
                 a1 = j11 * w1 + j12 * w2
                 ca += a0 * a0
@@ -172,7 +171,7 @@ def project_fwd(means, quats, scales, opac, sh, valid, cams, V, width, height, n
                 for ch in range(3):
                     P[e, 6 + ch] = max(C0 * sh[b, n, 0, ch] + 0.5, 0.0)
             else:
-                d0, d1, d2 = m0 - cam[16], m1 - cam[17], m2 - cam[18]
+                d0, d1, d2 = m0 - cams[c, 16], m1 - cams[c, 17], m2 - cams[c, 18]
                 dn = max(math.sqrt(d0 * d0 + d1 * d1 + d2 * d2), 1e-12)
                 _sh_basis(d0 / dn, d1 / dn, d2 / dn, K, basis)
                 for ch in range(3):
@@ -183,9 +182,9 @@ def project_fwd(means, quats, scales, opac, sh, valid, cams, V, width, height, n
             P[e, 9] = z
             if normals:
                 k = 0 if (s0 <= s1 and s0 <= s2) else (1 if s1 <= s2 else 2)
-                nx = cam[0] * rot[k] + cam[1] * rot[3 + k] + cam[2] * rot[6 + k]
-                ny = cam[3] * rot[k] + cam[4] * rot[3 + k] + cam[5] * rot[6 + k]
-                nz = cam[6] * rot[k] + cam[7] * rot[3 + k] + cam[8] * rot[6 + k]
+                nx = cams[c, 0] * rot[k] + cams[c, 1] * rot[3 + k] + cams[c, 2] * rot[6 + k]
+                ny = cams[c, 3] * rot[k] + cams[c, 4] * rot[3 + k] + cams[c, 5] * rot[6 + k]
+                nz = cams[c, 6] * rot[k] + cams[c, 7] * rot[3 + k] + cams[c, 8] * rot[6 + k]
                 sgn = -1.0 if nx * x + ny * y + nz * z > 0 else 1.0
                 P[e, 10], P[e, 11], P[e, 12] = sgn * nx, sgn * ny, sgn * nz
 
@@ -228,21 +227,20 @@ def project_bwd(means, quats, scales, opac, sh, cams, V, ntiles, pstart, G,
                 for row in range(pstart[e], pstart[e] + ntiles[e]):
                     for d in range(QBASE + D):
                         g[d] += G[row, d]
-                cam = cams[c]
-                x = cam[0] * m0 + cam[1] * m1 + cam[2] * m2 + cam[9]
-                y = cam[3] * m0 + cam[4] * m1 + cam[5] * m2 + cam[10]
-                z = cam[6] * m0 + cam[7] * m1 + cam[8] * m2 + cam[11]
-                fx, fy = cam[12], cam[13]
+                    x = cams[c, 0] * m0 + cams[c, 1] * m1 + cams[c, 2] * m2 + cams[c, 9]
+                y = cams[c, 3] * m0 + cams[c, 4] * m1 + cams[c, 5] * m2 + cams[c, 10]
+                z = cams[c, 6] * m0 + cams[c, 7] * m1 + cams[c, 8] * m2 + cams[c, 11]
+                fx, fy = cams[c, 12], cams[c, 13]
                 xz, yz = x / z, y / z
-                u = min(max(xz, cam[19]), cam[20])
-                vv = min(max(yz, cam[21]), cam[22])
+                u = min(max(xz, cams[c, 19]), cams[c, 20])
+                vv = min(max(yz, cams[c, 21]), cams[c, 22])
                 j00, j02, j11, j12 = fx / z, -fx * u / z, fy / z, -fy * vv / z
                 # forward again: w_k = R rot[:, k] s_k, A = J [w_0 w_1 w_2]
                 ca = cb = cc = 0.0
                 for k in range(3):
-                    w0 = (cam[0] * rot[k] + cam[1] * rot[3 + k] + cam[2] * rot[6 + k]) * sc[k]
-                    w1 = (cam[3] * rot[k] + cam[4] * rot[3 + k] + cam[5] * rot[6 + k]) * sc[k]
-                    w2 = (cam[6] * rot[k] + cam[7] * rot[3 + k] + cam[8] * rot[6 + k]) * sc[k]
+                    w0 = (cams[c, 0] * rot[k] + cams[c, 1] * rot[3 + k] + cams[c, 2] * rot[6 + k]) * sc[k]
+                    w1 = (cams[c, 3] * rot[k] + cams[c, 4] * rot[3 + k] + cams[c, 5] * rot[6 + k]) * sc[k]
+                    w2 = (cams[c, 6] * rot[k] + cams[c, 7] * rot[3 + k] + cams[c, 8] * rot[6 + k]) * sc[k]
                     a0, a1 = j00 * w0 + j02 * w2, j11 * w1 + j12 * w2
                     ca += a0 * a0
                     cb += a0 * a1
@@ -258,9 +256,9 @@ def project_bwd(means, quats, scales, opac, sh, cams, V, ntiles, pstart, G,
                 h00, h01, h11 = -(t00 * qa + t01 * qb), -(t00 * qb + t01 * qc), -(t10 * qb + t11 * qc)
                 gj00 = gj02 = gj11 = gj12 = 0.0
                 for k in range(3):
-                    r0 = cam[0] * rot[k] + cam[1] * rot[3 + k] + cam[2] * rot[6 + k]
-                    r1 = cam[3] * rot[k] + cam[4] * rot[3 + k] + cam[5] * rot[6 + k]
-                    r2 = cam[6] * rot[k] + cam[7] * rot[3 + k] + cam[8] * rot[6 + k]
+                    r0 = cams[c, 0] * rot[k] + cams[c, 1] * rot[3 + k] + cams[c, 2] * rot[6 + k]
+                    r1 = cams[c, 3] * rot[k] + cams[c, 4] * rot[3 + k] + cams[c, 5] * rot[6 + k]
+                    r2 = cams[c, 6] * rot[k] + cams[c, 7] * rot[3 + k] + cams[c, 8] * rot[6 + k]
                     w0, w1, w2 = r0 * sc[k], r1 * sc[k], r2 * sc[k]
                     a0, a1 = j00 * w0 + j02 * w2, j11 * w1 + j12 * w2
                     ga0, ga1 = 2 * (h00 * a0 + h01 * a1), 2 * (h01 * a0 + h11 * a1)  # dL/dA = 2 H A
@@ -276,17 +274,17 @@ def project_bwd(means, quats, scales, opac, sh, cams, V, ntiles, pstart, G,
                     else:
                         gs2 += r0 * gw0 + r1 * gw1 + r2 * gw2
                     for i in range(3):  # d rot[i, k] += s_k (Rᵀ gw)_i
-                        grot[3 * i + k] += sc[k] * (cam[i] * gw0 + cam[3 + i] * gw1 + cam[6 + i] * gw2)
+                        grot[3 * i + k] += sc[k] * (cams[c, i] * gw0 + cams[c, 3 + i] * gw1 + cams[c, 6 + i] * gw2)
                 iz = 1.0 / z
                 gx = g[0] * fx * iz
                 gy = g[1] * fy * iz
                 gz = -(g[0] * fx * x + g[1] * fy * y) * iz * iz + g[9]
                 gz += -(gj00 * fx + gj11 * fy) * iz * iz + (gj02 * fx * u + gj12 * fy * vv) * iz * iz
                 gu, gv = -gj02 * fx * iz, -gj12 * fy * iz
-                if cam[19] <= xz <= cam[20]:
+                if cams[c, 19] <= xz <= cams[c, 20]:
                     gx += gu * iz
                     gz -= gu * x * iz * iz
-                if cam[21] <= yz <= cam[22]:
+                if cams[c, 21] <= yz <= cams[c, 22]:
                     gy += gv * iz
                     gz -= gv * y * iz * iz
                 go += g[5]
@@ -296,7 +294,7 @@ def project_bwd(means, quats, scales, opac, sh, cams, V, ntiles, pstart, G,
                         if C0 * sh[b, n, 0, ch] + 0.5 >= 0.0:
                             g_sh[b, n, 0, ch] += C0 * g[6 + ch]
                 else:
-                    d0, d1, d2 = m0 - cam[16], m1 - cam[17], m2 - cam[18]
+                    d0, d1, d2 = m0 - cams[c, 16], m1 - cams[c, 17], m2 - cams[c, 18]
                     dn = max(math.sqrt(d0 * d0 + d1 * d1 + d2 * d2), 1e-12)
                     d0, d1, d2 = d0 / dn, d1 / dn, d2 / dn
                     _sh_basis(d0, d1, d2, K, basis)
@@ -317,16 +315,16 @@ def project_bwd(means, quats, scales, opac, sh, cams, V, ntiles, pstart, G,
                     gm2 += (gd2 - d2 * dot) / dn
                 if D == 7:
                     k = 0 if (sc[0] <= sc[1] and sc[0] <= sc[2]) else (1 if sc[1] <= sc[2] else 2)
-                    nx = cam[0] * rot[k] + cam[1] * rot[3 + k] + cam[2] * rot[6 + k]
-                    ny = cam[3] * rot[k] + cam[4] * rot[3 + k] + cam[5] * rot[6 + k]
-                    nz = cam[6] * rot[k] + cam[7] * rot[3 + k] + cam[8] * rot[6 + k]
+                    nx = cams[c, 0] * rot[k] + cams[c, 1] * rot[3 + k] + cams[c, 2] * rot[6 + k]
+                    ny = cams[c, 3] * rot[k] + cams[c, 4] * rot[3 + k] + cams[c, 5] * rot[6 + k]
+                    nz = cams[c, 6] * rot[k] + cams[c, 7] * rot[3 + k] + cams[c, 8] * rot[6 + k]
                     sgn = -1.0 if nx * x + ny * y + nz * z > 0 else 1.0
                     for i in range(3):
-                        grot[3 * i + k] += sgn * (cam[i] * g[10] + cam[3 + i] * g[11] + cam[6 + i] * g[12])
+                        grot[3 * i + k] += sgn * (cams[c, i] * g[10] + cams[c, 3 + i] * g[11] + cams[c, 6 + i] * g[12])
                 # camera-frame point -> world mean: Rᵀ (gx, gy, gz)
-                gm0 += cam[0] * gx + cam[3] * gy + cam[6] * gz
-                gm1 += cam[1] * gx + cam[4] * gy + cam[7] * gz
-                gm2 += cam[2] * gx + cam[5] * gy + cam[8] * gz
+                gm0 += cams[c, 0] * gx + cams[c, 3] * gy + cams[c, 6] * gz
+                gm1 += cams[c, 1] * gx + cams[c, 4] * gy + cams[c, 7] * gz
+                gm2 += cams[c, 2] * gx + cams[c, 5] * gy + cams[c, 8] * gz
             g_means[b, n, 0], g_means[b, n, 1], g_means[b, n, 2] = gm0, gm1, gm2
             g_scales[b, n, 0], g_scales[b, n, 1], g_scales[b, n, 2] = gs0, gs1, gs2
             g_opac[b, n] = go

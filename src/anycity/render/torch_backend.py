@@ -84,7 +84,8 @@ def bin_gaussians(proj: Projected, tile: int, tiles_x: int, tiles_y: int):
     first_tile += y0 * tiles_x + x0
     starts = torch.cumsum(n_tiles, 0, dtype=torch.int32) - n_tiles
     pair_gauss = torch.repeat_interleave(by_depth, n_tiles)  # pairs in depth order
-    k = torch.arange(pair_gauss.numel(), dtype=torch.int32, device=vis.device) - torch.repeat_interleave(starts, n_tiles)
+    k = torch.arange(pair_gauss.numel(), dtype=torch.int32, device=vis.device)
+    k -= torch.repeat_interleave(starts, n_tiles)  # index of the pair within its Gaussian's tile box
     wg = torch.repeat_interleave(w, n_tiles)
     row = torch.div(k, wg, rounding_mode="floor")
     tile_id = torch.repeat_interleave(first_tile, n_tiles) + row * tiles_x + (k - row * wg)
@@ -205,7 +206,7 @@ class _Composite(torch.autograd.Function):
         suffix = gw.cumsum(-1).neg_().add_(gw.sum(-1, keepdim=True))  # S_k = Σ_{i>k} g_i w_i
         grad_sigma = suffix.div_(1 - alpha).sub_(gu).mul_(alpha_active)  # dL/d(σ - log o)
         grad_coeffs = torch.matmul(neg_monomials.t(), grad_sigma).neg_()  # M = -neg_monomials
-        grad_feats_t = torch.bmm(grad_out.transpose(1, 2), u.mul_(alpha))  # u is dead after this: reuse it as w
+        grad_feats_t = torch.bmm(grad_out.transpose(1, 2), u * alpha)  # saved tensors stay intact: w = u α
         return grad_coeffs, grad_feats_t, None
 
 
