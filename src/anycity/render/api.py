@@ -136,6 +136,13 @@ def render(
     if not isinstance(gaussians, Gaussians):
         raise ValueError(f"gaussians: expected anycity.structures.Gaussians, got {type(gaussians).__name__}")
     gaussians.validate()
+    if gaussians.means.dtype in (torch.float16, torch.bfloat16):
+        gaussians = gaussians.float()  # geometry and rendering stay float32 under mixed precision
+    with torch.autocast(device_type=gaussians.means.device.type, enabled=False):
+        return _render(gaussians, w2c, K, width, height, background, near, far, render_normals, backend)
+
+
+def _render(gaussians, w2c, K, width, height, background, near, far, render_normals, backend) -> RenderOutput:
     means = gaussians.means
     B = means.shape[0]
     for name, value in (("width", width), ("height", height)):
@@ -146,6 +153,7 @@ def render(
     _check_cameras("K", K, (B, V, 3, 3), "[B, V, 3, 3]", means)
     if K.shape[1] != V:
         raise ValueError(f"K: expected V={V} cameras like w2c, got shape {tuple(K.shape)}")
+    w2c, K = w2c.to(means.dtype), K.to(means.dtype)
     det = torch.linalg.det(w2c[..., :3, :3].double())
     if not bool((det.abs() > 1e-9).all()):
         raise ValueError("w2c: rotation block is singular (not an invertible camera); pass world-to-camera matrices")
@@ -168,6 +176,6 @@ def render(
     fn = _load(name)
     rgb, depth, alpha, normal = fn(
         means, gaussians.quats, gaussians.scales, gaussians.opacities, gaussians.sh, valid,
-        w2c.to(dtype), K.to(dtype), width, height, bg, float(near), float(far), render_normals,
+        w2c, K, width, height, bg, float(near), float(far), render_normals,
     )
     return RenderOutput(rgb=rgb, depth=depth, alpha=alpha, normal=normal)

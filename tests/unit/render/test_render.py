@@ -170,6 +170,18 @@ def test_float32_close_to_float64():
     torch.testing.assert_close(out.alpha.double(), ref.alpha, atol=2e-4, rtol=0)
 
 
+def test_float32_under_bf16_autocast_and_from_half_inputs():
+    g = make_gaussians(B=1, N=100, K=4, seed=23, dtype=torch.float32)
+    w2c, K = make_cameras(1, 1, 24, 20, dtype=torch.float32)
+    ref = render(g, w2c, K, 24, 20, backend="torch")
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        out = render(g, w2c, K, 24, 20, backend="torch")
+    assert out.rgb.dtype == torch.float32
+    torch.testing.assert_close(out.rgb, ref.rgb)
+    half = render(g.to(dtype=torch.bfloat16), w2c, K, 24, 20, backend="torch")
+    assert half.rgb.dtype == torch.float32
+
+
 def test_auto_backend_resolution():
     assert resolve_backend("torch", torch.device("cpu")) == "torch"
     assert resolve_backend("auto", torch.device("cpu"), torch.float64) == "torch"  # fused kernels are float32
