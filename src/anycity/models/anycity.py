@@ -1,0 +1,127 @@
+"""AnyCityNet: the composition root. Scaffold (VGGT + Gaussian head) and the Stage II completion branch."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import torch
+from torch import Tensor, nn
+
+from anycity.geometry.pose_encoding import pose_encoding_to_extri_intri
+from anycity.models.aggregator import Aggregator
+from anycity.models.completion import CompletionBranch
+from anycity.models.gaussians import pixel_centres, raw_to_gaussians
+from anycity.models.heads import CameraHead, DepthHead, GaussianHead
+from anycity.models.presets import NetConfig
+from anycity.models.video_prior import WanVideoPrior, build_video_prior
+
+SCAFFOLD_PREFIXES = ("aggregator.", "camera_head.", "depth_head.", "gaussian_head.")
+REFINEMENT_PREFIXES = ("completion.", "video_prior.")
+
+
+class AnyCityNet(nn.Module):
+    """``net(images [B, V, 3, H, W] in [0, 1], refine=True) -> dict``; H, W multiples of ``patch_size``.
+
+    Output keys (world frame = first camera, OpenCV, normalised scene units):
+        ``pose_enc [B, V, 9]`` (t, quat xyzw, fov_h, fov_w) and ``pose_enc_list`` (one per camera iteration);
+        ``w2c [B, V, 4, 4]``, ``K [B, V, 3, 3]`` (pixels of the input images);
+        ``depth [B, V, 1, H, W]`` (z-depth), ``depth_conf [B, V, 1, H, W]`` (>= 1);
+        ``pixel_means [B, V, H, W, 3]``: pixel-aligned Gaussian centres before any voxel merge;
+        ``scaffold_gaussians``: :class:`Gaussians` decoded from the geometry tokens alone;
+        ``gaussians``: final Gaussians (decoded from Z_geo + ΔZ; the same object as ``scaffold_gaussians`` when
+        ``refine=False`` or the net has no completion branch). N = V*H*W unless ``voxel_size`` merges, in which
+        case ``valid [B, N]`` masks padding;
+        ``raw_gaussians [B, V, C_raw, H, W]``: the final head output before activation;
+        ``delta``: list of ``[B, V, P, 2C]`` residuals ΔZ (one per Gaussian-head layer) or None;
+        ``gates``: list of ``[B, M, 1]`` video gates (one per injection layer) or None.
+    """
+
+    def __init__(self, cfg: NetConfig):
+        super().__init__()
+        self.cfg = cfg
+        self.head_layers = cfg.resolved_head_layers()
+        self.aggregator = Aggregator(cfg.img_size, cfg.patch_size, cfg.embed_dim, cfg.depth, cfg.num_heads,
+                                     num_register_tokens=cfg.num_register_tokens, patch_embed=cfg.patch_embed)
+        dim2 = 2 * cfg.embed_dim
+        dpt = dict(patch_size=cfg.patch_size, features=cfg.dpt_features, out_channels=cfg.dpt_out_channels,
+                   layers=self.head_layers)
+        self.camera_head = CameraHead(dim2, cfg.camera_trunk_depth, cfg.camera_num_heads)
+        self.depth_head = DepthHead(dim2, **dpt)
+        self.gaussian_head = GaussianHead(dim2, sh_degree=cfg.sh_degree, **dpt)
+        self.video_prior = None
+        self.completion = None
+        if cfg.completion:
+            self.video_prior = build_video_prior(
+                cfg.video_prior, cfg.prior_dim, cfg.prior_depth, max(1, cfg.prior_dim // 64), cfg.prior_stride,
+                wan_dir=cfg.wan_dir, **({"block": cfg.wan_block, "t_feat": cfg.wan_t_feat}
+                                        if cfg.video_prior.startswith("wan") else {}))
+            if isinstance(self.video_prior, WanVideoPrior) and cfg.wan_lora_rank > 0:
+                self.video_prior.add_lora(cfg.wan_lora_rank)
+            self.completion = CompletionBranch(
+                dim2, cfg.completion_dim, cfg.completion_tokens, cfg.completion_heads, cfg.resolved_inject_layers(),
+                self.head_layers, self.video_prior.out_dim if self.video_prior is not None else None)
+
+    # -- parameter groups ------------------------------------------------------------------------------------
+    def scaffold_parameters(self) -> Iterator[nn.Parameter]:
+        """Stage I parameters: ``aggregator.*``, ``camera_head.*``, ``depth_head.*``, ``gaussian_head.*``."""
+        return (p for n, p in self.named_parameters() if n.startswith(SCAFFOLD_PREFIXES))
+
+    def refinement_parameters(self) -> Iterator[nn.Parameter]:
+        """Stage II trainables: ``completion.*`` and the prior's trainable params (LoRA ``lora_`` only for Wan)."""
+        return (p for n, p in self.named_parameters() if n.startswith(REFINEMENT_PREFIXES) and p.requires_grad)
+
+    def freeze_scaffold(self, frozen: bool = True) -> None:
+        for p in self.scaffold_parameters():
+            p.requires_grad_(not frozen)
+
+    def set_gradient_checkpointing(self, enabled: bool = True) -> None:
+        self.aggregator.gradient_checkpointing = enabled
+        if hasattr(self.aggregator.patch_embed, "gradient_checkpointing"):
+            self.aggregator.patch_embed.gradient_checkpointing = enabled
+        if isinstance(self.video_prior, WanVideoPrior):
+            tr = self.video_prior.transformer
+            tr.enable_gradient_checkpointing() if enabled else tr.disable_gradient_checkpointing()
+
+    # -- forward ---------------------------------------------------------------------------------------------
+    def check_images(self, images: Tensor) -> None:
+        p = self.cfg.patch_size
+        if not isinstance(images, Tensor) or images.dim() != 5 or images.shape[2] != 3:
+            got = tuple(images.shape) if isinstance(images, Tensor) else type(images).__name__
+            raise ValueError(f"images: expected [B, V, 3, H, W] float in [0, 1], got {got}; add the batch/view "
+                             "dims with images[None] or stack views on dim 1")
+        b, v, _, h, w = images.shape
+        if b == 0 or v == 0:
+            raise ValueError(f"images: expected at least 1 sample and 1 view, got B={b}, V={v}")
+        if h == 0 or w == 0 or h % p or w % p:
+            raise ValueError(f"images: H and W must be positive multiples of the patch size {p} (e.g. {8 * p}x"
+                             f"{14 * p}), got {h}x{w}; resize or crop the views to a multiple of {p}")
+        if not images.is_floating_point():
+            raise ValueError(f"images: expected a float tensor in [0, 1], got {images.dtype}; divide uint8 by 255")
+
+    def forward(self, images: Tensor, refine: bool = True) -> dict:
+        self.check_images(images)
+        h, w = images.shape[-2:]
+        psi = self.aggregator.patch_start_idx
+        layers = set(self.head_layers) | {self.cfg.depth - 1}
+        refine = refine and self.completion is not None
+        if refine:
+            layers |= set(self.completion.inject_layers)
+        tokens = self.aggregator(images, keep=layers)
+        with torch.autocast(images.device.type, enabled=False):  # heads and geometry in float32
+            tokens = [None if t is None else t.float() for t in tokens]
+            images = images.float()
+            pose_enc_list = self.camera_head(tokens, self.cfg.camera_iterations)
+            w2c, K = pose_encoding_to_extri_intri(pose_enc_list[-1], (h, w))
+            depth, depth_conf = self.depth_head(tokens, images, psi)
+            means = pixel_centres(depth, K, w2c)
+            raw = self.gaussian_head(tokens, images, psi)
+            scaffold = raw_to_gaussians(raw, means, self.cfg.sh_degree, self.cfg.voxel_size)
+            gaussians, delta, gates = scaffold, None, None
+            if refine:
+                vid = self.video_prior(images) if self.video_prior is not None else None
+                delta, gates = self.completion(tokens, psi, vid)
+                raw = self.gaussian_head(tokens, images, psi, delta=delta)
+                gaussians = raw_to_gaussians(raw, means, self.cfg.sh_degree, self.cfg.voxel_size)
+        return {"pose_enc": pose_enc_list[-1], "pose_enc_list": pose_enc_list, "w2c": w2c, "K": K, "depth": depth,
+                "depth_conf": depth_conf, "pixel_means": means, "gaussians": gaussians,
+                "scaffold_gaussians": scaffold, "raw_gaussians": raw, "delta": delta, "gates": gates}

@@ -1,0 +1,69 @@
+"""Aerial completion branch (Stage II): M learned tokens that read the geometry and the video prior and
+write a zero-initialised residual ΔZ into the geometry tokens the Gaussian head reads.
+
+At each injection layer l (paper {4, 7, 11, 23} of 24):
+``Z~ = Z + CrossAttn(Z, Z_geo^l)``; ``g = sigmoid(h(Z~))`` per token; ``Z = Z~ + g * CrossAttn(Z~, P_vid(F_vid))``;
+``Z = Z + FFN(Z)``. Then ``P_Δ``: for each head layer j the patch tokens of ``Z_geo^j`` query the completion
+tokens and a zero-initialised linear maps the result to the token width, so ``Z_final = Z_geo + ΔZ`` equals
+``Z_geo`` at initialisation (Stage II starts exactly at the scaffold).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from anycity.models.layers import CrossAttention, Mlp
+
+
+def scale_layers(layers: tuple[int, ...], depth: int, ref_depth: int = 24) -> tuple[int, ...]:
+    """Map layer indices of a ``ref_depth`` network to a ``depth`` one (same relative position), unique, sorted."""
+    return tuple(sorted({min(depth - 1, max(0, round((l + 1) * depth / ref_depth) - 1)) for l in layers}))
+
+
+class CompletionBranch(nn.Module):
+    """Args: geo_dim (2C of the aggregator), dim, num_tokens M, inject_layers, head_layers (those the Gaussian
+    head reads), video_dim (None: no video cross-attention)."""
+
+    def __init__(self, geo_dim: int, dim: int, num_tokens: int, num_heads: int, inject_layers: tuple[int, ...],
+                 head_layers: tuple[int, ...], video_dim: int | None = None):
+        super().__init__()
+        self.inject_layers, self.head_layers = tuple(inject_layers), tuple(head_layers)
+        self.tokens = nn.Parameter(torch.randn(1, num_tokens, dim) * 0.02)
+        n = len(self.inject_layers)
+        self.geo_attn = nn.ModuleList(CrossAttention(dim, geo_dim, dim, num_heads) for _ in range(n))
+        self.p_vid = nn.Linear(video_dim, dim) if video_dim else None
+        self.vid_attn = nn.ModuleList(CrossAttention(dim, dim, dim, num_heads) for _ in range(n)) if video_dim else None
+        self.gate = nn.ModuleList(nn.Linear(dim, 1) for _ in range(n)) if video_dim else None
+        self.ffn_norm = nn.ModuleList(nn.LayerNorm(dim) for _ in range(n))
+        self.ffn = nn.ModuleList(Mlp(dim, 2 * dim) for _ in range(n))
+        self.delta_attn = nn.ModuleList(CrossAttention(geo_dim, dim, dim, num_heads) for _ in self.head_layers)
+        self.delta_proj = nn.ModuleList(nn.Linear(dim, geo_dim) for _ in self.head_layers)
+        for lin in self.delta_proj:
+            nn.init.zeros_(lin.weight)
+            nn.init.zeros_(lin.bias)
+
+    def forward(self, tokens_list: list[Tensor | None], patch_start_idx: int,
+                video_tokens: Tensor | None = None) -> tuple[list[Tensor], list[Tensor] | None]:
+        """``tokens_list``: aggregator outputs ``[B, V, T, 2C]``; ``video_tokens [B, L, D_vid]`` or None.
+
+        Returns ``delta``: one ``[B, V, P, 2C]`` residual per head layer (P patch tokens), and ``gates``: one
+        ``[B, M, 1]`` per injection layer (None without video).
+        """
+        b = tokens_list[self.head_layers[0]].shape[0]
+        z = self.tokens.expand(b, -1, -1)
+        vid = self.p_vid(video_tokens) if (self.p_vid is not None and video_tokens is not None) else None
+        gates = [] if vid is not None else None
+        for i, layer in enumerate(self.inject_layers):
+            z = z + self.geo_attn[i](z, tokens_list[layer].flatten(1, 2))
+            if vid is not None:
+                g = torch.sigmoid(self.gate[i](z))
+                z = z + g * self.vid_attn[i](z, vid)
+                gates.append(g)
+            z = z + self.ffn[i](self.ffn_norm[i](z))
+        delta = []
+        for j, layer in enumerate(self.head_layers):
+            patches = tokens_list[layer][:, :, patch_start_idx:]
+            q = patches.flatten(1, 2)
+            delta.append(self.delta_proj[j](self.delta_attn[j](q, z)).view_as(patches))
+        return delta, gates

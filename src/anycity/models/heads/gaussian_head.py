@@ -1,0 +1,37 @@
+"""Gaussian parameter head (AnySplat ``VGGT_DPT_GS_Head``): a DPT plus an image-feature merger.
+
+The fused DPT features are resized to the full image, the merger's features of the raw [0, 1] image
+(7x7 conv + ReLU) are added, then the UV embedding and ``output_conv2`` give raw per-pixel channels
+``[B, V, C_raw, H, W]`` with the layout of :data:`anycity.models.gaussians` (opacity logit, 3 scale,
+4 quaternion xyzw, 3*K SH, merge confidence). No activation here. Names follow AnySplat's
+``gaussian_param_head`` (we call it ``gaussian_head``). ``delta`` (Stage II) is added to the patch tokens
+of each read layer before the head's LayerNorm.
+"""
+
+from __future__ import annotations
+
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from anycity.models.heads.dpt import DPTHead
+
+
+def raw_gaussian_channels(sh_degree: int) -> int:
+    """Opacity 1 + scale 3 + quaternion 4 + SH 3*(d+1)^2 + confidence 1."""
+    return 1 + 3 + 4 + 3 * (sh_degree + 1) ** 2 + 1
+
+
+class GaussianHead(DPTHead):
+    def __init__(self, dim_in: int, sh_degree: int = 4, features: int = 256, hidden: int | None = None, **kwargs):
+        output_dim = raw_gaussian_channels(sh_degree)
+        merged = features // 2
+        hidden = hidden or (merged if output_dim > 50 else 32)  # AnySplat: 128 for SH degree 4, else 32
+        super().__init__(dim_in, output_dim=output_dim, features=features, hidden=hidden, **kwargs)
+        self.sh_degree = sh_degree
+        self.input_merger = nn.Sequential(nn.Conv2d(3, merged, 7, 1, 3), nn.ReLU())
+
+    def decode(self, feats: Tensor, images: Tensor) -> Tensor:
+        h, w = images.shape[-2:]
+        out = F.interpolate(feats, size=(h, w), mode="bilinear", align_corners=True)
+        out = out + self.input_merger(images.flatten(0, 1))
+        return self.scratch.output_conv2(self._add_pos(out, w / h))

@@ -1,0 +1,93 @@
+"""Network sizes. ``build_network(preset, **overrides)`` is the public entry point.
+
+* ``tiny``: CPU tests and the quickstart (conv patch 8 so 64x64 and 112x112 work, 4 layer pairs, 1.58M params).
+* ``small``: a laptop-GPU model (conv patch 14, 8 pairs of 256-d blocks).
+* ``base``: DINOv2-B/14 patch embed, 12 pairs of 768-d blocks.
+* ``vggt-1b``: VGGT-1B exactly (aggregator 909.1M, camera head 216.2M, depth head 32.7M) + AnySplat's Gaussian
+  head (SH degree 4) + the completion branch. Its video prior defaults to the small built-in one; pass
+  ``video_prior="wan", wan_dir=...`` for Wan 2.2 (the paper's prior).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields, replace
+
+from anycity.models.completion import scale_layers
+
+VGGT_HEAD_LAYERS = (4, 11, 17, 23)
+PAPER_INJECT_LAYERS = (4, 7, 11, 23)
+
+
+@dataclass(frozen=True)
+class NetConfig:
+    # aggregator
+    embed_dim: int = 1024
+    depth: int = 24
+    num_heads: int = 16
+    patch_size: int = 14
+    patch_embed: str = "dinov2_vitl14_reg"
+    img_size: int = 518
+    num_register_tokens: int = 4
+    # heads
+    head_layers: tuple[int, ...] | None = None  # None: VGGT's (4, 11, 17, 23) scaled to depth
+    camera_trunk_depth: int = 4
+    camera_num_heads: int = 16
+    camera_iterations: int = 4
+    dpt_features: int = 256
+    dpt_out_channels: tuple[int, ...] = (256, 512, 1024, 1024)
+    sh_degree: int = 4
+    voxel_size: float | None = None  # None: pixel-aligned Gaussians, no merge
+    # completion branch + video prior
+    completion: bool = True
+    completion_dim: int = 1024
+    completion_tokens: int = 256
+    completion_heads: int = 16
+    inject_layers: tuple[int, ...] | None = None  # None: the paper's (4, 7, 11, 23) scaled to depth
+    video_prior: str = "small"  # small | wan | wan-tiny | none
+    prior_dim: int = 256
+    prior_depth: int = 2
+    prior_stride: int = 16
+    wan_dir: str | None = None
+    wan_block: int = 0
+    wan_t_feat: float = 0.0
+    wan_lora_rank: int = 16
+
+    def resolved_head_layers(self) -> tuple[int, ...]:
+        return tuple(self.head_layers) if self.head_layers else scale_layers(VGGT_HEAD_LAYERS, self.depth)
+
+    def resolved_inject_layers(self) -> tuple[int, ...]:
+        return tuple(self.inject_layers) if self.inject_layers else scale_layers(PAPER_INJECT_LAYERS, self.depth)
+
+
+PRESETS: dict[str, NetConfig] = {
+    "tiny": NetConfig(embed_dim=64, depth=4, num_heads=4, patch_size=8, patch_embed="conv", camera_trunk_depth=1,
+                      camera_num_heads=4, dpt_features=32, dpt_out_channels=(16, 32, 64, 64), sh_degree=1,
+                      completion_dim=64, completion_tokens=16, completion_heads=4, prior_dim=64, prior_depth=1),
+    "small": NetConfig(embed_dim=256, depth=8, num_heads=8, patch_size=14, patch_embed="conv", camera_trunk_depth=2,
+                       camera_num_heads=8, dpt_features=128, dpt_out_channels=(64, 128, 256, 256), sh_degree=2,
+                       completion_dim=256, completion_tokens=64, completion_heads=8, prior_dim=128),
+    "base": NetConfig(embed_dim=768, depth=12, num_heads=12, patch_embed="dinov2_vitb14_reg", camera_trunk_depth=2,
+                      camera_num_heads=12, dpt_features=256, dpt_out_channels=(128, 256, 512, 512), sh_degree=3,
+                      completion_dim=512, completion_tokens=128, completion_heads=8, prior_dim=256),
+    "vggt-1b": NetConfig(),
+}
+
+
+def preset_config(preset: str, **overrides) -> NetConfig:
+    if preset not in PRESETS:
+        raise ValueError(f"preset: expected one of {sorted(PRESETS)}, got {preset!r}")
+    names = {f.name for f in fields(NetConfig)}
+    unknown = sorted(set(overrides) - names)
+    if unknown:
+        raise ValueError(f"build_network: unknown option(s) {unknown}; valid options are {sorted(names)}")
+    return replace(PRESETS[preset], **overrides)
+
+
+def build_network(preset: str = "tiny", **overrides):
+    """``build_network("tiny", sh_degree=0)`` -> :class:`anycity.models.anycity.AnyCityNet`."""
+    from anycity.models.anycity import AnyCityNet
+
+    return AnyCityNet(preset_config(preset, **overrides))
+
+
+__all__ = ["NetConfig", "PRESETS", "build_network", "preset_config"]

@@ -1,0 +1,227 @@
+"""Video priors: turn the V context views into feature tokens ``[B, L, D]`` for the completion branch.
+
+``VideoPrior`` is the protocol (an ``nn.Module`` with ``out_dim`` and ``forward(images [B, V, 3, H, W] in
+[0, 1]) -> [B, L, out_dim]``). Two implementations:
+
+* :class:`SmallVideoPrior`: a light conv stem + spatio-temporal transformer, trained from scratch; used by the
+  tiny/small presets and CPU training.
+* :class:`WanVideoPrior`: a frozen Wan 2.x diffusion backbone from diffusers (``AutoencoderKLWan`` +
+  ``WanTransformer3DModel`` cut after block ``k``). Each view is encoded as its own single-frame clip (the
+  causal VAE would drop frames 1-3 of a 4-frame clip), latents are stacked as V frames, the transformer runs
+  at timestep ``t_feat * 1000`` (default 0, clean) with an empty-text embedding (from a file, else zeros) and
+  the hidden states of block ``k`` are taken by a forward hook. LoRA (peft) on ``attn1`` q/k/v/out is the
+  only trainable part. Weights load from a local diffusers folder only (``HF_HUB_OFFLINE=1``).
+
+This is the only module under ``anycity`` that imports diffusers (lazily).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+from typing import Protocol, runtime_checkable
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from anycity.models.layers import Block
+
+LORA_TARGETS = ("attn1.to_q", "attn1.to_k", "attn1.to_v", "attn1.to_out.0")
+
+
+@runtime_checkable
+class VideoPrior(Protocol):
+    out_dim: int
+
+    def __call__(self, images: Tensor) -> Tensor: ...
+
+
+def _frame_embedding(v: int, dim: int, device) -> Tensor:
+    """``[v, dim]`` sin-cos embedding of the view index (the 'time' axis of the clip)."""
+    freqs = torch.exp(-math.log(10000.0) * torch.arange(dim // 2, device=device) / max(dim // 2, 1))
+    ang = torch.arange(v, device=device)[:, None] * freqs
+    return torch.cat([ang.sin(), ang.cos()], dim=-1)
+
+
+class SmallVideoPrior(nn.Module):
+    """Conv stem (stride ``stride``) + ``depth`` transformer blocks over all views' tokens.
+
+    ``[B, V, 3, H, W] -> [B, V * (H/stride) * (W/stride), dim]``.
+    """
+
+    def __init__(self, dim: int = 64, depth: int = 1, num_heads: int = 4, stride: int = 16):
+        super().__init__()
+        if stride not in (4, 8, 16, 32):
+            raise ValueError(f"SmallVideoPrior: stride must be 4, 8, 16 or 32, got {stride}")
+        self.out_dim, self.stride = dim, stride
+        self.stem = nn.Sequential(nn.Conv2d(3, dim // 2, 4, 4), nn.GELU(),
+                                  nn.Conv2d(dim // 2, dim, stride // 4, stride // 4))
+        self.blocks = nn.ModuleList(Block(dim, num_heads, init_values=0.1) for _ in range(depth))
+        self.norm = nn.LayerNorm(dim)
+
+    def forward(self, images: Tensor) -> Tensor:
+        b, v, _, h, w = images.shape
+        if h < self.stride or w < self.stride:
+            raise ValueError(f"SmallVideoPrior: images must be at least {self.stride} px, got {h}x{w}")
+        x = self.stem(images.flatten(0, 1) * 2 - 1)  # [B*V, D, h, w]
+        x = x.flatten(2).transpose(1, 2).unflatten(0, (b, v))  # [B, V, h*w, D]
+        x = (x + _frame_embedding(v, self.out_dim, x.device)[None, :, None].to(x.dtype)).flatten(1, 2)
+        for blk in self.blocks:
+            x = blk(x)
+        return self.norm(x)
+
+
+def _diffusers():
+    os.environ.setdefault("HF_HUB_OFFLINE", "1")  # read at import time: set before diffusers loads the hub
+    import diffusers
+
+    return diffusers
+
+
+class WanVideoPrior(nn.Module):
+    """Frozen Wan VAE + transformer (truncated after ``block``) with optional LoRA; see the module docstring.
+
+    Args:
+        vae: an ``AutoencoderKLWan``; transformer: a ``WanTransformer3DModel`` (both frozen here).
+        block: index of the transformer block whose output is returned; later blocks are dropped.
+        t_feat: noise level s in [0, 1]; latents become ``(1-s) z + s eps`` and the timestep ``1000 s``.
+        empty_prompt: ``[1, L, text_dim]`` text embedding of "" (zeros ``[1, 1, text_dim]`` if None).
+    """
+
+    def __init__(self, vae: nn.Module, transformer: nn.Module, block: int = 0, t_feat: float = 0.0,
+                 empty_prompt: Tensor | None = None):
+        super().__init__()
+        n = len(transformer.blocks)
+        if not 0 <= block < n:
+            raise ValueError(f"WanVideoPrior: block must be in [0, {n - 1}] for this transformer, got {block}")
+        if not 0.0 <= t_feat <= 1.0:
+            raise ValueError(f"WanVideoPrior: t_feat is a noise level in [0, 1], got {t_feat}")
+        transformer.blocks = nn.ModuleList(list(transformer.blocks)[: block + 1])
+        self.vae, self.transformer = vae.requires_grad_(False), transformer.requires_grad_(False)
+        self.t_feat = t_feat
+        cfg = transformer.config
+        self.out_dim = cfg.num_attention_heads * cfg.attention_head_dim
+        self.stride = (vae.config.scale_factor_spatial or 8) * cfg.patch_size[1]
+        text = empty_prompt if empty_prompt is not None else torch.zeros(1, 1, cfg.text_dim)
+        self.register_buffer("empty_prompt", text.float(), persistent=False)
+        self._feat: Tensor | None = None
+        self.transformer.blocks[block].register_forward_hook(self._grab)
+
+    def _grab(self, module, args, output) -> None:
+        self._feat = output
+
+    @classmethod
+    def from_pretrained(cls, root: str | Path, subfolder: str = "transformer", vae_subfolder: str = "vae",
+                        dtype: torch.dtype = torch.bfloat16, empty_prompt_path: str | Path | None = None,
+                        **kwargs) -> WanVideoPrior:
+        """Load from a local Diffusers-format folder (e.g. ``Wan2.2-TI2V-5B-Diffusers``); never downloads."""
+        root = Path(root)
+        for sub in (subfolder, vae_subfolder):
+            if not (root / sub / "config.json").is_file():
+                raise FileNotFoundError(f"Wan weights: {root / sub / 'config.json'} not found; point wan_dir at a "
+                                        "local Diffusers-format Wan folder (with transformer/ and vae/)")
+        d = _diffusers()
+        tr = d.WanTransformer3DModel.from_pretrained(root, subfolder=subfolder, dtype=dtype, local_files_only=True)
+        vae = d.AutoencoderKLWan.from_pretrained(root, subfolder=vae_subfolder, dtype=torch.float32,
+                                                 local_files_only=True)
+        prompt = None
+        if empty_prompt_path is not None:
+            if not Path(empty_prompt_path).is_file():
+                raise FileNotFoundError(f"empty_prompt_path: {empty_prompt_path} not found; precompute the umT5 "
+                                        "embedding of '' as a [1, L, text_dim] tensor or pass None for zeros")
+            prompt = torch.load(empty_prompt_path, map_location="cpu", weights_only=True)
+        return cls(vae, tr, empty_prompt=prompt, **kwargs)
+
+    @classmethod
+    def tiny_random(cls, z_dim: int = 16, block: int = 1, **kwargs) -> WanVideoPrior:
+        """Random tiny Wan 2.2-style VAE (~0.2M) + transformer (~40k) for tests; no weights needed."""
+        d = _diffusers()
+        vae = d.AutoencoderKLWan(base_dim=8, decoder_base_dim=8, z_dim=z_dim, in_channels=12, out_channels=12,
+                                 is_residual=True, patch_size=2, dim_mult=[1, 2, 2, 2], num_res_blocks=1,
+                                 temperal_downsample=[False, True, True], scale_factor_spatial=16,
+                                 scale_factor_temporal=4, latents_mean=[0.0] * z_dim, latents_std=[1.0] * z_dim)
+        tr = d.WanTransformer3DModel(patch_size=(1, 2, 2), num_attention_heads=2, attention_head_dim=12,
+                                     in_channels=z_dim, out_channels=z_dim, text_dim=32, freq_dim=32, ffn_dim=48,
+                                     num_layers=4, cross_attn_norm=True, qk_norm="rms_norm_across_heads",
+                                     rope_max_seq_len=32)
+        return cls(vae, tr, block=block, **kwargs)
+
+    # LoRA --------------------------------------------------------------------------------------------------
+    def add_lora(self, rank: int = 16, alpha: float | None = None, targets: tuple[str, ...] = LORA_TARGETS) -> None:
+        """Inject LoRA into the kept blocks' ``targets`` (fp32 adapters); only ``lora_`` params train."""
+        from peft import LoraConfig
+
+        self.transformer.add_adapter(LoraConfig(r=rank, lora_alpha=alpha or rank, target_modules=list(targets)))
+        for name, p in self.transformer.named_parameters():
+            p.requires_grad_("lora_" in name)
+            if "lora_" in name:
+                p.data = p.data.float()
+
+    def lora_state_dict(self) -> dict[str, Tensor]:
+        from peft.utils import get_peft_model_state_dict
+
+        sd = get_peft_model_state_dict(self.transformer)
+        if not sd:
+            raise ValueError("WanVideoPrior: no LoRA adapter to save; call add_lora() first")
+        return sd
+
+    def save_lora(self, path: str | Path) -> None:
+        from safetensors.torch import save_file
+
+        save_file({k: v.detach().contiguous().cpu() for k, v in self.lora_state_dict().items()}, str(path))
+
+    def load_lora(self, path: str | Path) -> None:
+        from peft.utils import set_peft_model_state_dict
+        from safetensors.torch import load_file
+
+        if not Path(path).is_file():
+            raise FileNotFoundError(f"LoRA weights: {path} not found; save them with save_lora() first")
+        self.lora_state_dict()  # raises if no adapter was injected
+        result = set_peft_model_state_dict(self.transformer, load_file(str(path)))
+        if getattr(result, "unexpected_keys", None):
+            raise ValueError(f"LoRA weights {path}: unexpected keys {result.unexpected_keys[:3]}...; "
+                             "was it saved with the same rank and targets?")
+
+    # forward -----------------------------------------------------------------------------------------------
+    def forward(self, images: Tensor) -> Tensor:
+        """``[B, V, 3, H, W]`` in [0, 1] -> ``[B, V * (H'/s) * (W'/s), out_dim]`` (H', W' rounded to the stride s)."""
+        b, v, _, h, w = images.shape
+        s = self.stride
+        size = (max(s, round(h / s) * s), max(s, round(w / s) * s))
+        x = images.flatten(0, 1)
+        if (h, w) != size:
+            x = F.interpolate(x, size=size, mode="bilinear", antialias=True, align_corners=False)
+        x = (x * 2 - 1)[:, :, None].to(next(self.vae.parameters()).dtype)  # [B*V, 3, 1, H, W]
+        with torch.no_grad():
+            z = self.vae.encode(x).latent_dist.mode()
+            cfg = self.vae.config
+            mean = torch.tensor(cfg.latents_mean, device=z.device, dtype=z.dtype).view(1, -1, 1, 1, 1)
+            std = torch.tensor(cfg.latents_std, device=z.device, dtype=z.dtype).view(1, -1, 1, 1, 1)
+            z = ((z - mean) / std)[:, :, 0].unflatten(0, (b, v)).transpose(1, 2)  # [B, z, V, h, w]
+            if self.t_feat > 0:
+                z = (1 - self.t_feat) * z + self.t_feat * torch.randn_like(z)
+        dtype = self.transformer.dtype
+        t = torch.full((b,), self.t_feat * 1000.0, device=z.device)
+        text = self.empty_prompt.to(device=z.device, dtype=dtype).expand(b, -1, -1)
+        self._feat = None
+        self.transformer(hidden_states=z.to(dtype), timestep=t, encoder_hidden_states=text, return_dict=False)
+        feat, self._feat = self._feat, None
+        return feat.float()
+
+
+def build_video_prior(kind: str, dim: int = 64, depth: int = 1, num_heads: int = 4, stride: int = 16,
+                      wan_dir: str | None = None, **wan_kwargs) -> nn.Module | None:
+    """``kind``: ``"small"`` (built-in), ``"wan"`` (needs ``wan_dir``), ``"wan-tiny"`` (random, tests) or ``"none"``."""
+    if kind == "none":
+        return None
+    if kind == "small":
+        return SmallVideoPrior(dim, depth, num_heads, stride)
+    if kind == "wan":
+        if not wan_dir:
+            raise ValueError("video_prior='wan' needs wan_dir=<local Diffusers Wan folder>; or use 'small'")
+        return WanVideoPrior.from_pretrained(wan_dir, **wan_kwargs)
+    if kind == "wan-tiny":
+        return WanVideoPrior.tiny_random(**wan_kwargs)
+    raise ValueError(f"video_prior: expected 'small', 'wan', 'wan-tiny' or 'none', got {kind!r}")

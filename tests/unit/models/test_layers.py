@@ -1,0 +1,72 @@
+import math
+
+import pytest
+import torch
+
+from anycity.geometry import make_intrinsics
+from anycity.geometry.pose_encoding import extri_intri_to_pose_encoding, pose_encoding_to_extri_intri
+from anycity.geometry.rotations import quat_to_rotmat
+from anycity.models.layers import DinoViT, RoPE2D, patch_positions
+
+
+def test_rope_scores_depend_only_on_relative_position():
+    torch.manual_seed(0)
+    rope = RoPE2D(100.0)
+    q, k = torch.randn(1, 2, 1, 16), torch.randn(1, 2, 1, 16)
+
+    def score(pq, pk):
+        rq = rope(q, torch.tensor([[pq]]))
+        rk = rope(k, torch.tensor([[pk]]))
+        return (rq * rk).sum(-1)
+
+    base = score((3, 5), (1, 2))
+    assert torch.allclose(score((13, 25), (11, 22)), base, atol=1e-5)  # same offset (2, 3)
+    assert not torch.allclose(score((3, 5), (1, 7)), base, atol=1e-3)  # different offset
+
+
+def test_rope_is_a_rotation_and_identity_at_origin():
+    rope = RoPE2D(100.0)
+    x = torch.randn(2, 4, 6, 32)
+    pos = torch.randint(0, 20, (2, 6, 2))
+    assert torch.allclose(rope(x, pos).norm(dim=-1), x.norm(dim=-1), atol=1e-5)
+    assert torch.allclose(rope(x, torch.zeros_like(pos)), x)
+    # y rotates the first half only, x the second half only
+    moved = rope(x, torch.stack([pos[..., 0], torch.zeros_like(pos[..., 1])], -1))
+    assert torch.allclose(moved[..., 16:], x[..., 16:])
+
+
+def test_patch_positions_layout():
+    pos = patch_positions(2, 3, 4, num_special=5)
+    assert pos.shape == (2, 5 + 12, 2)
+    assert (pos[:, :5] == 0).all()
+    assert pos[0, 5].tolist() == [1, 1] and pos[0, 5 + 4].tolist() == [2, 1] and pos[0, -1].tolist() == [3, 4]
+
+
+def test_vit_interpolates_position_embedding_to_any_grid():
+    vit = DinoViT(img_size=56, patch_size=14, embed_dim=32, depth=1, num_heads=2).eval()
+    assert vit(torch.rand(2, 3, 28, 70)).shape == (2, 2 * 5, 32)
+    assert vit(torch.rand(1, 3, 56, 56)).shape == (1, 16, 32)
+
+
+def test_pose_encoding_round_trip():
+    torch.manual_seed(0)
+    q = torch.nn.functional.normalize(torch.randn(2, 3, 4), dim=-1)
+    w2c = torch.eye(4).repeat(2, 3, 1, 1)
+    w2c[..., :3, :3] = quat_to_rotmat(q)
+    w2c[..., :3, 3] = torch.randn(2, 3, 3)
+    K = make_intrinsics(torch.full((2, 3), 100.0), torch.full((2, 3), 90.0), 64.0, 48.0)
+    enc = extri_intri_to_pose_encoding(w2c, K, (96, 128))
+    assert enc.shape == (2, 3, 9)
+    assert torch.allclose(enc[..., 7], 2 * torch.atan(torch.tensor(48 / 90.0)))
+    w2c2, K2 = pose_encoding_to_extri_intri(enc, (96, 128))
+    assert torch.allclose(w2c2, w2c, atol=1e-5) and torch.allclose(K2, K, atol=1e-4)
+    # xyzw order: identity rotation is (0, 0, 0, 1)
+    ident = extri_intri_to_pose_encoding(torch.eye(4)[None], K[0, :1], (96, 128))
+    assert torch.allclose(ident[0, 3:7], torch.tensor([0.0, 0, 0, 1]))
+    # unnormalised quaternions are accepted (the camera head does not normalise them)
+    enc2 = enc.clone()
+    enc2[..., 3:7] *= 3.0
+    assert torch.allclose(pose_encoding_to_extri_intri(enc2, (96, 128))[0], w2c, atol=1e-5)
+    with pytest.raises(ValueError, match="last dim 9"):
+        pose_encoding_to_extri_intri(enc[..., :8], (96, 128))
+    assert math.isclose(float(K2[0, 0, 0, 2]), 64.0)

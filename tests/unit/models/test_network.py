@@ -1,0 +1,125 @@
+from dataclasses import fields
+
+import pytest
+import torch
+
+from anycity.models import build_network
+from anycity.models.completion import scale_layers
+from anycity.structures import Gaussians
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    torch.manual_seed(0)
+    return build_network("tiny")
+
+
+def test_tiny_output_contract(tiny):
+    b, v, h, w = 2, 3, 64, 48
+    out = tiny(torch.rand(b, v, 3, h, w))
+    assert out["w2c"].shape == (b, v, 4, 4) and out["K"].shape == (b, v, 3, 3)
+    assert out["depth"].shape == (b, v, 1, h, w) and out["depth_conf"].shape == (b, v, 1, h, w)
+    assert (out["depth"] > 0).all() and (out["depth_conf"] >= 1).all()
+    assert out["pose_enc"].shape == (b, v, 9) and len(out["pose_enc_list"]) == tiny.cfg.camera_iterations
+    assert out["pixel_means"].shape == (b, v, h, w, 3)
+    assert (out["K"][..., 0, 2] == w / 2).all() and (out["K"][..., 1, 2] == h / 2).all()
+    g = out["gaussians"]
+    assert isinstance(g, Gaussians) and g.num_gaussians == v * h * w and g.valid is None
+    g.validate()
+    assert torch.equal(g.means, out["pixel_means"].reshape(b, -1, 3))
+    assert len(out["delta"]) == len(tiny.head_layers)
+    assert out["delta"][0].shape == (b, v, (h // 8) * (w // 8), 2 * tiny.cfg.embed_dim)
+    assert all(x.shape == (b, tiny.cfg.completion_tokens, 1) for x in out["gates"])
+    # centres lie on the predicted depth along each pixel's ray: camera-frame z equals the depth
+    R, t = out["w2c"][..., :3, :3], out["w2c"][..., None, None, :3, 3]
+    cam = torch.einsum("bvij,bvhwj->bvhwi", R, out["pixel_means"]) + t
+    assert torch.allclose(cam[..., 2], out["depth"][:, :, 0], rtol=1e-4, atol=1e-5)
+
+
+def test_scaffold_only_returns_the_same_object(tiny):
+    out = tiny(torch.rand(1, 2, 3, 64, 64), refine=False)
+    assert out["gaussians"] is out["scaffold_gaussians"]
+    assert out["delta"] is None and out["gates"] is None
+
+
+def test_zero_init_refined_equals_scaffold(tiny):
+    with torch.no_grad():
+        out = tiny(torch.rand(1, 2, 3, 64, 64), refine=True)
+    assert out["gaussians"] is not out["scaffold_gaussians"]
+    for f in fields(Gaussians):
+        a, s = getattr(out["gaussians"], f.name), getattr(out["scaffold_gaussians"], f.name)
+        assert (a is None and s is None) or torch.equal(a, s), f.name
+    assert all(float(d.abs().max()) == 0.0 for d in out["delta"])
+
+
+def test_voxel_merge_in_network():
+    net = build_network("tiny", voxel_size=0.05, completion=False)
+    out = net(torch.rand(2, 2, 3, 32, 32))
+    g = out["gaussians"].validate()
+    assert g.valid is not None and g.num_gaussians <= 2 * 32 * 32
+    assert out["pixel_means"].shape == (2, 2, 32, 32, 3)
+
+
+def test_stage2_frozen_scaffold_gets_no_gradient():
+    torch.manual_seed(0)
+    net = build_network("tiny")
+    net.freeze_scaffold()
+    out = net(torch.rand(1, 2, 3, 32, 32))
+    (out["gaussians"].opacities.mean() + out["gaussians"].sh.mean() + sum(g.mean() for g in out["gates"])).backward()
+    for n, p in net.named_parameters():
+        if n.startswith(("aggregator.", "camera_head.", "depth_head.", "gaussian_head.")):
+            assert p.grad is None, n
+    assert all(p.grad is not None for n, p in net.named_parameters() if n.startswith("completion.delta_proj"))
+    assert net.completion.delta_proj[0].weight.grad.abs().sum() > 0
+
+
+def test_parameter_groups_partition_by_name(tiny):
+    scaffold = {id(p) for p in tiny.scaffold_parameters()}
+    refine = {id(p) for p in tiny.refinement_parameters()}
+    assert scaffold and refine and not scaffold & refine
+    assert len(scaffold) + len(refine) == len(list(tiny.parameters()))
+    names = [n for n, _ in tiny.named_parameters()]
+    assert all(n.split(".")[0] in {"aggregator", "camera_head", "depth_head", "gaussian_head", "completion",
+                                   "video_prior"} for n in names)
+
+
+def test_tiny_budget(tiny):
+    # the speed target (4 views at 112x112 in <= 1 s on 2 cores) is measured by benchmarks/inference.py
+    assert sum(p.numel() for p in tiny.parameters()) <= 2_000_000
+
+
+@pytest.mark.parametrize("bad, match", [
+    (torch.rand(3, 64, 64), "expected \\[B, V, 3, H, W\\]"),
+    (torch.rand(1, 2, 4, 64, 64), "expected \\[B, V, 3, H, W\\]"),
+    (torch.rand(1, 0, 3, 64, 64), "at least 1"),
+    (torch.rand(1, 2, 3, 60, 64), "multiples of the patch size 8"),
+    (torch.zeros(1, 2, 3, 64, 64, dtype=torch.uint8), "float"),
+])
+def test_bad_input_errors(tiny, bad, match):
+    with pytest.raises(ValueError, match=match):
+        tiny(bad)
+
+
+def test_unknown_preset_and_option():
+    with pytest.raises(ValueError, match="preset"):
+        build_network("huge")
+    with pytest.raises(ValueError, match="unknown option"):
+        build_network("tiny", embed_dimm=3)
+
+
+def test_layer_scaling():
+    assert scale_layers((4, 11, 17, 23), 24) == (4, 11, 17, 23)
+    assert scale_layers((4, 11, 17, 23), 4) == (0, 1, 2, 3)
+    assert scale_layers((4, 7, 11, 23), 8) == (1, 2, 3, 7)
+
+
+def test_gradient_checkpointing_gives_the_same_outputs():
+    torch.manual_seed(0)
+    net = build_network("tiny", completion=False).train()
+    x = torch.rand(1, 2, 3, 32, 32)
+    ref = net(x)["depth"]
+    net.set_gradient_checkpointing(True)
+    out = net(x)["depth"]
+    assert torch.allclose(out, ref, atol=1e-6)
+    out.mean().backward()
+    assert net.aggregator.frame_blocks[0].attn.qkv.weight.grad is not None

@@ -1,0 +1,97 @@
+"""VGGT/AnySplat checkpoint compatibility: key names and shapes, exact sizes, the loader's report."""
+
+import re
+from pathlib import Path
+
+import pytest
+import torch
+
+from anycity.models import build_network
+from anycity.models.pretrained import load_pretrained
+
+KEYS_TSV = Path(__file__).with_name("vggt_keys.tsv")  # from instantiating upstream VGGT() @ 44b3afb
+
+
+def _expected_keys() -> dict[str, tuple[tuple[int, ...], int]]:
+    out = {}
+    for line in KEYS_TSV.read_text().splitlines():
+        if not line.strip() or line.startswith("#"):
+            continue
+        name, shape, count = line.split("\t")
+        if name.startswith(("point_head.", "track_head.")):
+            continue  # VGGT heads AnyCity does not use
+        name = name.replace("encoder.gaussian_param_head.", "gaussian_head.")
+        out[name] = (tuple(int(s) for s in re.findall(r"\d+", shape)), int(count[1:]))
+    return out
+
+
+@pytest.fixture(scope="module")
+def meta_1b():
+    with torch.device("meta"):
+        return build_network("vggt-1b")
+
+
+def test_vggt_1b_keys_and_shapes_match_checkpoint(meta_1b):
+    ours: dict[str, list] = {}
+    for k, v in meta_1b.state_dict().items():
+        if k.startswith(("aggregator.", "camera_head.", "depth_head.", "gaussian_head.")):
+            kk = re.sub(r"(blocks|trunk)\.\d+\.", r"\1.N.", k)
+            entry = ours.setdefault(kk, [tuple(v.shape), 0])
+            assert entry[0] == tuple(v.shape), k
+            entry[1] += 1
+    expected = _expected_keys()
+    assert set(ours) == set(expected)
+    for k, (shape, count) in expected.items():
+        assert tuple(ours[k]) == (shape, count), k
+
+
+def test_vggt_1b_exact_sizes(meta_1b):
+    def count(m):
+        return sum(p.numel() for p in m.parameters())
+
+    assert count(meta_1b.aggregator) == 909_112_320
+    assert count(meta_1b.camera_head) == 216_174_610
+    assert count(meta_1b.depth_head) == 32_654_562
+    assert round(count(meta_1b.aggregator.patch_embed) / 1e6, 2) == 304.37
+    assert meta_1b.head_layers == (4, 11, 17, 23)
+
+
+def test_load_vggt_state_dict_reports_and_copies(tmp_path):
+    torch.manual_seed(0)
+    src, dst = build_network("tiny", completion=False), build_network("tiny")
+    sd = {k: v for k, v in src.state_dict().items() if not k.startswith("gaussian_head.")}
+    sd["point_head.norm.weight"] = torch.ones(3)  # present in VGGT checkpoints, no counterpart here
+    sd["depth_head.norm.bias"] = torch.zeros(7)  # wrong shape: skipped, never crashes
+    path = tmp_path / "model.pt"
+    torch.save(sd, path)
+    rep = load_pretrained(dst, path, kind="vggt")
+    assert rep.unexpected == ["point_head.norm.weight"]
+    assert rep.mismatched == [("depth_head.norm.bias", (7,), tuple(dst.depth_head.norm.bias.shape))]
+    assert {k.split(".")[0] for k in rep.missing} == {"gaussian_head", "completion", "video_prior", "depth_head"}
+    assert [k for k in rep.missing if k.startswith("depth_head.")] == ["depth_head.norm.bias"]
+    assert torch.equal(dst.aggregator.frame_blocks[0].attn.qkv.weight, src.aggregator.frame_blocks[0].attn.qkv.weight)
+    assert "unexpected: point_head.* x1" in rep.summary()
+
+
+def test_load_anysplat_lightning_checkpoint(tmp_path):
+    torch.manual_seed(0)
+    src, dst = build_network("tiny", completion=False), build_network("tiny", completion=False)
+    sd = {}
+    for k, v in src.state_dict().items():
+        k = k.replace("gaussian_head.", "gaussian_param_head.")
+        sd[f"model.encoder.{k}"] = v.to(torch.bfloat16)
+    sd["model.encoder.distill_camera_head.embed_pose.weight"] = torch.zeros(2, 2)
+    path = tmp_path / "anysplat.ckpt"
+    torch.save({"state_dict": sd, "epoch": 3}, path)
+    rep = load_pretrained(dst, path, kind="anysplat")
+    assert rep.missing == [] and rep.unexpected == ["distill_camera_head.embed_pose.weight"]
+    w = src.gaussian_head.input_merger[0].weight
+    assert torch.allclose(dst.gaussian_head.input_merger[0].weight, w.to(torch.bfloat16).float())
+
+
+def test_load_errors(tmp_path):
+    net = build_network("tiny", completion=False)
+    with pytest.raises(FileNotFoundError, match="not found"):
+        load_pretrained(net, tmp_path / "missing.pt")
+    with pytest.raises(ValueError, match="kind"):
+        load_pretrained(net, {}, kind="dust3r")

@@ -1,0 +1,97 @@
+import importlib.util
+
+import pytest
+import torch
+
+from anycity.models import build_network
+from anycity.models.video_prior import SmallVideoPrior, VideoPrior, WanVideoPrior, build_video_prior
+
+needs_diffusers = pytest.mark.skipif(importlib.util.find_spec("diffusers") is None,
+                                     reason="the 'wan' extra (diffusers) is not installed")
+
+
+def test_small_prior_tokens():
+    prior = SmallVideoPrior(dim=32, depth=1, num_heads=2, stride=16)
+    assert isinstance(prior, VideoPrior)
+    out = prior(torch.rand(2, 3, 3, 64, 32))
+    assert out.shape == (2, 3 * 4 * 2, 32)
+    # the view index is encoded: swapping two identical-content views changes nothing, distinct views differ
+    x = torch.rand(1, 2, 3, 32, 32)
+    assert not torch.allclose(prior(x), prior(x.flip(1)))
+    with pytest.raises(ValueError, match="at least 16"):
+        prior(torch.rand(1, 1, 3, 8, 8))
+
+
+def test_build_video_prior_errors():
+    with pytest.raises(ValueError, match="wan_dir"):
+        build_video_prior("wan")
+    with pytest.raises(ValueError, match="video_prior"):
+        build_video_prior("sora")
+    with pytest.raises(FileNotFoundError, match="config.json"):
+        WanVideoPrior.from_pretrained("/nonexistent/wan")
+
+
+@pytest.fixture(scope="module")
+def wan():
+    torch.manual_seed(0)
+    prior = WanVideoPrior.tiny_random(block=1)
+    prior.add_lora(rank=2)
+    return prior
+
+
+@needs_diffusers
+def test_wan_prior_shapes_and_truncation(wan):
+    assert len(wan.transformer.blocks) == 2  # cut after block 1
+    out = wan(torch.rand(2, 3, 3, 64, 64))  # per-view single-frame latents: 3 frames of 4x4, 2x2 patches
+    assert out.shape == (2, 3 * 2 * 2, wan.out_dim) and wan.out_dim == 24
+    assert wan(torch.rand(1, 2, 3, 40, 70)).shape == (1, 2 * 1 * 2, 24)  # resized to multiples of 32
+
+
+@needs_diffusers
+def test_wan_lora_only_trains_and_roundtrips(wan, tmp_path):
+    trainable = [n for n, p in wan.named_parameters() if p.requires_grad]
+    assert trainable and all("lora_" in n for n in trainable)
+    assert all(".attn1." in n for n in trainable)
+    for p in wan.parameters():
+        p.grad = None
+    with torch.no_grad():  # make lora_B non-zero so lora_A also gets a gradient
+        for n, p in wan.named_parameters():
+            if "lora_B" in n:
+                p.normal_(std=0.1)
+    wan(torch.rand(1, 2, 3, 32, 32)).square().mean().backward()
+    assert all(p.grad is None for n, p in wan.named_parameters() if "lora_" not in n)
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for n, p in wan.named_parameters() if "lora_A" in n)
+    path = tmp_path / "lora.safetensors"
+    wan.save_lora(path)
+    saved = wan.lora_state_dict()
+    assert all("lora_" in k for k in saved)
+    torch.manual_seed(1)
+    other = WanVideoPrior.tiny_random(block=1)
+    other.add_lora(rank=2)
+    other.load_lora(path)
+    for k, v in other.lora_state_dict().items():
+        assert torch.equal(v, saved[k]), k
+
+
+@needs_diffusers
+def test_wan_offline_folder_roundtrip(tmp_path):
+    torch.manual_seed(0)
+    prior = WanVideoPrior.tiny_random(block=3)
+    prior.transformer.save_pretrained(tmp_path / "transformer")
+    prior.vae.save_pretrained(tmp_path / "vae")
+    torch.save(torch.zeros(1, 3, 32), tmp_path / "empty.pt")
+    loaded = WanVideoPrior.from_pretrained(tmp_path, dtype=torch.float32, block=3,
+                                           empty_prompt_path=tmp_path / "empty.pt")
+    x = torch.rand(1, 2, 3, 32, 32)
+    assert torch.allclose(loaded(x), prior(x), atol=1e-5)
+
+
+@needs_diffusers
+def test_network_with_wan_prior_trains_only_lora_and_completion():
+    net = build_network("tiny", video_prior="wan-tiny", wan_block=1, wan_lora_rank=2)
+    names = {n for n, p in net.named_parameters() if p.requires_grad and n.startswith("video_prior.")}
+    assert names and all("lora_" in n for n in names)
+    trainable = {id(p) for p in net.refinement_parameters()}
+    assert all(id(p) in trainable for n, p in net.named_parameters() if n.startswith("completion."))
+    out = net(torch.rand(1, 2, 3, 32, 32))
+    assert len(out["gates"]) == len(net.completion.inject_layers)
