@@ -1,0 +1,152 @@
+"""COLMAP sparse models (text and binary; PINHOLE / SIMPLE_PINHOLE, i.e. undistorted).
+
+Layout: ``SCENE/images/*`` and ``SCENE/sparse/0/{cameras,images,points3D}.{bin,txt}`` (or ``SCENE/sparse/``);
+``--src`` may also be a folder of such scenes. Poses are world-to-camera with wxyz quaternions and OpenCV axes,
+so the world frame is kept as is (``world_from_source = I``, units "sfm", metres unknown).
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from anycity.data.parsers.base import ParsedScene, ParsedView, require, rigid
+from anycity.geometry import quat_to_rotmat
+
+# model id -> (name, number of params)
+MODELS = {0: ("SIMPLE_PINHOLE", 3), 1: ("PINHOLE", 4), 2: ("SIMPLE_RADIAL", 4), 3: ("RADIAL", 5), 4: ("OPENCV", 8),
+          5: ("OPENCV_FISHEYE", 8), 6: ("FULL_OPENCV", 12), 7: ("FOV", 5), 8: ("SIMPLE_RADIAL_FISHEYE", 4),
+          9: ("RADIAL_FISHEYE", 5), 10: ("THIN_PRISM_FISHEYE", 12), 11: ("RAD_TAN_THIN_PRISM_FISHEYE", 16)}
+_BY_NAME = {name: (i, n) for i, (name, n) in MODELS.items()}
+
+
+@dataclass
+class ColmapModel:
+    cameras: dict[int, tuple[str, int, int, np.ndarray]]  # id -> (model, width, height, params)
+    images: dict[int, dict]  # id -> {qvec, tvec, camera_id, name, xys [n, 2], point3D_ids [n]}
+    points: dict[int, np.ndarray]  # id -> xyz
+
+
+def _read(f, fmt: str):
+    fmt = "<" + fmt
+    return struct.unpack(fmt, f.read(struct.calcsize(fmt)))
+
+
+def _read_bin(d: Path) -> ColmapModel:
+    cams, imgs, pts = {}, {}, {}
+    with open(d / "cameras.bin", "rb") as f:
+        for _ in range(_read(f, "Q")[0]):
+            cid, mid, w, h = _read(f, "iiQQ")
+            if mid not in MODELS:
+                raise ValueError(f"{d / 'cameras.bin'}: unknown camera model id {mid}; the file is corrupt")
+            cams[cid] = (MODELS[mid][0], w, h, np.array(_read(f, "d" * MODELS[mid][1])))
+    with open(d / "images.bin", "rb") as f:
+        for _ in range(_read(f, "Q")[0]):
+            iid, *qt, cid = _read(f, "idddddddi")
+            name = b""
+            while (c := f.read(1)) != b"\x00":
+                if not c:
+                    raise ValueError(f"{d / 'images.bin'}: truncated image name; the file is corrupt")
+                name += c
+            n2d = _read(f, "Q")[0]
+            obs = np.frombuffer(f.read(24 * n2d), dtype=[("x", "<f8"), ("y", "<f8"), ("id", "<i8")])
+            imgs[iid] = {"qvec": np.array(qt[:4]), "tvec": np.array(qt[4:]), "camera_id": cid,
+                         "name": name.decode(), "xys": np.stack([obs["x"], obs["y"]], 1), "point3D_ids": obs["id"]}
+    if (d / "points3D.bin").exists():
+        with open(d / "points3D.bin", "rb") as f:
+            for _ in range(_read(f, "Q")[0]):
+                pid, x, y, z, _r, _g, _b, _err, n = _read(f, "QdddBBBdQ")
+                f.read(8 * n)
+                pts[pid] = np.array([x, y, z])
+    return ColmapModel(cams, imgs, pts)
+
+
+def _lines(p: Path) -> list[str]:
+    return [ln.strip() for ln in p.read_text().splitlines() if not ln.startswith("#")]
+
+
+def _read_txt(d: Path) -> ColmapModel:
+    cams, imgs, pts = {}, {}, {}
+    for ln in _lines(d / "cameras.txt"):
+        if ln:
+            e = ln.split()
+            cams[int(e[0])] = (e[1], int(e[2]), int(e[3]), np.array([float(x) for x in e[4:]]))
+    lines = _lines(d / "images.txt")
+    while lines and not lines[0]:
+        lines.pop(0)
+    for i in range(0, len(lines) - 1 if len(lines) % 2 else len(lines), 2):
+        e = lines[i].split()
+        if not e:
+            continue
+        obs = np.array([float(x) for x in lines[i + 1].split()]).reshape(-1, 3)
+        imgs[int(e[0])] = {"qvec": np.array([float(x) for x in e[1:5]]), "tvec": np.array([float(x) for x in e[5:8]]),
+                           "camera_id": int(e[8]), "name": " ".join(e[9:]), "xys": obs[:, :2],
+                           "point3D_ids": obs[:, 2].astype(np.int64)}
+    if (d / "points3D.txt").exists():
+        for ln in _lines(d / "points3D.txt"):
+            if ln:
+                e = ln.split()
+                pts[int(e[0])] = np.array([float(x) for x in e[1:4]])
+    return ColmapModel(cams, imgs, pts)
+
+
+def model_dir(scene: Path) -> Path:
+    for d in (scene / "sparse" / "0", scene / "sparse", scene):
+        if (d / "cameras.bin").exists() or (d / "cameras.txt").exists():
+            return d
+    raise FileNotFoundError(f"{scene}: no COLMAP model (cameras.bin or cameras.txt in sparse/0, sparse or the "
+                            "folder itself); point --src at a COLMAP scene")
+
+
+def read_model(scene: str | Path) -> ColmapModel:
+    """Read the sparse model of a COLMAP scene folder (binary preferred, else text)."""
+    d = model_dir(Path(scene))
+    if (d / "cameras.bin").exists():
+        require(d / "images.bin", "COLMAP images.bin beside cameras.bin")
+        return _read_bin(d)
+    require(d / "images.txt", "COLMAP images.txt beside cameras.txt")
+    return _read_txt(d)
+
+
+def intrinsics(model: str, params: np.ndarray, where: str) -> np.ndarray:
+    if model == "PINHOLE":
+        fx, fy, cx, cy = params[:4]
+    elif model == "SIMPLE_PINHOLE":
+        fx = fy = params[0]
+        cx, cy = params[1:3]
+    else:
+        raise ValueError(f"{where}: camera model {model} has lens distortion; undistort first (colmap "
+                         "image_undistorter or pycolmap.undistort_images) so the model is PINHOLE")
+    return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], float)
+
+
+def w2c_of(image: dict) -> np.ndarray:
+    R = quat_to_rotmat(torch.as_tensor(image["qvec"], dtype=torch.float64)).numpy()
+    return rigid(R, image["tvec"])
+
+
+def parse(src: str | Path) -> list[ParsedScene]:
+    """One ParsedScene per COLMAP scene under ``src`` (views sorted by image name, the llffhold order)."""
+    src = require(Path(src), "a COLMAP scene folder")
+    try:
+        scenes = [src] if model_dir(src) else []
+    except FileNotFoundError:
+        scenes = sorted(p for p in src.iterdir() if p.is_dir() and any((p / s).exists() for s in ("sparse",)))
+        if not scenes:
+            raise
+    out = []
+    for sc in scenes:
+        m = read_model(sc)
+        where = str(model_dir(sc))
+        views = []
+        for img in sorted(m.images.values(), key=lambda x: x["name"]):
+            model, w, h, params = m.cameras[img["camera_id"]]
+            views.append(ParsedView(name=img["name"], image_path=sc / "images" / img["name"], w2c=w2c_of(img),
+                                    K=intrinsics(model, params, where), width=w, height=h))
+        out.append(ParsedScene(name=sc.name, views=views, source="colmap", units="sfm", metres_per_unit=None,
+                               extra={"model": where}))
+    return out

@@ -1,0 +1,80 @@
+"""MatrixCity aerial/street blocks (OpenGL camera-to-world) -> OpenCV, in metres.
+
+Two pose files are understood:
+
+* split files ``transforms_{train,test}.json`` (``fl_x``, ``w``, ``h``, frames with ``file_path`` and
+  ``transform_matrix``; translations in units of 100 m): translations are multiplied by 100
+  (``world_from_source = diag(100, 100, 100, 1)``);
+* raw block files ``transforms.json`` (``camera_angle_x``, frames with ``frame_index`` and ``rot_mat`` whose
+  rotation is scaled by 0.01, translations in metres): the rotation is multiplied by 100, the world is kept.
+
+Depth, when a ``depth`` folder (or ``<block>_depth``) beside the images holds ``NNNN.exr`` (or ``.npy``), is
+MatrixCity's z-depth in centimetres and is converted to metres.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+
+from anycity.data.parsers.base import ParsedScene, ParsedView, c2w_gl_to_w2c, require
+
+
+def _depth_loader(img: Path):
+    for d in (img.parent / "depth", img.parent.with_name(img.parent.name + "_depth")):
+        for ext in (".exr", ".npy"):
+            p = d / (img.stem + ext)
+            if p.exists():
+                def load(p=p):
+                    if p.suffix == ".npy":
+                        cm = np.load(p).astype(np.float32)
+                    else:
+                        os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")
+                        import cv2
+
+                        cm = cv2.imread(str(p), cv2.IMREAD_ANYCOLOR | cv2.IMREAD_ANYDEPTH)
+                        if cm is None:
+                            raise ValueError(f"{p}: unreadable EXR; set OPENCV_IO_ENABLE_OPENEXR=1 before starting")
+                        cm = cm[..., 0] if cm.ndim == 3 else cm
+                    cm = cm.astype(np.float32)
+                    return np.where(cm < 65000, cm / 100.0, 0)  # the float16 release saturates at 65504 cm
+                return load
+    return None
+
+
+def parse(src: str | Path) -> list[ParsedScene]:
+    src = Path(src)
+    files = [src] if src.suffix == ".json" else sorted(src.glob("transforms_*.json")) or [src / "transforms.json"]
+    out = []
+    for path in files:
+        meta = json.loads(require(path, "MatrixCity transforms_train.json / transforms.json").read_text())
+        frames = meta.get("frames", [])
+        raw = bool(frames) and "rot_mat" in frames[0]
+        w, h = int(meta.get("w", 1920)), int(meta.get("h", 1080))
+        fx = float(meta["fl_x"]) if "fl_x" in meta else 0.5 * w / math.tan(0.5 * float(meta["camera_angle_x"]))
+        K = np.array([[fx, 0, meta.get("cx", w / 2)], [0, float(meta.get("fl_y", fx)), meta.get("cy", h / 2)],
+                      [0, 0, 1]], float)
+        views = []
+        for i, fr in enumerate(frames):
+            if raw:
+                c2w = np.asarray(fr["rot_mat"], float).copy()
+                c2w[:3, :3] *= 100.0
+                img = path.parent / f"{int(fr['frame_index']):04d}.png"
+            else:
+                if "transform_matrix" not in fr:
+                    raise ValueError(f"{path} frame {i}: missing 'transform_matrix'")
+                c2w = np.asarray(fr["transform_matrix"], float).copy()
+                c2w[:3, 3] *= 100.0  # 100 m units -> metres
+                img = (path.parent / fr["file_path"]).resolve()
+            views.append(ParsedView(name=img.name, image_path=img, w2c=c2w_gl_to_w2c(c2w), K=K, width=w, height=h,
+                                    depth=_depth_loader(img)))
+        T = np.eye(4) if raw else np.diag([100.0, 100.0, 100.0, 1.0])
+        split = "test" if "test" in path.stem else None
+        out.append(ParsedScene(name=f"{path.parent.name}_{path.stem}", views=views, source="matrixcity", units="metres",
+                               metres_per_unit=1.0, world_from_source=T, split=split,
+                               extra={"pose_file": path.name, "raw_block_json": raw}))
+    return out

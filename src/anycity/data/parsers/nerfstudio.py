@@ -1,0 +1,59 @@
+"""nerfstudio ``transforms.json`` (also DL3DV): OpenGL camera-to-world -> OpenCV world-to-camera.
+
+The poses stay in the json's world frame (``world_from_source = I``); the file's own ``applied_transform`` /
+``applied_scale`` (nerfstudio's COLMAP -> json map) are kept in ``extra``. Distorted cameras are rejected.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from anycity.data.parsers.base import ParsedScene, ParsedView, c2w_gl_to_w2c, require
+
+_DIST = ("k1", "k2", "k3", "k4", "p1", "p2")
+
+
+def _intrinsics(d: dict, where: str) -> tuple[np.ndarray, int, int]:
+    try:
+        fx, fy = float(d["fl_x"]), float(d.get("fl_y", d["fl_x"]))
+        w, h = int(d["w"]), int(d["h"])
+    except KeyError as e:
+        raise ValueError(f"{where}: missing intrinsics key {e}; transforms.json needs fl_x, w, h (top level or "
+                         "per frame)") from e
+    if any(abs(float(d.get(k, 0.0))) > 1e-9 for k in _DIST) or d.get("camera_model", "OPENCV") not in (
+            "OPENCV", "PINHOLE", "SIMPLE_PINHOLE"):
+        raise ValueError(f"{where}: the camera has lens distortion ({d.get('camera_model', 'OPENCV')} with "
+                         "k/p terms); undistort the images first (e.g. colmap image_undistorter)")
+    cx, cy = float(d.get("cx", w / 2)), float(d.get("cy", h / 2))
+    return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]]), w, h
+
+
+def parse(src: str | Path) -> list[ParsedScene]:
+    src = Path(src)
+    path = src if src.suffix == ".json" else src / "transforms.json"
+    root = path.parent
+    meta = json.loads(require(path, "a nerfstudio transforms.json").read_text())
+    scale = float(meta.get("depth_unit_scale_factor", 1e-3))
+    views = []
+    for i, fr in enumerate(meta.get("frames", [])):
+        where = f"{path} frame {i}"
+        K, w, h = _intrinsics({**meta, **fr}, where)
+        if "transform_matrix" not in fr or "file_path" not in fr:
+            raise ValueError(f"{where}: missing 'transform_matrix' or 'file_path'")
+        depth = None
+        if fr.get("depth_file_path"):
+            dp = root / fr["depth_file_path"]
+
+            def depth(dp=dp):
+                raw = cv2.imread(str(require(dp, "a 16-bit depth png")), cv2.IMREAD_UNCHANGED)
+                return raw.astype(np.float32) * scale
+        c2w = np.asarray(fr["transform_matrix"], float)
+        views.append(ParsedView(name=Path(fr["file_path"]).name, image_path=root / fr["file_path"],
+                                w2c=c2w_gl_to_w2c(c2w), K=K, width=w, height=h, depth=depth))
+    extra = {k: meta[k] for k in ("applied_transform", "applied_scale") if k in meta}
+    return [ParsedScene(name=root.name, views=views, source="nerfstudio", units="nerfstudio",
+                        metres_per_unit=None, extra=extra)]

@@ -1,0 +1,159 @@
+"""View selection (context / dense / target), resizing with K updates, and per-sample world normalisation.
+
+Selection works on trajectory positions ``0..n-1``:
+
+* training: a sliding window of consecutive views; the context is stratified over the window, targets are drawn
+  from the other window views, the dense teacher set from the window minus the targets;
+* evaluation (``llffhold=8``): view ``i`` is a target when ``i % 8 == 0``; targets are cut into chunks of T (the
+  last chunk repeats its own views), and each chunk's context and dense views are spread evenly over the non-held-out
+  views nearest to it. Deterministic.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import torch
+
+from anycity.geometry import camera_centers, crop_intrinsics, invert_rigid, rescale_intrinsics, unproject_depth
+
+
+@dataclass
+class Selection:
+    """Trajectory positions of one sample's views."""
+
+    context: list[int]
+    target: list[int]
+    dense: list[int]
+
+
+def _pick(rng: np.random.Generator, pool: list[int], k: int) -> list[int]:
+    """k distinct items of pool when possible, else with replacement (fixed-V batches)."""
+    if k <= 0:
+        return []
+    if not pool:
+        raise ValueError("view selection: no candidate views left; the scene has too few views for the request")
+    return sorted(int(i) for i in rng.choice(pool, size=k, replace=len(pool) < k))
+
+
+def _spread(pool: list[int], k: int) -> list[int]:
+    """k items evenly spread over pool (deterministic; repeats when pool is shorter than k)."""
+    if k <= 0:
+        return []
+    return [pool[i] for i in np.linspace(0, len(pool) - 1, k).round().astype(int)]
+
+
+def select_train(n: int, num_context: int, num_targets: int, num_dense: int, rng: np.random.Generator,
+                 window: int | None = None) -> Selection:
+    """Random selection inside a sliding window of ``window`` consecutive views (default 2 x the largest set)."""
+    if n < 2:
+        raise ValueError(f"view selection: a sample needs >= 2 views, got {n}")
+    L = min(n, window or 2 * max(num_context + num_targets, num_dense))
+    start = int(rng.integers(0, n - L + 1))
+    win = list(range(start, start + L))
+    edges = np.linspace(0, L, num_context + 1)
+    ctx = sorted({win[int(rng.integers(int(a), max(int(a) + 1, int(b))))] for a, b in zip(edges[:-1], edges[1:])})
+    ctx = ctx + _pick(rng, [i for i in win if i not in ctx], num_context - len(ctx)) if len(ctx) < num_context else ctx
+    rest = [i for i in win if i not in ctx]
+    tgt = _pick(rng, rest or win, num_targets)
+    dense = _pick(rng, [i for i in win if i not in tgt] or win, num_dense)
+    return Selection(sorted(ctx), tgt, dense)
+
+
+def llffhold_split(n: int, hold: int = 8) -> tuple[list[int], list[int]]:
+    """(train, test) positions: position i is a test view when ``i % hold == 0``."""
+    test = [i for i in range(n) if i % hold == 0]
+    return [i for i in range(n) if i % hold != 0], test
+
+
+def select_eval(n: int, num_context: int, num_targets: int, num_dense: int, hold: int = 8) -> list[Selection]:
+    """Deterministic llffhold selections covering every held-out view of an n-view scene."""
+    train, test = llffhold_split(n, hold)
+    if not train:
+        raise ValueError(f"view selection: a {n}-view scene has no non-held-out views for llffhold={hold}")
+    out = []
+    for c in range(0, len(test), num_targets):
+        part = test[c:c + num_targets]
+        chunk = [part[j % len(part)] for j in range(num_targets)]  # pad the last chunk with its own views
+        centre = float(np.mean(chunk))
+        near = sorted(train, key=lambda i: (abs(i - centre), i))[: max(2 * num_context, num_dense)]
+        near.sort()
+        out.append(Selection(_spread(near, num_context), chunk, _spread(near, num_dense)))
+    return out
+
+
+def resize_view(image: np.ndarray, K: np.ndarray, size: tuple[int, int], mode: str = "crop", patch: int = 14,
+                depth: np.ndarray | None = None, normal: np.ndarray | None = None, mask: np.ndarray | None = None):
+    """Resize (and centre-crop) a view to ``size = (H, W)``, updating K.
+
+    Args:
+        image: ``[h, w, 3]`` uint8; K: ``[3, 3]`` pixels of ``image``.
+        mode: "crop" scales to cover ``size`` then centre-crops (exact output size); "keep" keeps the aspect
+            ratio with about ``H*W`` pixels and both sides multiples of ``patch``.
+        depth/normal/mask: ``[h, w]``, ``[h, w, 3]``, ``[h, w]`` resampled with nearest neighbours.
+    Returns:
+        image, K (float64 numpy), depth, normal, mask at the new size.
+    """
+    h, w = image.shape[:2]
+    H, W = size
+    if mode == "crop":
+        s = max(H / h, W / w)
+        nw, nh = max(W, round(w * s)), max(H, round(h * s))
+    elif mode == "keep":
+        s = (H * W / (h * w)) ** 0.5
+        nw, nh = max(patch, round(w * s / patch) * patch), max(patch, round(h * s / patch) * patch)
+        H, W = nh, nw
+    else:
+        raise ValueError(f"resize mode: expected 'crop' or 'keep', got {mode!r}")
+    Kt = torch.as_tensor(np.asarray(K, np.float64))
+    if (nw, nh) != (w, h):
+        interp = cv2.INTER_AREA if nw < w else cv2.INTER_LINEAR
+        image = cv2.resize(image, (nw, nh), interpolation=interp)
+        Kt = rescale_intrinsics(Kt, nw / w, nh / h)
+        near = lambda a: None if a is None else cv2.resize(a, (nw, nh), interpolation=cv2.INTER_NEAREST)  # noqa: E731
+        depth, normal = near(depth), near(normal)
+        mask = None if mask is None else near(mask.astype(np.uint8)).astype(bool)
+    x0, y0 = (nw - W) // 2, (nh - H) // 2
+    if (x0, y0) != (0, 0) or (nw, nh) != (W, H):
+        Kt = crop_intrinsics(Kt, x0, y0)
+        crop = lambda a: None if a is None else a[y0:y0 + H, x0:x0 + W]  # noqa: E731
+        image, depth, normal, mask = crop(image), crop(depth), crop(normal), crop(mask)
+    return np.ascontiguousarray(image), Kt.numpy(), depth, normal, mask
+
+
+def normalise(w2c: torch.Tensor, K: torch.Tensor, num_context: int, depth: torch.Tensor | None = None,
+              mask: torch.Tensor | None = None, stride: int | None = None
+              ) -> tuple[torch.Tensor, float, torch.Tensor]:
+    """Re-express poses in the first context camera and normalise the scale (DESIGN section 3).
+
+    Args:
+        w2c: ``[V, 4, 4]`` float64 poses, context views first. K: ``[V, 3, 3]``.
+        num_context: how many leading views are context views.
+        depth, mask: ``[V, 1, H, W]`` z-depth (source units) and validity, or None.
+    Returns:
+        new ``w2c [V, 4, 4]``, ``s`` (source units per normalised unit: divide depths by it) and the
+        ``[4, 4]`` similarity ``world_from_source`` (``p_norm = T @ p_src``).
+    """
+    w2c = w2c.to(torch.float64)
+    T0 = w2c[0].clone()
+    rel = w2c @ invert_rigid(T0)
+    s = 0.0
+    if depth is not None:
+        stride = stride or max(1, min(depth.shape[-2:]) // 96)
+        d = depth[:num_context, :, ::stride, ::stride].to(torch.float64)
+        k = rescale_intrinsics(K[:num_context].to(torch.float64), 1 / stride, 1 / stride)
+        k = crop_intrinsics(k, 0.5 / stride - 0.5, 0.5 / stride - 0.5)  # pixel i of the subsample = i*stride
+        pts = unproject_depth(d, k, rel[:num_context])
+        valid = (d[:, 0] > 0) if mask is None else (mask[:num_context, :, ::stride, ::stride][:, 0] & (d[:, 0] > 0))
+        if bool(valid.any()):
+            s = float(pts[valid].norm(dim=-1).mean())
+    if s <= 1e-9:
+        c = camera_centers(rel[:num_context])
+        s = float(c.norm(dim=-1).mean() * num_context / max(num_context - 1, 1)) if num_context > 1 else 0.0
+    if s <= 1e-9 or not np.isfinite(s):
+        s = 1.0
+    rel[:, :3, 3] /= s
+    S = torch.diag(torch.tensor([1 / s, 1 / s, 1 / s, 1.0], dtype=torch.float64))
+    return rel, s, S @ T0

@@ -1,0 +1,136 @@
+"""``AerialDataModule``: webdataset shards -> :class:`~anycity.structures.ViewBatch` for Lightning.
+
+YAML (LightningCLI)::
+
+    data:
+      class_path: anycity.lit.datamodule.AerialDataModule
+      init_args: {root: data/synth, image_size: [64, 64], num_context: 2, num_dense: 4, num_targets: 2}
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import lightning.pytorch as pl
+from lightning.pytorch.utilities import rank_zero_warn
+from torch.utils.data import DataLoader
+
+from anycity.data.pipeline import SampleBuilder, SkipCounter, collate, make_pipeline
+from anycity.data.writer import shard_urls
+
+
+def _expand(spec: str | list[str] | None, split: str) -> list[str]:
+    """Shard directory (with index.json), brace pattern, file, or a list of those -> shard paths."""
+    if spec is None:
+        return []
+    if isinstance(spec, (list, tuple)):
+        return [u for s in spec for u in _expand(s, split)]
+    if "://" not in spec and Path(spec).is_dir():
+        return shard_urls(spec, split)
+    import webdataset as wds
+
+    return list(wds.shardlists.expand_urls(spec))
+
+
+class AerialDataModule(pl.LightningDataModule):
+    """Aerial multi-view batches from anycity webdataset shards.
+
+    Args:
+        root: a shard directory written by ``anycity data synth|convert`` (its ``index.json`` gives the
+            train/val/test shards). Per-split arguments below override it.
+        train_shards: shard directory, brace pattern (``data/x/train-{000000..000009}.tar``) or list for training.
+        val_shards: the same for validation (llffhold targets of held-out scenes).
+        test_shards: the same for testing.
+        num_context: context (input) views per sample, 2..64.
+        num_targets: target views per sample (rendered and scored).
+        num_dense: dense teacher views per sample for Stage II distillation; 0 disables the dense set.
+        image_size: output ``[H, W]`` in pixels.
+        resize_mode: "crop" (scale to cover, centre-crop to exactly image_size) or "keep" (keep the aspect ratio,
+            about H*W pixels, sides multiples of ``patch_size``; all scenes of a batch must share an aspect ratio).
+        patch_size: side multiple for ``resize_mode: keep``.
+        batch_size: training samples per batch.
+        eval_batch_size: validation/test samples per batch (default: batch_size).
+        num_workers: DataLoader worker processes (0 decodes in the main process).
+        epoch_samples: training samples per epoch per rank (``with_epoch``; the stream is resampled).
+        resampled: draw training shards with replacement (True) or shuffle the shard list and split it with
+            ``split_by_node``/``split_by_worker`` (False; needs at least ranks x workers shards).
+        shuffle_buffer: sample shuffle buffer for training.
+        window: training sliding-window length in views (None: 2 x the largest view group).
+        llffhold: evaluation targets are the views with index % llffhold == 0.
+        with_depth: load depth and masks when the shards have them.
+        with_normals: load normals when the shards have them.
+        seed: seed of shard resampling, shuffling and view selection.
+        skip_corrupt: skip corrupt samples and count them (logged as ``data/skipped_samples``) instead of raising.
+        pin_memory: DataLoader pin_memory.
+    """
+
+    def __init__(self, root: str | None = None, train_shards: str | list[str] | None = None,
+                 val_shards: str | list[str] | None = None, test_shards: str | list[str] | None = None,
+                 num_context: int = 4, num_targets: int = 4, num_dense: int = 12,
+                 image_size: tuple[int, int] = (448, 448), resize_mode: str = "crop", patch_size: int = 14,
+                 batch_size: int = 1, eval_batch_size: int | None = None, num_workers: int = 2,
+                 epoch_samples: int = 1000, resampled: bool = True, shuffle_buffer: int = 16,
+                 window: int | None = None, llffhold: int = 8, with_depth: bool = True, with_normals: bool = True,
+                 seed: int = 0, skip_corrupt: bool = False, pin_memory: bool = False) -> None:
+        super().__init__()
+        if not 1 <= num_context <= 64:
+            raise ValueError(f"num_context: expected 1..64 views, got {num_context}")
+        if resize_mode not in ("crop", "keep"):
+            raise ValueError(f"resize_mode: expected 'crop' or 'keep', got {resize_mode!r}")
+        if len(image_size) != 2 or min(image_size) < 8:
+            raise ValueError(f"image_size: expected [H, W] with sides >= 8, got {image_size!r}")
+        self.save_hyperparameters()
+        self.hp = self.hparams
+        self.skip_counter = SkipCounter()
+        self._reported = 0
+
+    def _urls(self, split: str) -> list[str]:
+        spec = {"train": self.hp.train_shards, "val": self.hp.val_shards, "test": self.hp.test_shards}[split]
+        urls = _expand(spec if spec is not None else self.hp.root, split)
+        if not urls:
+            raise ValueError(f"{split} shards: none found (root={self.hp.root!r}, {split}_shards={spec!r}); give "
+                             f"a shard directory with index.json listing {split} shards, or a shard pattern")
+        return urls
+
+    def _builder(self, train: bool) -> SampleBuilder:
+        return SampleBuilder(self.hp.num_context, self.hp.num_targets, self.hp.num_dense, tuple(self.hp.image_size),
+                             self.hp.resize_mode, train, self.hp.window, self.hp.with_depth, self.hp.with_normals,
+                             self.hp.llffhold, self.hp.patch_size, self.hp.seed)
+
+    def _loader(self, split: str) -> DataLoader:
+        train = split == "train"
+        workers = self.hp.num_workers
+        # epoch_samples per rank, split over its workers (each rank draws its own resampled stream)
+        per_worker = math.ceil(self.hp.epoch_samples / max(1, workers)) if train else None
+        pipe = make_pipeline(self._urls(split), self._builder(train), train=train, resampled=self.hp.resampled,
+                             epoch_samples=per_worker, shuffle=self.hp.shuffle_buffer, seed=self.hp.seed,
+                             skip_corrupt=self.hp.skip_corrupt, counter=self.skip_counter)
+        bs = self.hp.batch_size if train else (self.hp.eval_batch_size or self.hp.batch_size)
+        return DataLoader(pipe, batch_size=bs, collate_fn=collate, num_workers=workers,
+                          persistent_workers=workers > 0, pin_memory=self.hp.pin_memory, drop_last=train)
+
+    def train_dataloader(self) -> DataLoader:
+        return self._loader("train")
+
+    def val_dataloader(self) -> DataLoader:
+        return self._loader("val")
+
+    def test_dataloader(self) -> DataLoader:
+        return self._loader("test")
+
+    @property
+    def num_skipped(self) -> int:
+        """Corrupt samples skipped so far (all workers of this process)."""
+        return self.skip_counter.count
+
+    def on_after_batch_transfer(self, batch, dataloader_idx: int):
+        if self.hp.skip_corrupt and self.trainer is not None and self.trainer.global_step % 50 == 0:
+            n = self.num_skipped
+            if self.trainer.logger is not None:
+                self.trainer.logger.log_metrics({"data/skipped_samples": float(n)}, step=self.trainer.global_step)
+            if n > self._reported:
+                rank_zero_warn(f"AerialDataModule: skipped {n} corrupt samples so far (skip_corrupt=True); "
+                               f"see {self.skip_counter.directory}")
+                self._reported = n
+        return batch

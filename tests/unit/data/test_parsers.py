@@ -1,0 +1,193 @@
+"""Each converter on a tiny fixture written here: cameras come back as the OpenCV ground truth."""
+
+import json
+import struct
+
+import cv2
+import numpy as np
+import pytest
+import torch
+import webdataset as wds
+
+from anycity.data.parsers import convert
+from anycity.data.parsers.base import GL_TO_CV
+from anycity.data.raycast import look_at
+from anycity.data.schema import read_meta
+from anycity.geometry import rotmat_to_quat
+
+W, H, N = 32, 24, 3
+K = np.array([[30.0, 0, 16.0], [0, 31.0, 12.0], [0, 0, 1]])
+
+
+def _gt():
+    return [look_at([10 * np.cos(a), 10 * np.sin(a), 8], [0, 0, 0]) for a in np.linspace(0, 1.5, N)]
+
+
+def _images(d, names, ext=".png"):
+    d.mkdir(parents=True, exist_ok=True)
+    for i, n in enumerate(names):
+        cv2.imwrite(str(d / n), np.full((H, W, 3), 40 * i + 20, np.uint8))
+
+
+def _read(out):
+    metas = []
+    for p in sorted(out.glob("*.tar")):
+        metas += [read_meta(s) for s in wds.WebDataset(str(p), shardshuffle=False)]
+    return metas
+
+
+def _check(out, gt, scale=1.0):
+    meta = _read(out)[0]
+    for v, g in zip(meta["views"], gt):
+        w2c = np.array(v["w2c"])
+        g = g.copy()
+        g[:3, 3] *= scale
+        assert np.allclose(w2c, g, atol=1e-6), (w2c, g)
+        assert np.allclose(v["K"], K, atol=1e-6)
+    return meta
+
+
+def _write_colmap_bin(d, gt, model_id=1, params=(30.0, 31.0, 16.0, 12.0)):
+    d.mkdir(parents=True)
+    with open(d / "cameras.bin", "wb") as f:
+        f.write(struct.pack("<Q", 1) + struct.pack("<iiQQ", 1, model_id, W, H))
+        f.write(struct.pack(f"<{len(params)}d", *params))
+    with open(d / "images.bin", "wb") as f:
+        f.write(struct.pack("<Q", N))
+        for i, g in enumerate(gt):
+            q = rotmat_to_quat(torch.tensor(g[:3, :3])).tolist()
+            f.write(struct.pack("<idddddddi", i + 1, *q, *g[:3, 3], 1) + f"v{i}.png".encode() + b"\x00")
+            f.write(struct.pack("<Q", 1) + struct.pack("<ddq", 1.0, 2.0, 7))
+    with open(d / "points3D.bin", "wb") as f:
+        f.write(struct.pack("<Q", 1) + struct.pack("<QdddBBBdQ", 7, 0, 0, 0, 1, 2, 3, 0.1, 1))
+        f.write(struct.pack("<ii", 1, 0))
+
+
+def test_colmap_binary_and_text(tmp_path):
+    gt = _gt()
+    src = tmp_path / "scene"
+    _images(src / "images", [f"v{i}.png" for i in range(N)])
+    _write_colmap_bin(src / "sparse" / "0", gt)
+    meta = _check_convert("colmap", src, tmp_path / "out", gt)
+    assert meta["units"] == "sfm" and np.allclose(meta["world_from_source"], np.eye(4))
+    # text model
+    txt = tmp_path / "scene_txt"
+    _images(txt / "images", [f"v{i}.png" for i in range(N)])
+    (txt / "sparse").mkdir(parents=True)
+    (txt / "sparse" / "cameras.txt").write_text(f"# c\n1 PINHOLE {W} {H} 30 31 16 12\n")
+    lines = []
+    for i, g in enumerate(gt):
+        q = rotmat_to_quat(torch.tensor(g[:3, :3])).tolist()
+        lines += [" ".join(map(str, [i + 1, *q, *g[:3, 3], 1, f"v{i}.png"])), "1.0 2.0 -1"]
+    (txt / "sparse" / "images.txt").write_text("\n".join(lines) + "\n")
+    _check_convert("colmap", txt, tmp_path / "out_txt", gt)
+
+
+def _check_convert(fmt, src, out, gt, scale=1.0):
+    convert(fmt, src, out)
+    return _check(out, gt, scale)
+
+
+def test_colmap_distorted_and_missing(tmp_path):
+    src = tmp_path / "scene"
+    _images(src / "images", [f"v{i}.png" for i in range(N)])
+    _write_colmap_bin(src / "sparse" / "0", _gt(), model_id=4, params=(30, 31, 16, 12, 0.1, 0, 0, 0))
+    with pytest.raises(ValueError, match="undistort"):
+        convert("colmap", src, tmp_path / "o")
+    with pytest.raises(FileNotFoundError, match="COLMAP"):
+        convert("colmap", tmp_path / "scene" / "images", tmp_path / "o2")
+    with pytest.raises(FileNotFoundError):
+        convert("colmap", tmp_path / "nothing", tmp_path / "o3")
+
+
+def test_nerfstudio(tmp_path):
+    gt = _gt()
+    src = tmp_path / "ns"
+    _images(src / "images", [f"f{i}.png" for i in range(N)])
+    frames = [{"file_path": f"images/f{i}.png", "transform_matrix": (np.linalg.inv(g) @ GL_TO_CV).tolist()}
+              for i, g in enumerate(gt)]
+    (src / "transforms.json").write_text(json.dumps({"fl_x": 30, "fl_y": 31, "cx": 16, "cy": 12, "w": W, "h": H,
+                                                     "frames": frames, "applied_scale": 1.0}))
+    meta = _check_convert("nerfstudio", src, tmp_path / "out", gt)
+    assert meta["extra"]["applied_scale"] == 1.0
+    (src / "transforms.json").write_text(json.dumps({"fl_x": 30, "w": W, "h": H, "k1": 0.1, "frames": frames}))
+    with pytest.raises(ValueError, match="undistort"):
+        convert("nerfstudio", src, tmp_path / "o2")
+
+
+def test_matrixcity_split_file_with_depth(tmp_path):
+    gt = _gt()
+    src = tmp_path / "pose" / "block_A"
+    img_dir = tmp_path / "train" / "block_1"
+    _images(img_dir, [f"{i:04d}.png" for i in range(N)])
+    (img_dir / "depth").mkdir()
+    for i in range(N):
+        np.save(img_dir / "depth" / f"{i:04d}.npy", np.full((H, W), 1234.0, np.float32))  # centimetres
+    frames = []
+    for i, g in enumerate(gt):
+        c2w = np.linalg.inv(g) @ GL_TO_CV
+        c2w[:3, 3] /= 100.0  # MatrixCity split files store 100 m units
+        frames.append({"file_path": f"../../train/block_1/{i:04d}.png", "transform_matrix": c2w.tolist()})
+    src.mkdir(parents=True)
+    (src / "transforms_train.json").write_text(json.dumps({"fl_x": 30, "fl_y": 31, "cx": 16, "cy": 12, "w": W, "h": H,
+                                                          "frames": frames}))
+    convert("matrixcity", src, tmp_path / "out")
+    meta = _check(tmp_path / "out", gt)
+    assert meta["units"] == "metres" and np.allclose(np.diag(meta["world_from_source"]), [100, 100, 100, 1])
+    sample = next(iter(wds.WebDataset(str(next((tmp_path / "out").glob("*.tar"))), shardshuffle=False)))
+    import io
+    assert np.allclose(np.load(io.BytesIO(sample["000.depth.npy"])), 12.34)
+
+
+def test_blendedmvs_with_pfm(tmp_path):
+    gt = _gt()
+    src = tmp_path / "5a3ca9cb270f0e3f14d0eddb"
+    _images(src / "blended_images", [f"{i:08d}.jpg" for i in range(N)])
+    (src / "cams").mkdir()
+    (src / "rendered_depth_maps").mkdir()
+    for i, g in enumerate(gt):
+        rows = "\n".join(" ".join(map(str, r)) for r in g)
+        krows = "\n".join(" ".join(map(str, r)) for r in K)
+        (src / "cams" / f"{i:08d}_cam.txt").write_text(f"extrinsic\n{rows}\n\nintrinsic\n{krows}\n\n425 2.5\n")
+        d = np.arange(H * W, dtype=np.float32).reshape(H, W) + 1
+        with open(src / "rendered_depth_maps" / f"{i:08d}.pfm", "wb") as f:
+            f.write(f"Pf\n{W} {H}\n-1.0\n".encode() + np.flipud(d).astype("<f4").tobytes())
+    convert("blendedmvs", src, tmp_path / "out")
+    _check(tmp_path / "out", gt)
+    sample = next(iter(wds.WebDataset(str(next((tmp_path / "out").glob("*.tar"))), shardshuffle=False)))
+    import io
+    depth = np.load(io.BytesIO(sample["000.depth.npy"]))
+    assert depth[0, 0] == 1 and depth[0, 1] == 2  # top row first after the PFM flip
+
+
+def _llff_rows(gt, cols):
+    rows = []
+    for g in gt:
+        c2w = np.linalg.inv(g)
+        R = c2w[:3, :3]
+        m = np.zeros((3, 5))
+        for j, (i, s) in enumerate(cols):
+            m[:, j] = s * R[:, i]
+        m[:, 3] = c2w[:3, 3]
+        m[:, 4] = [H, W, 30.0]
+        rows.append(np.r_[m.reshape(-1), 1.0, 100.0])
+    return np.array(rows)
+
+
+def test_llff_and_bungeenerf(tmp_path):
+    gt = _gt()
+    Kf = np.array([[30.0, 0, 16], [0, 30, 12], [0, 0, 1]])
+    for fmt, cols in (("llff", ((1, 1), (0, 1), (2, -1))), ("bungeenerf", ((0, 1), (1, -1), (2, -1)))):
+        src = tmp_path / fmt
+        _images(src / "images", [f"{i:03d}.png" for i in range(N)])
+        rows = _llff_rows(gt, cols)
+        if fmt == "llff":
+            np.save(src / "poses_bounds.npy", rows)
+        else:
+            (src / "poses_enu.json").write_text(json.dumps({"poses": rows.tolist(), "scene_scale": 2.0}))
+        convert(fmt, src, tmp_path / f"out_{fmt}")
+        meta = _read(tmp_path / f"out_{fmt}")[0]
+        for v, g in zip(meta["views"], gt):
+            assert np.allclose(v["w2c"], g, atol=1e-6) and np.allclose(v["K"], Kf)
+    with pytest.raises(FileNotFoundError, match="poses_bounds.npy"):
+        convert("llff", tmp_path / "bungeenerf", tmp_path / "o")

@@ -1,0 +1,75 @@
+import io
+import json
+import tarfile
+
+import numpy as np
+import pytest
+import webdataset as wds
+
+from anycity.data.pipeline import SampleBuilder
+from anycity.data.schema import SCHEMA_VERSION, SceneRecord, ViewRecord, check_key, read_meta
+from anycity.data.writer import ShardSetWriter, read_index, split_scenes
+
+
+def _record(key="scene_a", n=3):
+    rng = np.random.default_rng(0)
+    views = [ViewRecord(name=f"img{i}.png", image=rng.integers(0, 255, (20, 30, 3), dtype=np.uint8),
+                        w2c=np.eye(4) + np.pad(np.eye(3)[:, :1] * i, ((0, 1), (3, 0))), K=np.diag([30.0, 30.0, 1.0]),
+                        width=30, height=20, depth=np.full((20, 30), 5.0, np.float32), ext="png")
+             for i in range(n)]
+    return SceneRecord(key=key, views=views, source="test", units="metres", metres_per_unit=1.0)
+
+
+def test_roundtrip_and_index(tmp_path):
+    with ShardSetWriter(tmp_path, maxcount=2) as w:
+        for i in range(3):
+            w.write(_record(f"s{i}"), "train")
+        w.write(_record("v0"), "val")
+    index = read_index(tmp_path)
+    assert index["splits"]["train"] == ["train-000000.tar", "train-000001.tar"]
+    assert [s["num_views"] for s in index["scenes"]] == [3, 3, 3, 3]
+    sample = next(iter(wds.WebDataset(str(tmp_path / "train-000000.tar"), shardshuffle=False)))
+    meta = read_meta(sample)
+    assert meta["schema_version"] == SCHEMA_VERSION and meta["views"][0]["name"] == "img0.png"
+    img = np.frombuffer(sample["000.png"], np.uint8)
+    assert img.size > 0 and "000.depth.npy" in sample
+
+
+def test_version_mismatch_names_both(tmp_path):
+    sample = {"__key__": "k", "__url__": "x.tar", "cameras.json": json.dumps({"schema_version": 99}).encode()}
+    with pytest.raises(ValueError, match=rf"schema_version 99.*schema_version {SCHEMA_VERSION}"):
+        read_meta(sample)
+    (tmp_path / "index.json").write_text(json.dumps({"schema_version": 0}))
+    with pytest.raises(ValueError, match="schema_version 0"):
+        read_index(tmp_path)
+    with pytest.raises(FileNotFoundError, match="index.json"):
+        read_index(tmp_path / "nope")
+
+
+def test_missing_key_names_shard_and_key(tmp_path):
+    with ShardSetWriter(tmp_path) as w:
+        w.write(_record(), "train")
+    sample = next(iter(wds.WebDataset(str(tmp_path / "train-000000.tar"), shardshuffle=False)))
+    del sample["001.png"]
+    with pytest.raises(ValueError, match=r"train-000000.tar.*scene_a.*'001.png'"):
+        SampleBuilder(1, 1, 1, (16, 16), train=False)(sample)
+
+
+def test_keys_and_splits():
+    with pytest.raises(ValueError, match="without '.'"):
+        check_key("a.b")
+    s = split_scenes(20, seed=1)
+    assert s.count("train") == 16 and s.count("val") == 2 and s.count("test") == 2
+    assert split_scenes(20, seed=1) == s and split_scenes(2) == ["train", "train"]
+
+
+def test_corrupt_tar_bytes(tmp_path):
+    p = tmp_path / "train-000000.tar"
+    with tarfile.open(p, "w") as t:
+        data = b"{not json"
+        info = tarfile.TarInfo("k.cameras.json")
+        info.size = len(data)
+        t.addfile(info, io.BytesIO(data))
+    sample = next(iter(wds.WebDataset(str(p), shardshuffle=False)))
+    with pytest.raises(ValueError, match=r"train-000000.tar.*'cameras.json'"):
+        read_meta(sample)

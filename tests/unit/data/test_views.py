@@ -1,0 +1,68 @@
+import numpy as np
+import pytest
+import torch
+
+from anycity.data.raycast import look_at
+from anycity.data.views import llffhold_split, normalise, resize_view, select_eval, select_train
+from anycity.geometry import camera_centers, project_points, transform_points, unproject_depth
+
+
+def test_select_train_fixed_sizes():
+    rng = np.random.default_rng(0)
+    for n in (6, 24, 48):
+        s = select_train(n, 4, 3, 12, rng)
+        assert (len(s.context), len(s.target), len(s.dense)) == (4, 3, 12)
+        assert not set(s.context) & set(s.target) or n < 7
+        assert not set(s.target) & set(s.dense) or n < 15
+        assert max(s.context + s.target + s.dense) - min(s.context + s.target + s.dense) < 2 * 15
+
+
+def test_select_eval_llffhold():
+    train, test = llffhold_split(24)
+    assert test == [0, 8, 16] and len(train) == 21
+    sels = select_eval(24, 4, 2, 6)
+    assert sorted({t for s in sels for t in s.target}) == test
+    for s in sels:
+        assert len(s.target) == 2 and len(s.context) == 4 and len(s.dense) == 6
+        assert all(i % 8 for i in s.context + s.dense)
+    assert sels == select_eval(24, 4, 2, 6)
+
+
+@pytest.mark.parametrize("mode,size", [("crop", (32, 32)), ("crop", (20, 50)), ("keep", (28, 28))])
+def test_resize_keeps_projection(mode, size):
+    h, w = 40, 60
+    K = np.array([[50.0, 0, 31.0], [0, 52.0, 19.0], [0, 0, 1]])
+    img = np.zeros((h, w, 3), np.uint8)
+    img[10, 20] = 255  # pixel centre (20.5, 10.5)
+    depth = np.full((h, w), 3.0, np.float32)
+    out, K2, d2, _, m2 = resize_view(img, K, size, mode, 14, depth=depth, mask=depth > 0)
+    if mode == "crop":
+        assert out.shape[:2] == size
+    else:
+        assert out.shape[0] % 14 == 0 and out.shape[1] % 14 == 0
+    assert d2.shape == out.shape[:2] and m2.all()
+    # a 3D point seen at pixel (20.5, 10.5) maps to the same image location in the resized image
+    X = np.array([(20.5 - 31) / 50, (10.5 - 19) / 52, 1.0])
+    uv = K2 @ X
+    uv = uv[:2] / uv[2]
+    sy, sx = np.unravel_index(out[..., 0].astype(float).argmax(), out.shape[:2])
+    assert abs(uv[0] - (sx + 0.5)) < 1.5 and abs(uv[1] - (sy + 0.5)) < 1.5
+
+
+def test_normalise_frame_and_scale():
+    eyes = [[10, 0, 20], [0, 12, 22], [-10, 0, 21], [0, -9, 20]]
+    w2c = torch.tensor(np.stack([look_at(e, [0, 0, 0]) for e in eyes]))
+    K = torch.tensor([[20.0, 0, 8], [0, 20, 8], [0, 0, 1]]).expand(4, 3, 3)
+    depth = torch.full((4, 1, 16, 16), 20.0, dtype=torch.float64)
+    new, s, T = normalise(w2c, K, 2, depth)
+    assert torch.allclose(new[0], torch.eye(4, dtype=torch.float64), atol=1e-9)
+    pts = unproject_depth(depth[:2] / s, K[:2].double(), new[:2])
+    assert abs(pts.norm(dim=-1).mean().item() - 1) < 1e-6
+    # the stored similarity maps source points to the normalised frame consistently with the new poses
+    src = unproject_depth(depth[1:2], K[1:2].double(), w2c[1:2])[0].reshape(-1, 3)
+    uv0, z0 = project_points(src, w2c[1], K[1].double())
+    uv1, z1 = project_points(transform_points(T, src), new[1], K[1].double())
+    assert torch.allclose(uv0, uv1, atol=1e-6) and torch.allclose(z0 / s, z1, atol=1e-6)
+    # without depth: camera spread
+    new2, s2, _ = normalise(w2c, K, 3)
+    assert abs(camera_centers(new2[1:3]).norm(dim=-1).mean().item() - 1) < 1e-6
