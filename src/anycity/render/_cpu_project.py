@@ -27,7 +27,8 @@ N_CHUNKS = 64  # fixed work split: results do not depend on the thread count
 def _quat_rot(q0, q1, q2, q3, rot):
     """Normalised wxyz quaternion -> rot (3x3, row-major, float64 [9]); returns the norm."""
     nrm = max(math.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3), 1e-12)
-    w, x, y, z = q0 / nrm, q1 / nrm, q2 / nrm, q3 / nrm
+    inv = 1.0 / nrm
+    w, x, y, z = q0 * inv, q1 * inv, q2 * inv, q3 * inv
     rot[0], rot[1], rot[2] = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
     rot[3], rot[4], rot[5] = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
     rot[6], rot[7], rot[8] = 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)
@@ -102,9 +103,10 @@ def _sh_dir_grad(x, y, z, K, s):
 @njit(parallel=True, cache=True)
 def project_fwd(means, quats, scales, opac, sh, valid, cams, V, width, height, near, far, tiles_x, tiles_y,
                 P, z_out, rect, ntiles, ext_y):
-    """Fill P ``[C*N, 6+D]`` (mx, my, conic a b c, opacity, rgb, z[, normal]), z_out, tile rect, ntiles (0 =
-    culled) and the y half-extent in px. Footprints use the opacity-aware extent min(3.33, sqrt(2 ln(255 o))) σ:
-    outside it α < 1/255, so it culls exactly what compositing would skip."""
+    """Fill P ``[C*N, 6+D]`` (mx, my, conic a b c, opacity, rgb, z[, normal]), z_out, the tile box rect,
+    ntiles (its area; 0 = culled) and ext_y, the footprint's y half-extent in px. Footprints use the
+    opacity-aware extent min(3.33, sqrt(2 ln(255 o))) σ: outside it α < 1/255, so it culls exactly what
+    compositing would skip."""
     B, N = means.shape[:2]
     K = sh.shape[2]
     normals = P.shape[1] - QBASE == 7
@@ -129,10 +131,11 @@ def project_fwd(means, quats, scales, opac, sh, valid, cams, V, width, height, n
             fx, fy, cx, cy = cams[c, 12], cams[c, 13], cams[c, 14], cams[c, 15]
             _quat_rot(quats[b, n, 0], quats[b, n, 1], quats[b, n, 2], quats[b, n, 3], rot)
             s0, s1, s2 = scales[b, n, 0], scales[b, n, 1], scales[b, n, 2]
-            u = min(max(x / z, cams[c, 19]), cams[c, 20])
-            v = min(max(y / z, cams[c, 21]), cams[c, 22])
+            iz = 1.0 / z
+            u = min(max(x * iz, cams[c, 19]), cams[c, 20])
+            v = min(max(y * iz, cams[c, 21]), cams[c, 22])
             # rows of J R (J = [[fx/z, 0, -fx u/z], [0, fy/z, -fy v/z]])
-            j00, j02, j11, j12 = fx / z, -fx * u / z, fy / z, -fy * v / z
+            j00, j02, j11, j12 = fx * iz, -fx * u * iz, fy * iz, -fy * v * iz
             ca = cb = cc = 0.0
             for k in range(3):  # column k of M = rot diag(s): A[:, k] = (J R) M[:, k]
                 sk = s0 if k == 0 else (s1 if k == 1 else s2)
@@ -149,7 +152,7 @@ def project_fwd(means, quats, scales, opac, sh, valid, cams, V, width, height, n
             det = ca * cc - cb * cb
             if not det > 0:
                 continue
-            mx, my = fx * x / z + cx, fy * y / z + cy
+            mx, my = fx * x * iz + cx, fy * y * iz + cy
             ext = min(RADIUS_SIGMAS, math.sqrt(2.0 * math.log(255.0 * o))) * 1.001 + 1e-3
             rx, ry = ext * math.sqrt(ca) + 1e-3, ext * math.sqrt(cc) + 1e-3
             # pixels whose centre (p + 0.5) lies within [m - r, m + r], clamped to the image
@@ -165,7 +168,8 @@ def project_fwd(means, quats, scales, opac, sh, valid, cams, V, width, height, n
             ext_y[e] = ry
             z_out[e] = z
             P[e, 0], P[e, 1] = mx, my
-            P[e, 2], P[e, 3], P[e, 4] = cc / det, -cb / det, ca / det
+            idet = 1.0 / det
+            P[e, 2], P[e, 3], P[e, 4] = cc * idet, -cb * idet, ca * idet
             P[e, 5] = o
             if K == 1:
                 for ch in range(3):
@@ -190,9 +194,9 @@ def project_fwd(means, quats, scales, opac, sh, valid, cams, V, width, height, n
 
 
 @njit(parallel=True, cache=True)
-def project_bwd(means, quats, scales, opac, sh, cams, V, ntiles, pstart, G,
+def project_bwd(means, quats, scales, opac, sh, cams, V, pstart, G,
                 g_means, g_quats, g_scales, g_opac, g_sh):
-    """Chain the per-pair 2-D gradients G ``[n_pairs, 6+D]`` (rows of entry e at pstart[e]:pstart[e]+ntiles[e])
+    """Chain the per-pair 2-D gradients G ``[n_pairs, 6+D]`` (rows of entry e at pstart[e]:pstart[e+1])
     back through projection and SH into the per-Gaussian gradients (overwritten)."""
     B, N = means.shape[:2]
     K = sh.shape[2]
@@ -220,21 +224,22 @@ def project_bwd(means, quats, scales, opac, sh, cams, V, ntiles, pstart, G,
             for v in range(V):
                 c = b * V + v
                 e = c * N + n
-                if ntiles[e] == 0:
+                if pstart[e + 1] == pstart[e]:
                     continue
                 for d in range(QBASE + D):
                     g[d] = 0.0
-                for row in range(pstart[e], pstart[e] + ntiles[e]):
+                for row in range(pstart[e], pstart[e + 1]):
                     for d in range(QBASE + D):
                         g[d] += G[row, d]
                     x = cams[c, 0] * m0 + cams[c, 1] * m1 + cams[c, 2] * m2 + cams[c, 9]
                 y = cams[c, 3] * m0 + cams[c, 4] * m1 + cams[c, 5] * m2 + cams[c, 10]
                 z = cams[c, 6] * m0 + cams[c, 7] * m1 + cams[c, 8] * m2 + cams[c, 11]
                 fx, fy = cams[c, 12], cams[c, 13]
-                xz, yz = x / z, y / z
+                iz = 1.0 / z
+                xz, yz = x * iz, y * iz
                 u = min(max(xz, cams[c, 19]), cams[c, 20])
                 vv = min(max(yz, cams[c, 21]), cams[c, 22])
-                j00, j02, j11, j12 = fx / z, -fx * u / z, fy / z, -fy * vv / z
+                j00, j02, j11, j12 = fx * iz, -fx * u * iz, fy * iz, -fy * vv * iz
                 # forward again: w_k = R rot[:, k] s_k, A = J [w_0 w_1 w_2]
                 ca = cb = cc = 0.0
                 for k in range(3):
@@ -248,7 +253,8 @@ def project_bwd(means, quats, scales, opac, sh, cams, V, ntiles, pstart, G,
                 ca += EPS2D
                 cc += EPS2D
                 det = ca * cc - cb * cb
-                qa, qb, qc = cc / det, -cb / det, ca / det
+                idet = 1.0 / det
+                qa, qb, qc = cc * idet, -cb * idet, ca * idet
                 # conic -> Σ2D: H = -Q Gq Q with Gq = [[ga, gb/2], [gb/2, gc]]
                 ga, gb, gc = g[2], 0.5 * g[3], g[4]
                 t00, t01 = qa * ga + qb * gb, qa * gb + qb * gc
@@ -275,7 +281,6 @@ def project_bwd(means, quats, scales, opac, sh, cams, V, ntiles, pstart, G,
                         gs2 += r0 * gw0 + r1 * gw1 + r2 * gw2
                     for i in range(3):  # d rot[i, k] += s_k (Rᵀ gw)_i
                         grot[3 * i + k] += sc[k] * (cams[c, i] * gw0 + cams[c, 3 + i] * gw1 + cams[c, 6 + i] * gw2)
-                iz = 1.0 / z
                 gx = g[0] * fx * iz
                 gy = g[1] * fy * iz
                 gz = -(g[0] * fx * x + g[1] * fy * y) * iz * iz + g[9]

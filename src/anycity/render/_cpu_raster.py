@@ -96,34 +96,49 @@ def depth_order(z, ntiles):
 
 
 @njit(parallel=True, cache=True)
-def bin_pairs(order, rect, ntiles, P, ext_y, n_per_cam, tiles_x, tiles_y, n_chunks):
+def bin_pairs(order, rect, ntiles, P, ext_y, n_cams, n_per_cam, tiles_x, tiles_y, n_chunks):
     """Counting sort of (tile, Gaussian) pairs by tile, stable, so each tile's run stays depth-sorted.
 
     Args:
         order: ``[M]`` depth-sorted entry ids (entry e = camera * N + gaussian).
         rect: ``[C*N, 4]`` int32 tile box x0, x1, y0, y1 (half-open); ntiles ``[C*N]`` its area.
-        P: ``[C*N, 6+D]`` projected rows (mx, my, conic, opacity, features); ext_y ``[C*N]`` y half-extent, px.
+        P: ``[C*N, 6+D]`` projected rows (mx, my, conic a b c, opacity, features); ext_y ``[C*N]`` the y
+            half-extent of the footprint in px (pixel rows outside it cannot reach α >= 1/255).
     Returns:
-        Q ``[n_pairs, 6+D+2]`` float32 pair rows, tile_off ``[C*tiles+1]``, slot ``[n_pairs]`` (each pair's
-        index in the per-entry layout given by pstart), pstart ``[C*N+1]``.
+        Q ``[n_pairs, 6+D+2]`` float32 pair rows (mean relative to the tile, ..., row range r0, r1),
+        tile_off ``[C*tiles+1]``, slot ``[n_pairs]`` (each pair's row in the per-entry layout: entry e owns
+        rows pstart[e]:pstart[e+1]), pstart ``[C*N+1]``.
     """
-    ce = ntiles.shape[0]
+    ce = P.shape[0]
+    tpc = tiles_x * tiles_y
+    n_tiles = n_cams * tpc
+    m = order.shape[0]
+    width = P.shape[1]
+    # gather the entries in depth order once, so that the passes below read sequentially
+    Ps = np.empty((m, width), np.float32)
+    Is = np.empty((m, 6), np.int64)  # tile base, x0, x1, y0, y1, pstart
+    ys = np.empty(m, np.float32)
     pstart = np.zeros(ce + 1, np.int64)
     for e in range(ce):
         pstart[e + 1] = pstart[e] + ntiles[e]
     n_pairs = pstart[ce]
-    tpc = tiles_x * tiles_y
-    n_tiles = (ce // n_per_cam) * tpc if n_per_cam > 0 else 0
-    m = order.shape[0]
+    for s in prange(m):
+        e = order[s]
+        for d in range(width):
+            Ps[s, d] = P[e, d]
+        Is[s, 0] = (e // n_per_cam) * tpc
+        for d in range(4):
+            Is[s, 1 + d] = rect[e, d]
+        Is[s, 5] = pstart[e]
+        ys[s] = ext_y[e]
     step = (m + n_chunks - 1) // n_chunks
     hist = np.zeros((n_chunks, n_tiles), np.int64)
     for k in prange(n_chunks):
         for s in range(k * step, min(m, (k + 1) * step)):
-            e = order[s]
-            base = (e // n_per_cam) * tpc
-            for ty in range(rect[e, 2], rect[e, 3]):
-                for tx in range(rect[e, 0], rect[e, 1]):
-                    hist[k, base + ty * tiles_x + tx] += 1
+            for ty in range(Is[s, 3], Is[s, 4]):
+                row = Is[s, 0] + ty * tiles_x
+                for tx in range(Is[s, 1], Is[s, 2]):
+                    hist[k, row + tx] += 1
     tile_off = np.zeros(n_tiles + 1, np.int64)
     for t in range(n_tiles):
         run = tile_off[t]
@@ -132,28 +147,25 @@ def bin_pairs(order, rect, ntiles, P, ext_y, n_per_cam, tiles_x, tiles_y, n_chun
             hist[k, t] = run
             run += c
         tile_off[t + 1] = run
-    D = P.shape[1] - QBASE
-    qw = P.shape[1] + 2
+    qw = width + 2
     Q = np.empty((n_pairs, qw), np.float32)
     slot = np.empty(n_pairs, np.int64)
     for k in prange(n_chunks):
         for s in range(k * step, min(m, (k + 1) * step)):
-            e = order[s]
-            base = (e // n_per_cam) * tpc
-            kk = pstart[e]
-            mx, my, ry = P[e, 0], P[e, 1], ext_y[e]
-            for ty in range(rect[e, 2], rect[e, 3]):
+            kk = Is[s, 5]
+            mx, my, ry = Ps[s, 0], Ps[s, 1], ys[s]
+            for ty in range(Is[s, 3], Is[s, 4]):
                 oy = np.float32(ty * TY)
                 r0 = max(0, math.ceil(max(my - ry - 0.5 - oy, -1.0)))
                 r1 = min(TY, math.floor(min(my + ry - 0.5 - oy, TY + 1.0)) + 1)
-                for tx in range(rect[e, 0], rect[e, 1]):
-                    t = base + ty * tiles_x + tx
-                    j = hist[k, t]
-                    hist[k, t] = j + 1
+                row = Is[s, 0] + ty * tiles_x
+                for tx in range(Is[s, 1], Is[s, 2]):
+                    j = hist[k, row + tx]
+                    hist[k, row + tx] = j + 1
                     Q[j, 0] = mx - np.float32(tx * TX)
                     Q[j, 1] = my - oy
-                    for d in range(2, QBASE + D):
-                        Q[j, d] = P[e, d]
+                    for d in range(2, width):
+                        Q[j, d] = Ps[s, d]
                     Q[j, qw - 2] = r0
                     Q[j, qw - 1] = r1
                     slot[j] = kk

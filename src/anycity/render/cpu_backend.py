@@ -12,7 +12,8 @@ One ``torch.autograd.Function`` runs, on float32 CPU tensors:
 Semantics are those of ``anycity.render.api.render`` (the torch backend is the reference). Kernels compile on
 first use (a few seconds, announced once on stderr) and are cached next to this file's ``__pycache__`` or in
 ``NUMBA_CACHE_DIR``. Threads follow ``torch.get_num_threads()``. numba's OpenMP pool is not fork-safe, so calling
-this inside a forked worker (e.g. ``DataLoader(num_workers>0)``) raises instead of hanging.
+this in a child forked after the kernels ran (e.g. ``DataLoader(num_workers>0)`` workers) raises instead of
+hanging.
 """
 
 from __future__ import annotations
@@ -22,7 +23,12 @@ import math
 import os
 import threading
 
-import numba
+# numba's OpenMP pool (the system libgomp, loaded on the first parallel launch) spins between parallel regions by
+# default; on a shared 2-core machine that spinning made a 2-thread render 5-10x slower than 1 thread. Sleeping
+# workers cost ~0.1 ms per call. An explicit user setting wins; torch's own libgomp is already loaded and unaffected.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import numba  # noqa: E402
 import numpy as np
 import torch
 from torch import Tensor
@@ -70,14 +76,16 @@ def _announce_compile(D: int) -> None:
 
 
 def _guard_process() -> None:
-    """numba's OpenMP thread pool does not survive fork(): refuse to run in a forked child."""
-    worker = torch.utils.data.get_worker_info()
+    """numba's OpenMP thread pool does not survive fork(): refuse to run in a child forked after the kernels ran
+    in its parent (e.g. ``DataLoader(num_workers>0)`` workers). Spawned processes start clean and are fine."""
     pid = os.getpid()
-    if worker is not None or (_state["pid"] is not None and _state["pid"] != pid):
-        where = f"DataLoader worker {worker.id}" if worker is not None else "a forked child process"
+    if _state["pid"] is not None and _state["pid"] != pid:
+        worker = torch.utils.data.get_worker_info()
+        where = f"DataLoader worker {worker.id}" if worker is not None else "a child process"
         raise RuntimeError(
-            f"render(backend='cpu') called in {where}: numba's OpenMP thread pool is not fork-safe. Render in the "
-            "main process, pass backend='torch' inside workers, or use multiprocessing_context='spawn'")
+            f"render(backend='cpu') called in {where} forked after the fused kernels ran in its parent: numba's "
+            "OpenMP thread pool is not fork-safe. Render in the main process, pass backend='torch' inside "
+            "workers, or use multiprocessing_context='spawn'")
     _state["pid"] = pid
 
 
@@ -124,7 +132,7 @@ class _FusedRender(torch.autograd.Function):
         _proj.project_fwd(*arrays, _np(valid), cams, V, width, height, near, far, tiles_x, tiles_y,
                           P, z, rect, ntiles, ext_y)
         order = _rast.depth_order(z, ntiles)
-        Q, tile_off, slot, pstart = _rast.bin_pairs(order, rect, ntiles, P, ext_y, max(N, 1), tiles_x, tiles_y,
+        Q, tile_off, slot, pstart = _rast.bin_pairs(order, rect, ntiles, P, ext_y, C, max(N, 1), tiles_x, tiles_y,
                                                     _BIN_CHUNKS)
         rgb = np.empty((C, 3, height, width), np.float32)
         depth = np.empty((C, 1, height, width), np.float32)
@@ -137,7 +145,7 @@ class _FusedRender(torch.autograd.Function):
         fwd(Q, tile_off, tiles_x, tiles_y, width, height, bg, rgb, depth, alpha, normal, t_final, last)
 
         ctx.save_for_backward(means, quats, scales, opacities, sh)
-        ctx.state = (cams, V, D, tiles_x, tiles_y, width, height, ntiles, pstart, Q, tile_off, slot, bg, t_final,
+        ctx.state = (cams, V, D, tiles_x, tiles_y, width, height, pstart, Q, tile_off, slot, bg, t_final,
                      last, depth)
         out = [torch.from_numpy(a).unflatten(0, (B, V)) for a in (rgb, depth, alpha, normal)]
         if not normals:
@@ -146,7 +154,7 @@ class _FusedRender(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g_rgb, g_depth, g_alpha, g_normal):
-        cams, V, D, tiles_x, tiles_y, width, height, ntiles, pstart, Q, tile_off, slot, bg, t_final, last, depth = \
+        cams, V, D, tiles_x, tiles_y, width, height, pstart, Q, tile_off, slot, bg, t_final, last, depth = \
             ctx.state
         means, quats, scales, opacities, sh = ctx.saved_tensors
         C = cams.shape[0]
@@ -162,7 +170,7 @@ class _FusedRender(torch.autograd.Function):
             grad(g_rgb, img3), grad(g_depth, img1), grad(g_alpha, img1),
             grad(g_normal, img3) if D == 7 else grad(None, (1, 3, 1, 1)), G)
         outs = [torch.empty_like(t) for t in (means, quats, scales, opacities, sh)]
-        _proj.project_bwd(*[_np(t) for t in (means, quats, scales, opacities, sh)], cams, V, ntiles, pstart, G,
+        _proj.project_bwd(*[_np(t) for t in (means, quats, scales, opacities, sh)], cams, V, pstart, G,
                           *[o.numpy() for o in outs])
         return (*outs, None, None, None, None, None, None, None, None, None)
 
@@ -170,10 +178,14 @@ class _FusedRender(torch.autograd.Function):
 def render_cpu(means, quats, scales, opacities, sh, valid, w2c, K, width, height, background, near, far,
                render_normals):
     """Backend entry point (contract in ``anycity.render.api``); float32 CPU tensors only."""
-    for name, t in (("means", means), ("w2c", w2c)):
+    for name, t in (("means", means), ("quats", quats), ("scales", scales), ("opacities", opacities), ("sh", sh),
+                    ("w2c", w2c)):
         if t.device.type != "cpu" or t.dtype != torch.float32:
             raise ValueError(f"backend='cpu': {name} must be a float32 CPU tensor, got {t.dtype} on {t.device}; "
                              "use backend='torch' for other dtypes or devices")
+    if sh.shape[2] > 25:
+        raise ValueError(f"backend='cpu': sh has K={sh.shape[2]} coefficients, at most 25 (degree 4) are supported; "
+                         "use backend='torch' or a lower SH degree")
     _guard_process()
     _set_threads()
     D = 7 if render_normals else 4
