@@ -1,0 +1,53 @@
+"""Write ``predict`` results: one folder per scene with ``scene.ply``, ``cameras.json`` and context re-renders."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import lightning.pytorch as pl
+import numpy as np
+from lightning.pytorch.callbacks import BasePredictionWriter
+from PIL import Image
+
+from anycity.export import save_cameras, save_ply
+
+
+class PredictionExport(BasePredictionWriter):
+    """Export every predicted scene under ``out_dir/<scene>/``.
+
+    Files: ``scene.ply`` (standard 3DGS PLY), ``cameras.json`` (predicted OpenCV w2c + K),
+    ``renders/NNN.png`` (the Gaussians re-rendered at the predicted context cameras) and
+    ``inputs/NNN.png`` (the context images, for side-by-side comparison).
+
+    Args:
+        out_dir: output folder; None = ``<log_dir>/predictions``.
+        save_renders: also write the PNG renders and inputs.
+    """
+
+    def __init__(self, out_dir: str | None = None, save_renders: bool = True) -> None:
+        super().__init__(write_interval="batch")
+        self.out_dir = out_dir
+        self.save_renders = save_renders
+        self.written: list[Path] = []
+
+    def _root(self, trainer: pl.Trainer) -> Path:
+        return Path(self.out_dir) if self.out_dir else Path(trainer.log_dir or trainer.default_root_dir) / "predictions"
+
+    def write_on_batch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule, prediction: dict[str, Any],
+                           batch_indices: Any, batch: Any, batch_idx: int, dataloader_idx: int = 0) -> None:
+        g, w2c, K = prediction["gaussians"], prediction["w2c"], prediction["K"]
+        images, renders = prediction["images"], prediction["renders"]
+        h, w = images.shape[-2:]
+        scenes = prediction.get("scene") or [f"scene_{batch_idx:04d}_{i}" for i in range(w2c.shape[0])]
+        for i, name in enumerate(scenes):
+            folder = self._root(trainer) / f"{name}".replace("/", "_")
+            save_ply(g, folder / "scene.ply", index=i)
+            save_cameras(folder / "cameras.json", w2c[i], K[i], int(w), int(h))
+            if self.save_renders:
+                for kind, imgs in (("renders", renders.rgb[i]), ("inputs", images[i])):
+                    (folder / kind).mkdir(parents=True, exist_ok=True)
+                    for v, img in enumerate(imgs):
+                        arr = (img.float().clamp(0, 1).permute(1, 2, 0).cpu().numpy() * 255 + 0.5).astype(np.uint8)
+                        Image.fromarray(arr).save(folder / kind / f"{v:03d}.png")
+            self.written.append(folder)

@@ -1,0 +1,59 @@
+"""Freeze parameters by glob pattern before optimisers are built (covers the "frozen transformer" ablations)."""
+
+from __future__ import annotations
+
+from fnmatch import fnmatchcase
+
+import lightning.pytorch as pl
+from lightning.pytorch.callbacks import Callback
+from torch import nn
+
+
+def freeze_by_patterns(module: nn.Module, patterns: list[str], unfreeze: list[str] | None = None) -> list[str]:
+    """Set ``requires_grad=False`` on every parameter whose name matches one of ``patterns``.
+
+    Args:
+        module: the model (names as in ``module.named_parameters()``).
+        patterns: glob patterns, e.g. ``"net.aggregator.*"``.
+        unfreeze: patterns re-enabled afterwards (exceptions inside a frozen group, e.g. LoRA ``"*lora_*"``).
+    Returns:
+        The names frozen.
+    Raises:
+        ValueError: a pattern that matches no parameter (a typo would silently train everything).
+    """
+    names = [n for n, _ in module.named_parameters()]
+    for pat in [*patterns, *(unfreeze or [])]:
+        if not any(fnmatchcase(n, pat) for n in names):
+            sample = ", ".join(sorted({n.split(".")[0] + "." + n.split(".")[1] if "." in n else n for n in names})[:8])
+            raise ValueError(f"freeze: pattern {pat!r} matches no parameter; names look like {sample}, ...; "
+                             "fix the pattern (globs match full dotted names)")
+    frozen = []
+    for n, p in module.named_parameters():
+        if any(fnmatchcase(n, pat) for pat in patterns) and not any(fnmatchcase(n, u) for u in unfreeze or []):
+            p.requires_grad_(False)
+            frozen.append(n)
+    return frozen
+
+
+class FreezeModules(Callback):
+    """Freeze parameters of the LightningModule whose names match glob patterns, in ``setup``.
+
+    ``setup`` runs before ``configure_optimizers`` and before DDP wraps the model, so frozen parameters get
+    neither optimiser state nor gradient buckets. The module is frozen for the whole run (no unfreezing
+    schedule), so a plain callback is used rather than ``BaseFinetuning``, whose param-group restore on resume
+    would fight the LR schedule.
+
+    Args:
+        patterns: glob patterns over ``pl_module.named_parameters()`` names, e.g. ``["net.aggregator.*"]``.
+            Empty list = no-op. A pattern that matches nothing raises ``ValueError``.
+        unfreeze: patterns kept trainable inside the frozen set (e.g. ``["*lora_*"]``).
+    """
+
+    def __init__(self, patterns: list[str] | None = None, unfreeze: list[str] | None = None) -> None:
+        self.patterns = list(patterns or [])
+        self.unfreeze = list(unfreeze or [])
+        self.frozen: list[str] = []
+
+    def setup(self, trainer: pl.Trainer, pl_module: pl.LightningModule, stage: str) -> None:
+        if self.patterns:
+            self.frozen = freeze_by_patterns(pl_module, self.patterns, self.unfreeze)

@@ -1,0 +1,56 @@
+"""Progress display that shows the loss terms: tqdm bars on a terminal, plain periodic lines otherwise."""
+
+from __future__ import annotations
+
+import sys
+import time
+from typing import Any
+
+import lightning.pytorch as pl
+from lightning.pytorch.callbacks import TQDMProgressBar
+
+
+def _short(name: str) -> str:
+    return name.split("/", 1)[1] if name.startswith("train/") else name
+
+
+class LossProgressBar(TQDMProgressBar):
+    """TQDM bar whose postfix lists the ``prog_bar`` loss terms with short names (``train/rgb`` -> ``rgb``).
+
+    When stdout is not a terminal (``make``, CI, log files) the bars are replaced by one line every
+    ``print_every`` optimiser steps: step, epoch, loss terms and elapsed time.
+
+    Args:
+        refresh_rate: tqdm refresh rate in batches.
+        print_every: steps between plain lines in non-interactive mode.
+        force_plain: always use plain lines.
+    """
+
+    def __init__(self, refresh_rate: int = 1, print_every: int = 10, force_plain: bool = False) -> None:
+        super().__init__(refresh_rate=refresh_rate)
+        self.print_every = max(1, print_every)
+        self.plain = force_plain or not sys.stdout.isatty()
+        self._t0 = time.monotonic()
+        if self.plain:
+            self.disable()
+
+    def get_metrics(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> dict[str, Any]:
+        metrics = super().get_metrics(trainer, pl_module)
+        metrics.pop("v_num", None)
+        return {_short(k): v for k, v in metrics.items()}
+
+    def on_train_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        self._t0 = time.monotonic()
+        super().on_train_start(trainer, pl_module)
+
+    def on_train_batch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule, outputs: Any, batch: Any,
+                           batch_idx: int) -> None:
+        if not self.plain:
+            return super().on_train_batch_end(trainer, pl_module, outputs, batch, batch_idx)
+        step = trainer.global_step
+        if step % self.print_every == 0 or step == trainer.max_steps:
+            terms = " ".join(f"{k}={float(v):.4g}" if isinstance(v, (int, float)) else f"{k}={v}"
+                             for k, v in self.get_metrics(trainer, pl_module).items())
+            total = trainer.max_steps if trainer.max_steps and trainer.max_steps > 0 else "?"
+            print(f"[{type(pl_module).__name__}] step {step}/{total} epoch {trainer.current_epoch} {terms} "
+                  f"({time.monotonic() - self._t0:.0f}s)", flush=True)

@@ -1,0 +1,87 @@
+"""Standard 3DGS PLY (graphdeco ``save_ply`` layout): x y z, nx ny nz, f_dc, f_rest (channel-major), opacity
+(logit), scale (log std), rot (wxyz). Readable by the common viewers (SuperSplat, antimatter15, SIBR, viser)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+from plyfile import PlyData, PlyElement
+from torch import Tensor
+
+from anycity.structures import Gaussians
+
+
+def gaussians_to_ply_arrays(g: Gaussians, index: int = 0, max_degree: int = 3) -> tuple[dict[str, np.ndarray], int]:
+    """Columns of scene ``index`` of ``g`` as float32 arrays; returns ``(columns, dropped)``.
+
+    Invalid, non-finite and zero-norm-rotation Gaussians are dropped (their count is returned). SH above
+    ``max_degree`` (at most 3, the format's limit) are cut per band, then written channel-major.
+    """
+    if not 0 <= max_degree <= 3:
+        raise ValueError(f"max_degree: the PLY format holds SH degree 0..3, got {max_degree}")
+    means, quats = g.means[index].float(), g.quats[index].float()
+    scales, opac, sh = g.scales[index].float(), g.opacities[index].float(), g.sh[index].float()
+    deg = min(g.sh_degree, max_degree)
+    sh = sh[:, : (deg + 1) ** 2]  # bands are stored in order, so cutting keeps the lower degrees intact
+    keep = torch.ones(means.shape[0], dtype=torch.bool, device=means.device)
+    if g.valid is not None:
+        keep &= g.valid[index]
+    for t in (means, quats, scales, opac[:, None], sh.flatten(1)):
+        keep &= torch.isfinite(t).all(-1)
+    keep &= quats.norm(dim=-1) > 0
+    keep &= scales.min(-1).values > 0
+    dropped = int((~keep).sum())
+    means, quats, scales, opac, sh = means[keep], quats[keep], scales[keep], opac[keep], sh[keep]
+    quats = quats / quats.norm(dim=-1, keepdim=True)
+    p = opac.clamp(1e-6, 1 - 1e-6)
+    cols: dict[str, Tensor] = {"x": means[:, 0], "y": means[:, 1], "z": means[:, 2]}
+    for c in "xyz":
+        cols[f"n{c}"] = torch.zeros_like(means[:, 0])
+    for i in range(3):
+        cols[f"f_dc_{i}"] = sh[:, 0, i]
+    rest = sh[:, 1:, :].transpose(1, 2).reshape(sh.shape[0], -1)  # [N, 3*(K-1)] channel-major
+    for i in range(rest.shape[1]):
+        cols[f"f_rest_{i}"] = rest[:, i]
+    cols["opacity"] = torch.log(p / (1 - p))
+    for i in range(3):
+        cols[f"scale_{i}"] = scales[:, i].log()
+    for i in range(4):
+        cols[f"rot_{i}"] = quats[:, i]
+    return {k: v.detach().cpu().numpy().astype(np.float32) for k, v in cols.items()}, dropped
+
+
+def save_ply(g: Gaussians, path: str | Path, index: int = 0, max_degree: int = 3) -> int:
+    """Write scene ``index`` of ``g`` to ``path`` as a binary little-endian 3DGS PLY; returns rows dropped."""
+    cols, dropped = gaussians_to_ply_arrays(g, index, max_degree)
+    n = len(cols["x"])
+    data = np.empty(n, dtype=[(k, "f4") for k in cols])
+    for k, v in cols.items():
+        data[k] = v
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    PlyData([PlyElement.describe(data, "vertex")], text=False, byte_order="<").write(str(path))
+    return dropped
+
+
+def load_ply(path: str | Path) -> Gaussians:
+    """Read a PLY written by :func:`save_ply` (or graphdeco) back into a one-scene ``Gaussians``."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"load_ply: {path} does not exist; pass the scene.ply written by `anycity predict`")
+    v = PlyData.read(str(path))["vertex"]
+    names = v.data.dtype.names
+
+    def col(*keys: str) -> Tensor:
+        return torch.from_numpy(np.stack([np.asarray(v[k], dtype=np.float32) for k in keys], -1))
+
+    n_rest = sum(1 for k in names if k.startswith("f_rest_"))
+    dc = col("f_dc_0", "f_dc_1", "f_dc_2")[:, None, :]
+    rest = col(*[f"f_rest_{i}" for i in range(n_rest)]).reshape(-1, 3, n_rest // 3).transpose(1, 2) if n_rest \
+        else dc[:, :0]
+    return Gaussians(
+        means=col("x", "y", "z")[None], quats=col("rot_0", "rot_1", "rot_2", "rot_3")[None],
+        scales=col("scale_0", "scale_1", "scale_2").exp()[None],
+        opacities=torch.sigmoid(col("opacity")[:, 0])[None], sh=torch.cat([dc, rest], 1)[None],
+    )

@@ -1,0 +1,231 @@
+"""Shared LightningModule machinery for both stages: the network, rendering, optimiser and schedule,
+evaluation on held-out target views and prediction.
+
+Stage-specific training lives in :mod:`anycity.lit.scaffold` (Stage I) and :mod:`anycity.lit.refinement`
+(Stage II). Only this package, ``callbacks`` and ``cli`` import Lightning.
+"""
+
+from __future__ import annotations
+
+import math
+import typing
+from dataclasses import fields
+from fnmatch import fnmatchcase
+from typing import Any, Literal, TypedDict
+
+import lightning.pytorch as pl
+import torch
+from torch import Tensor
+
+from anycity.lit.evaluation import AlignMode, EvalMetrics, cameras_in_pred_frame, fit_gt_to_pred
+from anycity.metrics import depth_metrics, mean_colour_baseline
+from anycity.models.presets import NetConfig
+from anycity.structures import Gaussians, RenderOutput, ViewBatch, Views
+
+Preset = Literal["tiny", "small", "base", "vggt-1b"]
+RenderBackend = Literal["auto", "torch", "cpu", "gsplat"]
+BackgroundMode = Literal["fixed", "context_mean"]
+PretrainedKind = Literal["vggt", "anysplat"]
+
+_NET_HINTS = typing.get_type_hints(NetConfig)
+# Overrides of a preset's NetConfig fields; a TypedDict so that a misspelt key fails when the config is parsed.
+NetOverrides = TypedDict("NetOverrides", {f.name: _NET_HINTS[f.name] for f in fields(NetConfig)}, total=False)
+
+
+def warmup_cosine(step: int, warmup: int, total: int, min_ratio: float) -> float:
+    """LR multiplier: linear warm-up over ``warmup`` steps, then cosine from 1 to ``min_ratio`` at ``total``."""
+    if warmup > 0 and step < warmup:
+        return (step + 1) / warmup
+    progress = min(1.0, (step - warmup) / max(1, total - warmup))
+    return min_ratio + (1 - min_ratio) * 0.5 * (1 + math.cos(math.pi * progress))
+
+
+def init_camera_head(net: torch.nn.Module, fov: float = 1.0) -> None:
+    """Random-init networks only: bias the camera head towards an identity rotation and a ``fov``-radian field
+    of view. VGGT's ReLU field-of-view activation otherwise starts at 0 for about half the outputs (infinite
+    focal length, no gradient), and a zero quaternion has no defined rotation. Each of the head's refinement
+    iterations adds its output, so the bias is spread over them."""
+    fc2 = getattr(getattr(getattr(net, "camera_head", None), "pose_branch", None), "fc2", None)
+    if not isinstance(fc2, torch.nn.Linear) or fc2.bias is None or fc2.bias.shape[0] != 9:
+        return
+    iters = max(1, int(getattr(getattr(net, "cfg", None), "camera_iterations", 1)))
+    with torch.no_grad():
+        fc2.weight[3:9].mul_(0.01)
+        fc2.bias[3:9] = 0.0
+        fc2.bias[6] = 1.0 / iters  # quaternion xyzw: w
+        fc2.bias[7:9] = fov / iters
+
+
+class AnyCityModule(pl.LightningModule):
+    """Base of :class:`ScaffoldModule` and :class:`RefinementModule` (not used directly).
+
+    Args:
+        preset: network size preset (``anycity.models.build_network``).
+        net: keyword overrides of the preset (e.g. ``{"sh_degree": 1}``); unknown keys fail at construction.
+        pretrained: local VGGT / AnySplat checkpoint loaded into the scaffold, or None (random init).
+        pretrained_kind: layout of ``pretrained`` ("vggt" model.pt or "anysplat").
+        lr: peak learning rate of AdamW.
+        weight_decay: AdamW weight decay (not applied to biases and norms).
+        pretrained_lr_scale: LR multiplier of parameters matching ``pretrained_patterns``.
+        pretrained_patterns: glob patterns (over ``net.`` parameter names) of pretrained layers.
+        warmup_steps: linear LR warm-up steps; the cosine decay spans the rest of the run.
+        min_lr_ratio: final LR as a fraction of ``lr``.
+        render_backend: renderer backend ("auto" picks gsplat on CUDA, the fused CPU kernels on CPU).
+        background: RGB background of the renders (``background_mode="fixed"``).
+        background_mode: "fixed" uses ``background``; "context_mean" fills pixels no Gaussian covers with the
+            mean colour of the scene's context images (a prediction from the inputs alone).
+        eval_align: how target cameras enter the predicted frame at evaluation (and when rendering targets in
+            training): "sim3" fits the predicted context cameras to the ground truth; "none" uses the shared
+            convention (first context camera at the origin) as is.
+        gradient_checkpointing: recompute transformer blocks in backward (passed to the network).
+    """
+
+    variants: tuple[str, ...] = ("scaffold",)
+
+    def __init__(
+        self,
+        preset: Preset = "tiny",
+        net: NetOverrides | None = None,
+        pretrained: str | None = None,
+        pretrained_kind: PretrainedKind = "vggt",
+        lr: float = 2e-4,
+        weight_decay: float = 0.05,
+        pretrained_lr_scale: float = 0.1,
+        pretrained_patterns: list[str] | None = None,
+        warmup_steps: int = 100,
+        min_lr_ratio: float = 0.1,
+        render_backend: RenderBackend = "auto",
+        background: tuple[float, float, float] = (0.0, 0.0, 0.0),
+        background_mode: BackgroundMode = "fixed",
+        eval_align: AlignMode = "sim3",
+        gradient_checkpointing: bool = False,
+    ) -> None:
+        super().__init__()
+        from anycity.models import build_network
+
+        self.net = build_network(preset, **dict(net or {}))
+        if gradient_checkpointing:
+            self.net.set_gradient_checkpointing(True)
+        if pretrained:
+            from anycity.models.pretrained import load_pretrained
+
+            load_pretrained(self.net, pretrained, kind=pretrained_kind)
+        else:
+            init_camera_head(self.net)
+        self.val_metrics = EvalMetrics(self.variants)
+        self.test_metrics = EvalMetrics(self.variants)
+
+    # ----------------------------------------------------------------------------------------- rendering
+    def render(self, gaussians: Gaussians, w2c: Tensor, K: Tensor, hw: tuple[int, int], context: Tensor,
+               normals: bool = False) -> RenderOutput:
+        """Render ``gaussians`` in float32 (outside autocast) into cameras ``w2c [B, V, 4, 4]``, ``K``;
+        ``context [B, V', 3, H', W']`` are the input images (for ``background_mode="context_mean"``)."""
+        from anycity.render import render
+
+        if self.hparams.background_mode == "context_mean":
+            bg = context.detach().float().mean(dim=(1, 3, 4))[:, None].expand(-1, w2c.shape[1], -1).contiguous()
+        else:
+            bg = torch.tensor(self.hparams.background, device=w2c.device, dtype=torch.float32)
+        with torch.autocast(w2c.device.type, enabled=False):
+            return render(gaussians.float(), w2c.float(), K.float(), hw[1], hw[0], background=bg,
+                          render_normals=normals, backend=self.hparams.render_backend)
+
+    def target_cameras(self, pred_w2c: Tensor, context: Views, query: Views) -> tuple[Tensor, Tensor]:
+        """Ground-truth ``query`` cameras in the predicted frame and the depth scale ``s [B]`` (pred = s * gt)."""
+        s, R, t = fit_gt_to_pred(pred_w2c.detach(), context.w2c, self.hparams.eval_align)
+        return cameras_in_pred_frame(query.w2c, s, R, t), s
+
+    # ----------------------------------------------------------------------------------------- optimiser
+    def configure_optimizers(self) -> dict[str, Any]:
+        hp = self.hparams
+        patterns = [p if p.startswith("net.") else f"net.{p}" for p in (hp.pretrained_patterns or [])]
+        groups: dict[tuple[bool, bool], list[Tensor]] = {}
+        for name, p in self.named_parameters():
+            if not p.requires_grad:
+                continue
+            pretrained = any(fnmatchcase(name, pat) for pat in patterns)
+            no_decay = p.ndim < 2 or "norm" in name or name.endswith(".bias")
+            groups.setdefault((pretrained, no_decay), []).append(p)
+        if not groups:
+            raise ValueError("configure_optimizers: no trainable parameters; check the freeze patterns")
+        param_groups = [{"params": ps, "lr": hp.lr * (hp.pretrained_lr_scale if pre else 1.0),
+                         "weight_decay": 0.0 if nd else hp.weight_decay} for (pre, nd), ps in groups.items()]
+        opt = torch.optim.AdamW(param_groups, lr=hp.lr, betas=(0.9, 0.95))
+        total = int(self.trainer.estimated_stepping_batches)
+        sched = torch.optim.lr_scheduler.LambdaLR(
+            opt, lambda s: warmup_cosine(s, hp.warmup_steps, total, hp.min_lr_ratio))
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
+
+    # ----------------------------------------------------------------------------------------- logging
+    def log_terms(self, terms: dict[str, Tensor], batch_size: int, prog_bar: tuple[str, ...] = ()) -> None:
+        for k, v in terms.items():
+            self.log(f"train/{k}", v.detach(), batch_size=batch_size, prog_bar=k in prog_bar)
+
+    # ----------------------------------------------------------------------------------------- evaluation
+    def predict_variants(self, images: Tensor) -> tuple[dict[str, Any], dict[str, Gaussians]]:
+        """Network outputs and the Gaussians to score: ``{"scaffold"}`` (+ ``"refined"`` in Stage II)."""
+        out = self.net(images, refine="refined" in self.variants)
+        scaffold = out.get("scaffold_gaussians") or out["gaussians"]
+        variants = {"scaffold": scaffold}
+        if "refined" in self.variants:
+            variants["refined"] = out["gaussians"]
+        return out, variants
+
+    @torch.no_grad()
+    def evaluate(self, batch: ViewBatch, metrics: EvalMetrics, want_preview: bool) -> dict[str, Any] | None:
+        ctx, tgt = batch.context, batch.target
+        out, variants = self.predict_variants(ctx.images)
+        w2c_t, s = self.target_cameras(out["w2c"], ctx, tgt)
+        hw = tgt.hw
+        gt = tgt.images.flatten(0, 1)
+        metrics.update("baseline", mean_colour_baseline(ctx.images, tuple(tgt.images.shape)).flatten(0, 1), gt)
+        preview = {"context": ctx.images[0, :1].expand(tgt.num_views, -1, -1, -1), "target": tgt.images[0]}
+        for name, g in variants.items():
+            r = self.render(g, w2c_t, tgt.K, hw, ctx.images)
+            metrics.update(name, r.rgb.flatten(0, 1), gt)
+            if tgt.depth is not None:
+                d = depth_metrics(r.depth / s[:, None, None, None, None], tgt.depth, tgt.mask)
+                metrics.update_depth(name, d["abs_rel"], d["delta1"], d["valid"])
+            preview[name] = r.rgb[0]
+            preview[f"{name}_depth"] = r.depth[0]
+        if not want_preview:
+            return None
+        from anycity.callbacks.previews import depth_to_rgb
+
+        last = list(variants)[-1]
+        preview[f"{last}_depth"] = depth_to_rgb(preview[f"{last}_depth"])
+        for name in variants:
+            if name != last:
+                preview.pop(f"{name}_depth")
+        return {"preview": {k: v.detach().float().cpu() for k, v in preview.items()}}
+
+    def _log_metrics(self, metrics: EvalMetrics, split: str, batch_size: int) -> None:
+        for name, m in metrics.items():
+            if not m.update_called:  # e.g. no valid ground-truth depth in this split
+                continue
+            self.log(f"{split}/{name}", m, on_step=False, on_epoch=True, batch_size=batch_size,
+                     prog_bar=name.startswith("psnr") and split == "val")
+
+    def validation_step(self, batch: ViewBatch, batch_idx: int) -> dict[str, Any] | None:
+        res = self.evaluate(batch, self.val_metrics, batch_idx == 0)
+        self._log_metrics(self.val_metrics, "val", batch.batch_size)
+        return res
+
+    def test_step(self, batch: ViewBatch, batch_idx: int) -> dict[str, Any] | None:
+        res = self.evaluate(batch, self.test_metrics, batch_idx == 0)
+        self._log_metrics(self.test_metrics, "test", batch.batch_size)
+        return res
+
+    # ----------------------------------------------------------------------------------------- prediction
+    @torch.no_grad()
+    def predict_step(self, batch: ViewBatch | Views | Tensor, batch_idx: int) -> dict[str, Any]:
+        """Reconstruct from context images; returns Gaussians, predicted cameras and context re-renders."""
+        ctx = batch.context if isinstance(batch, ViewBatch) else batch
+        images = ctx.images if isinstance(ctx, Views) else ctx
+        out, variants = self.predict_variants(images)
+        final = variants[list(variants)[-1]]
+        hw = (int(images.shape[-2]), int(images.shape[-1]))
+        renders = self.render(final, out["w2c"], out["K"], hw, images)
+        return {"gaussians": final.detach(), "w2c": out["w2c"].detach(), "K": out["K"].detach(),
+                "images": images, "renders": renders, "scene": getattr(batch, "scene", None),
+                "batch_idx": batch_idx}

@@ -1,0 +1,158 @@
+"""Stage II: completion branch + video prior on a frozen scaffold, distilled from a dense-view teacher.
+
+``L = L_rgb + w_d2s * L_d2s + w_pres * L_pres + w_reg * L_reg``. The teacher is the same network's scaffold
+path run on the dense views under ``no_grad``; teacher and student render the same (ground-truth) dense
+cameras, each mapped into its own predicted frame, and depths are compared in ground-truth units.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from anycity.lit.base import (
+    AlignMode,
+    AnyCityModule,
+    BackgroundMode,
+    NetOverrides,
+    Preset,
+    PretrainedKind,
+    RenderBackend,
+)
+from anycity.losses import d2s_loss, preservation_loss, regularizer_loss, rgb_loss
+from anycity.structures import RenderOutput, ViewBatch
+
+
+def _scaled(r: RenderOutput, s: Tensor) -> RenderOutput:
+    """Render with depth divided by the per-scene scale ``s [B]`` (predicted units -> ground-truth units)."""
+    return RenderOutput(rgb=r.rgb, depth=r.depth / s[:, None, None, None, None], alpha=r.alpha, normal=r.normal)
+
+
+class RefinementModule(AnyCityModule):
+    """Stage II training: scaffold frozen; completion tokens, gates, projections and LoRA train.
+
+    Args:
+        init_from: Stage I checkpoint (``.ckpt``) whose ``net.*`` weights initialise the network; loaded when
+            training starts from scratch (not when resuming, testing or predicting from a Stage II checkpoint).
+        d2s_weight: weight of ``L_d2s`` (paper: 1.0).
+        pres_weight: weight of ``L_pres`` (paper: 0.1; 0 = the "w/o L_pres" ablation).
+        reg_weight: weight of ``L_reg`` (paper: 0.01).
+        ssim_weight: weight of ``1 - SSIM`` inside ``L_rgb``.
+        context_rgb_weight: weight of the context-view photometric term.
+        gate_mode: gate regulariser, "entropy" or "mean".
+        freeze_scaffold: freeze ``net.scaffold_parameters()`` (Stage II default).
+        **base: see :class:`anycity.lit.base.AnyCityModule`.
+    """
+
+    variants = ("scaffold", "refined")
+
+    def __init__(
+        self,
+        preset: Preset = "tiny",
+        net: NetOverrides | None = None,
+        pretrained: str | None = None,
+        pretrained_kind: PretrainedKind = "vggt",
+        lr: float = 1e-4,
+        weight_decay: float = 0.05,
+        pretrained_lr_scale: float = 0.1,
+        pretrained_patterns: list[str] | None = None,
+        warmup_steps: int = 100,
+        min_lr_ratio: float = 0.1,
+        render_backend: RenderBackend = "auto",
+        background: tuple[float, float, float] = (0.0, 0.0, 0.0),
+        background_mode: BackgroundMode = "fixed",
+        eval_align: AlignMode = "sim3",
+        gradient_checkpointing: bool = False,
+        init_from: str | None = None,
+        d2s_weight: float = 1.0,
+        pres_weight: float = 0.1,
+        reg_weight: float = 0.01,
+        ssim_weight: float = 0.0,
+        context_rgb_weight: float = 1.0,
+        gate_mode: str = "entropy",
+        freeze_scaffold: bool = True,
+    ) -> None:
+        super().__init__(preset, net, pretrained, pretrained_kind, lr, weight_decay, pretrained_lr_scale,
+                         pretrained_patterns, warmup_steps, min_lr_ratio, render_backend, background, background_mode,
+                         eval_align, gradient_checkpointing)
+        self.save_hyperparameters()
+        if gate_mode not in ("entropy", "mean"):
+            raise ValueError(f"model.gate_mode: expected 'entropy' or 'mean', got {gate_mode!r}")
+        if init_from is not None and not Path(init_from).is_file():
+            raise FileNotFoundError(f"model.init_from: {init_from} not found; pass the Stage I checkpoint "
+                                    "(e.g. runs/stage1/checkpoints/last.ckpt)")
+        if freeze_scaffold:
+            for p in self.net.scaffold_parameters():
+                p.requires_grad_(False)
+
+    # ----------------------------------------------------------------------------------------- init
+    def setup(self, stage: str) -> None:
+        if stage == "fit" and self.hparams.init_from and self.trainer.ckpt_path is None:
+            self.load_stage1(self.hparams.init_from)
+
+    def load_stage1(self, path: str) -> None:
+        """Copy the ``net.*`` weights of a Stage I checkpoint; layers wrapped by LoRA map ``x.weight`` to
+        ``x.base_layer.weight``. Keys of the checkpoint the network lacks are an error."""
+        state = torch.load(path, map_location="cpu", weights_only=False)
+        state = state.get("state_dict", state)
+        own = self.net.state_dict()
+        loaded, unexpected = {}, []
+        for k, v in state.items():
+            if not k.startswith("net."):
+                continue
+            k = k[len("net."):]
+            if k not in own:
+                head, _, leaf = k.rpartition(".")
+                k = f"{head}.base_layer.{leaf}" if f"{head}.base_layer.{leaf}" in own else k
+            if k in own:
+                loaded[k] = v
+            else:
+                unexpected.append(k)
+        if unexpected:
+            raise ValueError(f"model.init_from: {len(unexpected)} checkpoint keys do not exist in this network "
+                             f"(e.g. {unexpected[:3]}); was it trained with another preset?")
+        if not loaded:
+            raise ValueError(f"model.init_from: {path} holds no 'net.*' weights; pass a ScaffoldModule checkpoint")
+        self.net.load_state_dict(loaded, strict=False)
+
+    # ----------------------------------------------------------------------------------------- training
+    def training_step(self, batch: ViewBatch, batch_idx: int) -> Tensor:
+        hp = self.hparams
+        ctx, tgt, dense = batch.context, batch.target, batch.dense
+        out = self.net(ctx.images, refine=True)
+        final, scaffold = out["gaussians"], out["scaffold_gaussians"]
+        terms: dict[str, Tensor] = {}
+
+        w2c_t, _ = self.target_cameras(out["w2c"], ctx, tgt)
+        r_tgt = self.render(final, w2c_t, tgt.K, tgt.hw, ctx.images)
+        terms["rgb"] = rgb_loss(r_tgt.rgb, tgt.images, ssim_weight=hp.ssim_weight)["total"]
+        loss = terms["rgb"]
+        if hp.context_rgb_weight > 0 or hp.pres_weight > 0:
+            r_ctx = self.render(final, out["w2c"], out["K"], ctx.hw, ctx.images)
+            if hp.context_rgb_weight > 0:
+                terms["rgb_ctx"] = rgb_loss(r_ctx.rgb, ctx.images, ssim_weight=hp.ssim_weight)["total"]
+                loss = loss + hp.context_rgb_weight * terms["rgb_ctx"]
+            if hp.pres_weight > 0:
+                with torch.no_grad():
+                    r_scaf = self.render(scaffold.detach(), out["w2c"], out["K"], ctx.hw, ctx.images)
+                terms["pres"] = preservation_loss(r_ctx, r_scaf)["total"]
+                loss = loss + hp.pres_weight * terms["pres"]
+        if hp.d2s_weight > 0 and dense is not None:
+            with torch.no_grad():
+                t_out = self.net(dense.images, refine=False)
+                t_g = t_out.get("scaffold_gaussians") or t_out["gaussians"]
+                w2c_td, s_t = self.target_cameras(t_out["w2c"], dense, dense)
+                teacher = _scaled(self.render(t_g, w2c_td, dense.K, dense.hw, ctx.images), s_t)
+            w2c_sd, s_s = self.target_cameras(out["w2c"], ctx, dense)
+            student = _scaled(self.render(final, w2c_sd, dense.K, dense.hw, ctx.images), s_s)
+            terms["d2s"] = d2s_loss(student, teacher)["total"]
+            loss = loss + hp.d2s_weight * terms["d2s"]
+        if hp.reg_weight > 0:
+            terms["reg"] = regularizer_loss(out.get("delta"), out.get("gates"), final, scaffold,
+                                            gate_mode=hp.gate_mode)["total"]
+            loss = loss + hp.reg_weight * terms["reg"]
+        terms["loss"] = loss
+        self.log_terms(terms, batch.batch_size, prog_bar=("loss", "rgb", "d2s", "pres"))
+        return loss

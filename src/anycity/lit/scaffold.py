@@ -1,0 +1,117 @@
+"""Stage I: the scaffold (AnySplat-style geometry path), completion branch off.
+
+``L = L_rgb + w_depth * (L_z + L_xy) + w_normal * L_normal + w_cam * L_cam``; depth and normal terms start
+after ``depth_warmup_steps``. ``L_rgb`` scores the renders of the target views (ground-truth cameras mapped
+into the predicted frame) and of the context views (predicted cameras).
+"""
+
+from __future__ import annotations
+
+from torch import Tensor
+
+from anycity.geometry.pose_encoding import extri_intri_to_pose_encoding
+from anycity.lit.base import (
+    AlignMode,
+    AnyCityModule,
+    BackgroundMode,
+    NetOverrides,
+    Preset,
+    PretrainedKind,
+    RenderBackend,
+)
+from anycity.losses import camera_loss, depth_z_loss, normal_loss, ray_anchor_loss, rgb_loss
+from anycity.structures import ViewBatch
+
+
+class ScaffoldModule(AnyCityModule):
+    """Stage I training of the scaffold network.
+
+    Args:
+        depth_weight: weight of ``L_depth = L_z + L_xy`` (paper: 0.1).
+        normal_weight: weight of ``L_normal`` (paper: 0.1).
+        camera_weight: weight of the pose-encoding Huber loss.
+        ssim_weight: weight of ``1 - SSIM`` inside ``L_rgb`` (0 = MSE only).
+        context_rgb_weight: weight of the context-view photometric term relative to the target views.
+        depth_warmup_steps: optimiser steps before the depth and normal terms switch on (paper: 200).
+        depth_grad_weight: weight of the gradient-matching part of ``L_z``.
+        depth_abs_weight: weight of an extra unaligned log-depth L1 inside ``L_depth`` (pins the absolute scale of
+            the normalised frame, which the affine-invariant ``L_z`` leaves free; 0 = paper).
+        ray_weight: weight of the ray-anchoring term ``L_xy`` inside ``L_depth``.
+        depth_conf_threshold: ignore depth pixels whose predicted confidence is below this (None = keep all).
+        flat_weight: weight of the flatness prior (smallest Gaussian scale) inside ``L_normal``.
+        **base: see :class:`anycity.lit.base.AnyCityModule` (preset, lr, schedule, renderer, ...).
+    """
+
+    variants = ("scaffold",)
+
+    def __init__(
+        self,
+        preset: Preset = "tiny",
+        net: NetOverrides | None = None,
+        pretrained: str | None = None,
+        pretrained_kind: PretrainedKind = "vggt",
+        lr: float = 2e-4,
+        weight_decay: float = 0.05,
+        pretrained_lr_scale: float = 0.1,
+        pretrained_patterns: list[str] | None = None,
+        warmup_steps: int = 100,
+        min_lr_ratio: float = 0.1,
+        render_backend: RenderBackend = "auto",
+        background: tuple[float, float, float] = (0.0, 0.0, 0.0),
+        background_mode: BackgroundMode = "fixed",
+        eval_align: AlignMode = "sim3",
+        gradient_checkpointing: bool = False,
+        depth_weight: float = 0.1,
+        normal_weight: float = 0.1,
+        camera_weight: float = 1.0,
+        ssim_weight: float = 0.0,
+        context_rgb_weight: float = 1.0,
+        depth_warmup_steps: int = 200,
+        depth_grad_weight: float = 0.5,
+        depth_abs_weight: float = 0.0,
+        ray_weight: float = 1.0,
+        depth_conf_threshold: float | None = None,
+        flat_weight: float = 0.0,
+    ) -> None:
+        super().__init__(preset, net, pretrained, pretrained_kind, lr, weight_decay, pretrained_lr_scale,
+                         pretrained_patterns, warmup_steps, min_lr_ratio, render_backend, background, background_mode,
+                         eval_align, gradient_checkpointing)
+        self.save_hyperparameters()
+
+    def training_step(self, batch: ViewBatch, batch_idx: int) -> Tensor:
+        hp = self.hparams
+        ctx, tgt = batch.context, batch.target
+        out = self.net(ctx.images, refine=False)
+        g = out.get("scaffold_gaussians") or out["gaussians"]
+        geo_on = self.global_step >= hp.depth_warmup_steps
+        terms: dict[str, Tensor] = {}
+
+        w2c_t, _ = self.target_cameras(out["w2c"], ctx, tgt)
+        r_tgt = self.render(g, w2c_t, tgt.K, tgt.hw, ctx.images)
+        terms["rgb"] = rgb_loss(r_tgt.rgb, tgt.images, ssim_weight=hp.ssim_weight)["total"]
+        loss = terms["rgb"]
+        if hp.context_rgb_weight > 0 or (geo_on and hp.normal_weight > 0):
+            r_ctx = self.render(g, out["w2c"], out["K"], ctx.hw, ctx.images, normals=geo_on and hp.normal_weight > 0)
+            terms["rgb_ctx"] = rgb_loss(r_ctx.rgb, ctx.images, ssim_weight=hp.ssim_weight)["total"]
+            loss = loss + hp.context_rgb_weight * terms["rgb_ctx"]
+        if hp.camera_weight > 0:
+            gt_enc = extri_intri_to_pose_encoding(ctx.w2c, ctx.K, ctx.hw)
+            terms["cam"] = camera_loss(out["pose_enc_list"], gt_enc)["total"]
+            loss = loss + hp.camera_weight * terms["cam"]
+        if geo_on and hp.depth_weight > 0 and ctx.depth is not None:
+            dz = depth_z_loss(out["depth"], ctx.depth, ctx.mask, out.get("depth_conf"), hp.depth_conf_threshold,
+                              grad_weight=hp.depth_grad_weight)["total"]
+            if hp.depth_abs_weight > 0:
+                dz = dz + hp.depth_abs_weight * depth_z_loss(out["depth"], ctx.depth, ctx.mask, grad_weight=0.0,
+                                                             align=False)["total"]
+            dxy = ray_anchor_loss(out["pixel_means"], out["w2c"], out["K"])
+            terms["depth"] = dz + hp.ray_weight * dxy
+            loss = loss + hp.depth_weight * terms["depth"]
+        if geo_on and hp.normal_weight > 0:
+            n = normal_loss(r_ctx.depth, r_ctx.normal, out["K"], image=ctx.images, alpha=r_ctx.alpha,
+                            scales=g.scales, flat_weight=hp.flat_weight)
+            terms["normal"] = n["total"]
+            loss = loss + hp.normal_weight * terms["normal"]
+        terms["loss"] = loss
+        self.log_terms(terms, batch.batch_size, prog_bar=("loss", "rgb", "depth", "cam"))
+        return loss

@@ -1,0 +1,128 @@
+"""Depth losses ``L_depth = L_z + L_xy``.
+
+``L_z``: scale-and-shift aligned log-inverse depth L1 plus multi-scale gradient matching (MiDaS style) on
+valid pixels. ``L_xy``: ray anchoring, every pixel-aligned Gaussian centre reprojected into its source view
+must stay on its pixel's ray (measured as the error in normalised image coordinates, i.e. scale free).
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from anycity.geometry import pixel_grid, transform_points
+
+
+def align_scale_shift(pred: Tensor, target: Tensor, mask: Tensor) -> tuple[Tensor, Tensor]:
+    """Least-squares ``s, t`` per image minimising ``sum mask * (s * pred + t - target)^2``.
+
+    Args:
+        pred, target: ``[M, H, W]``; mask: ``[M, H, W]`` float weights (0/1).
+    Returns:
+        ``s, t`` each ``[M]`` (``s = 1, t = 0`` where fewer than 2 valid pixels or no variance).
+    """
+    w = mask
+    n = w.sum((-1, -2))
+    sp, st = (w * pred).sum((-1, -2)), (w * target).sum((-1, -2))
+    spp, spt = (w * pred * pred).sum((-1, -2)), (w * pred * target).sum((-1, -2))
+    det = n * spp - sp * sp
+    ok = (n >= 2) & (det.abs() > 1e-12 * n.clamp_min(1) ** 2)
+    safe = torch.where(ok, det, torch.ones_like(det))
+    s = torch.where(ok, (n * spt - sp * st) / safe, torch.ones_like(det))
+    t = torch.where(ok, (st - s * sp) / n.clamp_min(1), torch.zeros_like(det))
+    return s, t
+
+
+def _gradient_matching(residual: Tensor, mask: Tensor, scales: int) -> Tensor:
+    """MiDaS gradient-matching term on ``[M, H, W]`` residuals, averaged over ``scales`` dyadic levels."""
+    total = residual.new_zeros(())
+    for k in range(scales):
+        if k > 0:
+            residual = residual[:, ::2, ::2]
+            mask = mask[:, ::2, ::2]
+        mx = mask[:, :, 1:] * mask[:, :, :-1]
+        my = mask[:, 1:, :] * mask[:, :-1, :]
+        gx = (residual[:, :, 1:] - residual[:, :, :-1]).abs() * mx
+        gy = (residual[:, 1:, :] - residual[:, :-1, :]).abs() * my
+        total = total + (gx.sum() + gy.sum()) / (mx.sum() + my.sum()).clamp_min(1.0)
+    return total / max(scales, 1)
+
+
+def depth_z_loss(
+    pred_depth: Tensor,
+    gt_depth: Tensor,
+    mask: Tensor | None = None,
+    confidence: Tensor | None = None,
+    conf_threshold: float | None = None,
+    grad_weight: float = 0.5,
+    grad_scales: int = 4,
+    align: bool = True,
+    eps: float = 1e-6,
+) -> dict[str, Tensor]:
+    """Scale-and-shift aligned log-inverse depth L1 + gradient matching.
+
+    Both depths go to ``u = log(1 / z)``; the prediction is aligned per image by least squares
+    (``s * u_pred + t``), so any ``pred = c * gt^k`` gives zero loss. Invalid pixels (mask 0, z <= 0, or
+    confidence below ``conf_threshold``) are ignored.
+
+    Args:
+        pred_depth, gt_depth: ``[..., 1, H, W]`` z-depth (> 0 where valid).
+        mask: ``[..., 1, H, W]`` bool/float validity of the ground truth, or None.
+        confidence: ``[..., 1, H, W]`` predicted confidence, used only with ``conf_threshold``.
+        grad_weight: weight of the gradient-matching term.
+        align: False skips the alignment (``s = 1, t = 0``): an absolute log-depth L1 for predictions that live
+            in the ground truth's normalised frame.
+    Returns:
+        ``{"depth_l1", "depth_grad", "total"}``.
+    """
+    if pred_depth.shape != gt_depth.shape:
+        raise ValueError(f"depth_z_loss: pred {tuple(pred_depth.shape)} and gt {tuple(gt_depth.shape)} differ")
+    h, w = pred_depth.shape[-2:]
+    p = pred_depth.reshape(-1, h, w).float()
+    g = gt_depth.reshape(-1, h, w).float()
+    valid = (g > eps) & (p > eps)
+    if mask is not None:
+        valid = valid & mask.reshape(-1, h, w).bool()
+    if confidence is not None and conf_threshold is not None:
+        valid = valid & (confidence.reshape(-1, h, w) >= conf_threshold)
+    m = valid.float()
+    up = -torch.log(p.clamp_min(eps))
+    ug = -torch.log(g.clamp_min(eps))
+    if align:
+        s, t = align_scale_shift(up, ug, m)
+    else:
+        s, t = torch.ones_like(m[:, 0, 0]), torch.zeros_like(m[:, 0, 0])
+    residual = (s[:, None, None] * up + t[:, None, None] - ug) * m
+    l1 = residual.abs().sum() / m.sum().clamp_min(1.0)
+    grad = _gradient_matching(residual, m, grad_scales) if grad_weight > 0 else residual.new_zeros(())
+    return {"depth_l1": l1, "depth_grad": grad, "total": l1 + grad_weight * grad}
+
+
+def ray_anchor_loss(pixel_means: Tensor, w2c: Tensor, K: Tensor, mask: Tensor | None = None,
+                    eps: float = 1e-6) -> Tensor:
+    """Ray anchoring ``L_xy`` of pixel-aligned Gaussian centres.
+
+    Each centre is moved into its source camera; its normalised image coordinates ``(x/z, y/z)`` are
+    compared with those of its pixel centre, ``K^-1 (u + 0.5, v + 0.5, 1)``. Centres behind the camera
+    are penalised by ``eps - z``.
+
+    Args:
+        pixel_means: ``[B, V, H, W, 3]`` world centres, one per source pixel.
+        w2c: ``[B, V, 4, 4]`` and K ``[B, V, 3, 3]`` of the source views (those used to place the centres).
+        mask: ``[B, V, 1, H, W]`` pixels to include, or None.
+    Returns:
+        Scalar mean Euclidean error in normalised coordinates.
+    """
+    b, v, h, w, _ = pixel_means.shape
+    cam = transform_points(w2c.float(), pixel_means.float().reshape(b, v, h * w, 3))  # [B, V, HW, 3]
+    z = cam[..., 2]
+    xy = cam[..., :2] / z.clamp_min(eps)[..., None]
+    uv = pixel_grid(h, w, device=cam.device).reshape(1, 1, h * w, 2)
+    Kf = K.float()
+    ref = (uv - Kf[..., None, :2, 2]) / torch.stack([Kf[..., 0, 0], Kf[..., 1, 1]], -1)[..., None, :]
+    err = (xy - ref).norm(dim=-1) + F.relu(eps - z)
+    if mask is None:
+        return err.mean()
+    m = mask.reshape(b, v, h * w).to(err.dtype)
+    return (err * m).sum() / m.sum().clamp_min(1.0)

@@ -1,0 +1,62 @@
+"""Normal loss ``L_normal``: structure-adaptive normal consistency plus a flatness prior.
+
+``L = mean_px[ exp(-|grad I|) * Huber(1 - n_surf . n_gs) ] + lambda_flat * mean(s_min)``, where ``n_surf`` comes
+from the rendered depth by central differences, ``n_gs`` is the rendered (alpha-blended) Gaussian normal and
+the weight ``exp(-|grad I|)`` relaxes the constraint at image edges, where depth discontinuities live.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from kornia.filters import spatial_gradient
+from torch import Tensor
+
+from anycity.geometry import depth_to_normals
+
+
+def structure_weight(image: Tensor, alpha: float = 1.0) -> Tensor:
+    """``[..., 3, H, W]`` -> ``[..., 1, H, W]`` weights ``exp(-alpha * |grad I|)`` (grey-level Sobel gradient)."""
+    lead = image.shape[:-3]
+    grey = image.reshape(-1, *image.shape[-3:]).mean(-3, keepdim=True)
+    g = spatial_gradient(grey, mode="sobel", order=1)  # [M, 1, 2, H, W]
+    mag = g.square().sum(2).sqrt()
+    return torch.exp(-alpha * mag).reshape(*lead, 1, *image.shape[-2:])
+
+
+def normal_loss(
+    depth: Tensor,
+    normal: Tensor,
+    K: Tensor,
+    image: Tensor | None = None,
+    alpha: Tensor | None = None,
+    scales: Tensor | None = None,
+    flat_weight: float = 0.0,
+    huber_delta: float = 0.1,
+    edge_alpha: float = 1.0,
+) -> dict[str, Tensor]:
+    """Normal consistency between depth-derived and Gaussian-derived normals.
+
+    Args:
+        depth: ``[B, V, 1, H, W]`` rendered z-depth; normal: ``[B, V, 3, H, W]`` rendered Gaussian normals
+            (camera frame, facing the camera, not necessarily unit length).
+        K: ``[B, V, 3, 3]`` intrinsics of the renders.
+        image: ``[B, V, 3, H, W]`` guide image for the structure weight, or None (weight 1).
+        alpha: ``[B, V, 1, H, W]`` rendered opacity; pixels with alpha < 0.5 are ignored. None = all.
+        scales: ``[B, N, 3]`` Gaussian scales for the flatness prior (mean smallest scale), or None.
+    Returns:
+        ``{"normal", "flat", "total"}``.
+    """
+    n_surf = depth_to_normals(depth.float(), K.float())  # zero on the 1-pixel border
+    n_gs = F.normalize(normal.float(), dim=-3, eps=1e-8)
+    cos = (n_surf * n_gs).sum(-3, keepdim=True)
+    valid = (n_surf.abs().sum(-3, keepdim=True) > 0) & (normal.abs().sum(-3, keepdim=True) > 0) & (depth > 0)
+    if alpha is not None:
+        valid = valid & (alpha > 0.5)
+    w = valid.float()
+    if image is not None:
+        w = w * structure_weight(image.float(), edge_alpha)
+    per_px = F.huber_loss(1.0 - cos, torch.zeros_like(cos), reduction="none", delta=huber_delta)
+    term = (per_px * w).sum() / valid.float().sum().clamp_min(1.0)
+    flat = scales.float().min(-1).values.mean() if scales is not None else term.new_zeros(())
+    return {"normal": term, "flat": flat, "total": term + flat_weight * flat}

@@ -1,0 +1,107 @@
+"""The training CLI end to end, in-process: fit -> test --ckpt_path -> predict, resume, config errors."""
+
+import json
+
+import pytest
+import torch
+
+from anycity.cli import build_cli, main
+
+
+def _tiny_args(root, run_dir, steps=2, extra=(), configs=()):
+    ckpt_every = run_dir.parent / "ckpt_every_2.yaml"
+    ckpt_every.write_text("trainer:\n  callbacks:\n  - class_path: lightning.pytorch.callbacks.ModelCheckpoint\n"
+                          "    init_args: {save_last: true, save_top_k: 0, every_n_train_steps: 2}\n")
+    return [
+        "-c", "configs/quickstart.yaml", *configs, "-c", str(ckpt_every),
+        "--data.root", str(root), "--data.image_size", "[32, 32]", "--data.num_context", "2",
+        "--data.num_targets", "1", "--data.num_dense", "2",
+        "--trainer.max_steps", str(steps), "--trainer.val_check_interval", "2", "--trainer.limit_val_batches", "1",
+        "--trainer.default_root_dir", str(run_dir), "--trainer.logger.init_args.save_dir", str(run_dir),
+        "--model.init_args.warmup_steps", "1",
+        "--model.init_args.render_backend", "torch",
+        *extra,
+    ]
+
+
+@pytest.fixture(autouse=True)
+def _argv(monkeypatch):
+    monkeypatch.setattr("sys.argv", ["anycity"])  # LightningCLI warns when sys.argv also carries arguments
+
+
+def test_fit_test_predict_stage1_then_stage2(tiny_shards, tmp_path):
+    s1 = tmp_path / "s1"
+    cli = build_cli(["fit", *_tiny_args(tiny_shards, s1, extra=["--model.init_args.depth_warmup_steps", "1"])])
+    assert cli.trainer.global_step == 2
+    ckpt1 = s1 / "checkpoints" / "last.ckpt"
+    assert ckpt1.is_file() and list((s1 / "previews").glob("val_*.png"))
+
+    # Stage II from the Stage I checkpoint, with LoRA on the small video prior's attention
+    s2 = tmp_path / "s2"
+    stage2 = dict(configs=["-c", "configs/quickstart_stage2.yaml"],
+                  extra=["--model.init_args.init_from", str(ckpt1),
+                         "--lora.patterns", '["video_prior.blocks.*.attn.qkv"]', "--lora.rank", "2"])
+    cli = build_cli(["fit", *_tiny_args(tiny_shards, s2, **stage2)])
+    ckpt2 = s2 / "checkpoints" / "last.ckpt"
+    state = torch.load(ckpt2, map_location="cpu", weights_only=False)["state_dict"]
+    assert any("lora_A" in k for k in state)
+    before = torch.load(ckpt1, map_location="cpu", weights_only=False)["state_dict"]
+    scaffold_keys = [k for k in before if k.startswith(("net.aggregator.", "net.depth_head.", "net.gaussian_head."))]
+    for k in scaffold_keys:  # Stage II keeps the scaffold frozen
+        torch.testing.assert_close(state[k], before[k], msg=k)
+
+    t = tmp_path / "test"
+    cli = build_cli(["test", *_tiny_args(tiny_shards, t, **stage2), "--ckpt_path", str(ckpt2)])
+    metrics = cli.trainer.callback_metrics
+    for key in ("test/psnr_scaffold", "test/psnr_refined", "test/psnr_baseline", "test/ssim_refined"):
+        assert torch.isfinite(metrics[key]), key
+
+    p = tmp_path / "pred"
+    build_cli(["predict", *_tiny_args(tiny_shards, p, **stage2), "--ckpt_path", str(ckpt2),
+               "--export.out_dir", str(p / "out")])
+    scenes = sorted((p / "out").iterdir())
+    assert scenes and (scenes[0] / "scene.ply").stat().st_size > 1000
+    cams = json.loads((scenes[0] / "cameras.json").read_text())
+    assert len(cams["views"]) == 2 and len(list((scenes[0] / "renders").glob("*.png"))) == 2
+
+
+def test_resume_continues_step_optimizer_and_schedule(tiny_shards, tmp_path):
+    run = tmp_path / "r"
+    build_cli(["fit", *_tiny_args(tiny_shards, run, steps=2)])
+    ckpt = torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
+    assert ckpt["global_step"] == 2 and ckpt["lr_schedulers"][0]["last_epoch"] == 2
+    last = str(run / "checkpoints" / "last.ckpt")
+    cli = build_cli(["fit", *_tiny_args(tiny_shards, run, steps=4), "--ckpt_path", last])
+    assert cli.trainer.global_step == 4
+    opt = cli.trainer.optimizers[0]
+    steps = {int(s["step"]) for s in opt.state.values() if "step" in s}
+    assert steps == {4}  # Adam moments continued from the checkpoint, not restarted
+    sched = cli.trainer.lr_scheduler_configs[0].scheduler
+    assert sched.last_epoch == 4
+    assert opt.param_groups[0]["lr"] == pytest.approx(sched.get_last_lr()[0])
+
+
+def test_config_typo_fails_at_parse_time_naming_the_key(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        build_cli(["-c", "configs/quickstart.yaml", "--model.init_args.depht_weight", "0.1"], run=False)
+    assert "depht_weight" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        build_cli(["-c", "configs/quickstart.yaml", "--model.init_args.net", '{"sh_degre": 1}'], run=False)
+    assert "sh_degre" in capsys.readouterr().err
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("trainer:\n  max_stepz: 3\n")
+    with pytest.raises(SystemExit):
+        build_cli(["-c", "configs/quickstart.yaml", "-c", str(bad)], run=False)
+    assert "max_stepz" in capsys.readouterr().err
+
+
+def test_data_subcommand_dispatch_is_lazy(tmp_path):
+    import subprocess
+    import sys
+
+    code = ("import sys; from anycity.cli import main; rc = main(['data', '--help']) if False else 0; "
+            "import anycity.cli; print('lightning' in sys.modules, 'anycity.models' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.split() == ["False", "False"]
+    with pytest.raises(SystemExit):
+        main(["data", "--help"])

@@ -1,0 +1,175 @@
+"""Losses on constructed cases with known answers."""
+
+import math
+
+import pytest
+import torch
+
+from anycity.geometry import make_intrinsics, unproject_depth
+from anycity.losses import (
+    align_scale_shift,
+    camera_loss,
+    d2s_loss,
+    depth_z_loss,
+    normal_loss,
+    preservation_loss,
+    ray_anchor_loss,
+    regularizer_loss,
+    rgb_loss,
+)
+from anycity.structures import Gaussians, RenderOutput
+
+
+def test_rgb_mse_known_value_and_mask():
+    pred = torch.zeros(1, 2, 3, 4, 4)
+    gt = torch.full_like(pred, 0.5)
+    assert rgb_loss(pred, gt)["total"].item() == pytest.approx(0.25)
+    mask = torch.zeros(1, 2, 1, 4, 4, dtype=torch.bool)
+    mask[0, 0] = True
+    gt[0, 1] = 0.0  # error only where the mask is off
+    out = rgb_loss(pred, gt, mask=mask)
+    assert out["mse"].item() == pytest.approx(0.25)
+
+
+def test_rgb_ssim_term_zero_on_identical_and_positive_otherwise():
+    g = torch.Generator().manual_seed(0)
+    img = torch.rand(1, 1, 3, 16, 16, generator=g)
+    assert rgb_loss(img, img, ssim_weight=0.2)["ssim"].item() == pytest.approx(0.0, abs=1e-5)
+    out = rgb_loss(img, torch.rand(1, 1, 3, 16, 16, generator=g), ssim_weight=0.2)
+    assert out["ssim"].item() > 0.5
+    assert out["total"].item() == pytest.approx(out["mse"].item() + 0.2 * out["ssim"].item(), rel=1e-5)
+
+
+def test_align_scale_shift_recovers_affine():
+    x = torch.rand(3, 8, 8) + 0.1
+    y = 2.5 * x - 0.7
+    s, t = align_scale_shift(x, y, torch.ones_like(x))
+    torch.testing.assert_close(s, torch.full((3,), 2.5), rtol=1e-4, atol=1e-4)
+    torch.testing.assert_close(t, torch.full((3,), -0.7), rtol=1e-4, atol=1e-4)
+
+
+def test_depth_loss_invariant_to_power_and_scale_but_not_to_structure():
+    gt = torch.rand(2, 1, 1, 16, 16) * 5 + 1
+    pred = 3.0 * gt**1.5  # affine in log-inverse depth
+    out = depth_z_loss(pred, gt)
+    assert out["depth_l1"].item() < 1e-4 and out["depth_grad"].item() < 1e-4
+    shuffled = gt.flatten()[torch.randperm(gt.numel())].reshape(gt.shape)
+    assert depth_z_loss(shuffled, gt)["total"].item() > 0.05
+
+
+def test_depth_loss_ignores_masked_and_gradient_flows():
+    gt = torch.rand(1, 1, 1, 8, 8) + 1
+    pred = gt.clone()
+    pred[..., :4, :] = 100.0  # garbage only in masked-out rows
+    mask = torch.ones_like(gt, dtype=torch.bool)
+    mask[..., :4, :] = False
+    assert depth_z_loss(pred, gt, mask=mask)["total"].item() < 1e-4
+    p = (gt * torch.exp(0.3 * torch.randn_like(gt))).requires_grad_()
+    depth_z_loss(p, gt)["total"].backward()
+    assert p.grad is not None and p.grad.abs().sum() > 0
+
+
+def test_ray_anchor_zero_on_ray_and_known_offset():
+    K = make_intrinsics(10.0, 10.0, 4.0, 4.0).expand(1, 1, 3, 3)
+    w2c = torch.eye(4).expand(1, 1, 4, 4)
+    depth = torch.rand(1, 1, 1, 8, 8) + 1.0
+    means = unproject_depth(depth, K, w2c)  # [1, 1, 8, 8, 3] on the rays
+    assert ray_anchor_loss(means, w2c, K).item() < 1e-6
+    shifted = means.clone()
+    shifted[..., 0] = shifted[..., 0] + 0.1 * shifted[..., 2]  # x/z off by exactly 0.1
+    assert ray_anchor_loss(shifted, w2c, K).item() == pytest.approx(0.1, rel=1e-4)
+
+
+def _plane_render(h=12, w=12, tilt=0.0):
+    K = make_intrinsics(10.0, 10.0, w / 2, h / 2).expand(1, 1, 3, 3)
+    v = torch.arange(h).float()[:, None] + 0.5
+    depth = (2.0 / (1.0 + tilt * (v - h / 2) / 10.0)).expand(h, w).reshape(1, 1, 1, h, w)
+    return depth, K
+
+
+def test_normal_loss_zero_for_matching_plane_normals():
+    depth, K = _plane_render()
+    n = torch.tensor([0.0, 0.0, -1.0]).view(1, 1, 3, 1, 1).expand(1, 1, 3, 12, 12)
+    out = normal_loss(depth, n, K, image=torch.rand(1, 1, 3, 12, 12))
+    assert out["normal"].item() < 1e-6
+    flipped = normal_loss(depth, -n, K)
+    # 1 - cos = 2 everywhere; Huber(2, delta=0.1) = 0.1 * (2 - 0.05)
+    assert flipped["normal"].item() == pytest.approx(0.1 * 1.95, rel=1e-4)
+
+
+def test_normal_flat_term_uses_min_scale():
+    depth, K = _plane_render()
+    n = torch.tensor([0.0, 0.0, -1.0]).view(1, 1, 3, 1, 1).expand(1, 1, 3, 12, 12)
+    scales = torch.tensor([[[1.0, 0.2, 3.0], [0.4, 2.0, 1.0]]])
+    out = normal_loss(depth, n, K, scales=scales, flat_weight=0.5)
+    assert out["flat"].item() == pytest.approx(0.3)
+    assert out["total"].item() == pytest.approx(out["normal"].item() + 0.15, abs=1e-6)
+
+
+def test_camera_loss_zero_at_gt_and_weights_last_iteration_most():
+    gt = torch.randn(2, 3, 9)
+    gt[..., 3:7] = torch.nn.functional.normalize(gt[..., 3:7], dim=-1)
+    assert camera_loss([gt, gt], gt)["total"].item() == 0.0
+    flipped = gt.clone()
+    flipped[..., 3:7] *= -1  # same rotation
+    assert camera_loss(flipped, gt)["cam_r"].item() == 0.0
+    bad = gt + 0.5
+    first_bad = camera_loss([bad, gt], gt, gamma=0.5)["total"].item()
+    last_bad = camera_loss([gt, bad], gt, gamma=0.5)["total"].item()
+    assert last_bad == pytest.approx(2 * first_bad, rel=1e-5)
+    with pytest.raises(ValueError, match="9"):
+        camera_loss([gt[..., :7]], gt)
+
+
+def _render(rgb, depth, alpha):
+    return RenderOutput(rgb=rgb, depth=depth, alpha=alpha)
+
+
+def test_d2s_depth_only_where_teacher_valid_and_teacher_detached():
+    shape = (1, 2, 1, 4, 4)
+    t_alpha = torch.zeros(shape)
+    t_alpha[..., :2, :] = 1.0
+    teacher = _render(torch.full((1, 2, 3, 4, 4), 0.5, requires_grad=True), torch.ones(shape), t_alpha)
+    s_depth = torch.ones(shape)
+    s_depth[..., 2:, :] = 50.0  # wrong only where the teacher is empty
+    student = _render(torch.zeros(1, 2, 3, 4, 4, requires_grad=True), s_depth, torch.ones(shape))
+    out = d2s_loss(student, teacher)
+    assert out["d2s_depth"].item() == 0.0
+    assert out["d2s_rgb"].item() == pytest.approx(0.5)
+    out["total"].backward()
+    assert teacher.rgb.grad is None and student.rgb.grad is not None
+
+
+def test_preservation_loss_known_value():
+    shape = (1, 1, 1, 2, 2)
+    final = _render(torch.ones(1, 1, 3, 2, 2), torch.full(shape, 3.0), torch.ones(shape))
+    scaffold = _render(torch.zeros(1, 1, 3, 2, 2), torch.full(shape, 2.0), torch.ones(shape))
+    out = preservation_loss(final, scaffold)
+    assert out["pres_rgb"].item() == 1.0 and out["pres_depth"].item() == 1.0 and out["total"].item() == 2.0
+
+
+def _gaussians(n=5, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return Gaussians(means=torch.randn(1, n, 3, generator=g), quats=torch.randn(1, n, 4, generator=g),
+                     scales=torch.rand(1, n, 3, generator=g) + 0.1, opacities=torch.rand(1, n, generator=g),
+                     sh=torch.randn(1, n, 1, 3, generator=g))
+
+
+def test_regularizer_terms():
+    g = _gaussians()
+    zero = regularizer_loss(delta=[torch.zeros(2, 3)], gates=[torch.full((4,), 0.5)], final=g, scaffold=g)
+    assert zero["reg_residual"].item() == 0.0 and zero["reg_stability"].item() == 0.0
+    assert zero["reg_gate"].item() == pytest.approx(math.log(2), rel=1e-5)  # max binary entropy
+    out = regularizer_loss(delta=[torch.full((2, 3), -2.0)], gates=torch.full((4,), 0.25), gate_mode="mean")
+    assert out["reg_residual"].item() == 2.0 and out["reg_gate"].item() == pytest.approx(0.25)
+    moved = Gaussians(g.means + 1.0, g.quats, g.scales, g.opacities, g.sh)
+    assert regularizer_loss(final=moved, scaffold=g)["reg_stability"].item() == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="gate_mode"):
+        regularizer_loss(gate_mode="max")
+
+
+def test_depth_loss_without_alignment_is_absolute():
+    gt = torch.rand(1, 1, 1, 8, 8) + 1
+    out = depth_z_loss(2.0 * gt, gt, align=False, grad_weight=0.0)
+    assert out["depth_l1"].item() == pytest.approx(math.log(2.0), rel=1e-5)
+    assert depth_z_loss(gt, gt, align=False)["total"].item() < 1e-6
