@@ -137,7 +137,7 @@ class _FusedRender(torch.autograd.Function):
         rgb = np.empty((C, 3, height, width), np.float32)
         depth = np.empty((C, 1, height, width), np.float32)
         alpha = np.empty((C, 1, height, width), np.float32)
-        normal = np.empty((C, 3, height, width) if normals else (1, 3, 1, 1), np.float32)
+        normal = np.empty((C, 3, height, width) if normals else (C, 3, 1, 1), np.float32)  # (C,3,1,1): unused
         t_final = np.empty((C, height, width), np.float32)
         last = np.empty((C, height, width), np.float32)
         bg = _np(background.reshape(C, 3))
