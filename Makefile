@@ -19,6 +19,9 @@ test:
 test-all:
 	$(PY) -m pytest tests
 
+quickstart:
+	$(PY) scripts/quickstart.py
+
 bench:
 	@for f in benchmarks/*.py; do echo "== $$f"; $(PY) $$f || exit 1; done
 
