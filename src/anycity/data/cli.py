@@ -28,6 +28,11 @@ def _synth_parser() -> ArgumentParser:
     p.add_argument("--image_format", type=str, default="jpg", choices=["jpg", "png"], help="view encoding")
     p.add_argument("--depth_dtype", type=str, default="float16", choices=["float16", "float32"],
                    help="stored depth precision")
+    p.add_argument("--normals", action=ActionYesNo, default=False,
+                   help="also store ground-truth normals (3x the bytes of depth; readers derive them from depth)")
+    p.add_argument("--window", type=int | None, default=24,
+                   help="training samples are trajectory windows of this many views (0 or None: whole scenes)")
+    p.add_argument("--stride", type=int | None, default=None, help="views between window starts (default window/2)")
     return p
 
 
@@ -56,7 +61,8 @@ def build_parser() -> ArgumentParser:
 
 def _summary(index: dict) -> str:
     n = {sp: sum(1 for s in index["scenes"] if s["split"] == sp) for sp in ("train", "val", "test")}
-    return f"{len(index['scenes'])} samples in {len(index['shards'])} shards ({json.dumps(n)})"
+    return (f"{len(index['scenes'])} scenes ({json.dumps(n)}) as {len(index['samples'])} samples in "
+            f"{len(index['shards'])} shards")
 
 
 def data_main(argv: list[str]) -> int:
@@ -67,7 +73,8 @@ def data_main(argv: list[str]) -> int:
 
         a = cfg.synth
         index = synth(a.out, scenes=a.scenes, views=a.views, size=a.size, seed=a.seed, trajectory=a.trajectory,
-                      preview=a.preview, workers=a.workers, image_format=a.image_format, depth_dtype=a.depth_dtype)
+                      preview=a.preview, workers=a.workers, image_format=a.image_format, depth_dtype=a.depth_dtype,
+                      normals=a.normals, window=a.window or None, stride=a.stride)
         print(f"synth: {_summary(index)} -> {a.out} in {index['seconds']:.1f} s"
               + (f"; preview {a.out}/preview.png" if a.preview else ""))
     else:

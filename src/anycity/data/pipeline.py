@@ -4,11 +4,18 @@ Training streams are resampled (each rank and worker draws shards with replaceme
 per-(seed, rank, worker, epoch) stream, so DDP needs no shard splitting) and cut into epochs by ``with_epoch``;
 ``resampled=False`` instead shuffles the shard list and uses ``split_by_node`` + ``split_by_worker``.
 Evaluation streams read every shard in order and keep every (world x workers)-th sample, so every rank gets a
-balanced, deterministic share even with a single shard. Only the selected views of a sample are decoded.
+balanced, deterministic share even with a single shard.
+
+Reading is lazy (:mod:`anycity.data.tario`): a local shard's members stay on disk until a sample's views are
+chosen, then only those are read and decoded (JPEGs larger than needed at 1/2-1/8 scale). Each output buffer is
+written once, in shared memory when in a DataLoader worker: on small VMs fresh memory, not decoding, is the
+largest cost per sample, which is also why ``compact`` batches (uint8 images, float16 depth) exist.
 """
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import json
 import os
 import random
@@ -16,12 +23,14 @@ import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 import webdataset as wds
 
-from anycity.data.schema import decode_image, decode_npy, member, read_meta, sample_where
-from anycity.data.views import Selection, normalise, resize_view, select_eval, select_train
+from anycity.data.schema import decode_image, decode_normals, decode_npy, member, read_meta, sample_where
+from anycity.data.tario import tar_samples
+from anycity.data.views import Selection, normalise, resize_plan, resize_view, select_eval, select_train
 from anycity.structures import ViewBatch, Views
 
 GROUPS = ("context", "target", "dense")
@@ -52,30 +61,61 @@ class SkipCounter:
         return [json.loads(line) for p in logs for line in p.read_text().splitlines()]
 
 
+@contextlib.contextmanager
+def single_thread():
+    """Run torch single-threaded for a while (data work in the main process, ``num_workers=0``): its ops are
+    small, and intra-op threads on a busy machine wait for each other (10x slower at load 5 on 2 cores)."""
+    n = torch.get_num_threads()
+    if n > 1:
+        torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        if n > 1:
+            torch.set_num_threads(n)
+
+
+def _reduction(h: int, w: int, nh: int, nw: int) -> int:
+    """Largest JPEG DCT scale-down (8, 4, 2) that keeps at least ``nh x nw`` pixels and divides ``h x w``."""
+    for r in (8, 4, 2):
+        if h % r == 0 and w % r == 0 and h // r >= nh and w // r >= nw:
+            return r
+    return 1
+
+
 class SampleBuilder:
     """Turns a raw webdataset sample (bytes) into per-group tensors for one or more view selections.
+
+    Decoding is lazy: the sample's members stay on disk (local shards) or raw bytes until the views are selected,
+    then only the chosen views are read and decoded (JPEGs larger than the output at 1/2, 1/4 or 1/8 scale
+    straight from the DCT).
 
     Args:
         num_context, num_targets, num_dense: views per group (num_dense 0 disables the dense set).
         image_size: ``(H, W)`` output size; resize_mode: "crop" or "keep" (see :func:`resize_view`).
         train: random sliding-window selection (True) or deterministic llffhold selection (False).
         window: training window length (None: 2 x the largest group).
-        with_depth, with_normals: load depth+mask / normals when the shard has them.
+        with_depth: load depth + mask when the shard has depth.
+        with_normals: load normals; when the shard stores none, derive them from the (resized) depth (see
+            :func:`_normals_from_depth`; zero where a pixel or a 4-neighbour is invalid).
         hold: the llffhold stride for evaluation.
+        compact: compact tensors for the trip to the device: images uint8 ``[0, 255]``, depth and normals
+            float16 (a third of the bytes; :func:`to_float32` restores the usual batch on the device).
     """
 
     def __init__(self, num_context: int = 4, num_targets: int = 4, num_dense: int = 12,
                  image_size: tuple[int, int] = (448, 448), resize_mode: str = "crop", train: bool = True,
                  window: int | None = None, with_depth: bool = True, with_normals: bool = True, hold: int = 8,
-                 patch: int = 14, seed: int = 0) -> None:
+                 patch: int = 14, seed: int = 0, compact: bool = False) -> None:
         if num_context < 1 or num_targets < 1 or num_dense < 0:
             raise ValueError(f"view counts: expected num_context >= 1, num_targets >= 1, num_dense >= 0, got "
                              f"{num_context}, {num_targets}, {num_dense}")
         self.nc, self.nt, self.nd = num_context, num_targets, num_dense
         self.size, self.mode, self.train, self.window = tuple(image_size), resize_mode, train, window
         self.with_depth, self.with_normals, self.hold, self.patch = with_depth, with_normals, hold, patch
-        self.seed = seed
+        self.seed, self.compact = seed, compact
         self._rng: np.random.Generator | None = None
+        self._in_worker: bool | None = None
 
     def rng(self) -> np.random.Generator:
         if self._rng is None:
@@ -84,54 +124,106 @@ class SampleBuilder:
             self._rng = np.random.default_rng([self.seed, rank, info.id if info else 0])
         return self._rng
 
-    def selections(self, n: int) -> list[Selection]:
+    def selections(self, n: int, meta: dict | None = None) -> list[Selection]:
         if self.train:
             return [select_train(n, self.nc, self.nt, self.nd, self.rng(), self.window)]
-        return select_eval(n, self.nc, self.nt, self.nd, self.hold)
+        views = meta["views"] if meta else None
+        index = [v.get("index", i) for i, v in enumerate(views)] if views else None
+        own = (meta.get("window") or {}).get("own") if meta else None
+        return select_eval(n, self.nc, self.nt, self.nd, self.hold, index=index, own=own)
 
     def _load(self, sample: dict, view: dict) -> dict:
-        img = decode_image(member(sample, view["image"]))
-        K = np.asarray(view["K"], np.float64)
-        if img.shape[:2] != (view["height"], view["width"]):
-            raise ValueError(f"{sample_where(sample)}: key {view['image']!r} is {img.shape[1]}x{img.shape[0]}, "
-                             f"cameras.json says {view['width']}x{view['height']}; re-create the shard")
+        h, w = view["height"], view["width"]
+        key = view["image"]
+        nh, nw, _, _ = resize_plan(h, w, self.size, self.mode, self.patch)
+        r = _reduction(h, w, nh, nw) if key.endswith((".jpg", ".jpeg")) else 1
+        img = decode_image(member(sample, key), reduce=r)
+        if img.shape[:2] != (-(-h // r), -(-w // r)):
+            raise ValueError(f"{sample_where(sample)}: key {key!r} is {img.shape[1] * r}x{img.shape[0] * r}, "
+                             f"cameras.json says {w}x{h}; re-create the shard")
         depth = normal = mask = None
         if self.with_depth and view.get("depth"):
-            depth = decode_npy(member(sample, view["depth"])).astype(np.float32)
-            mask = (decode_image(member(sample, view["mask"]), gray=True) > 127) if view.get("mask") else depth > 0
+            depth = decode_npy(member(sample, view["depth"]))  # float16 stays float16 until the batch copy
+            if depth.shape != (nh, nw) and depth.dtype != np.float32:
+                depth = depth.astype(np.float32)  # OpenCV resizes float32, not float16
+            if view.get("mask"):  # else depth > 0, computed on the float32 batch (numpy float16 math is slow)
+                mask = decode_image(member(sample, view["mask"]), gray=True) > 127
         if self.with_normals and view.get("normal"):
-            normal = decode_npy(member(sample, view["normal"])).astype(np.float32)
-        img, K, depth, normal, mask = resize_view(img, K, self.size, self.mode, self.patch, depth, normal, mask)
+            normal = decode_normals(decode_npy(member(sample, view["normal"])))
+        img, K, depth, normal, mask = resize_view(img, view["K"], self.size, self.mode, self.patch, depth, normal,
+                                                  mask, src_hw=(h, w))
         return {"image": img, "K": K, "w2c": np.asarray(view["w2c"], np.float64), "depth": depth,
                 "normal": normal, "mask": mask}
 
     def __call__(self, sample: dict) -> list[dict]:
+        if self._in_worker is None:
+            self._in_worker = torch.utils.data.get_worker_info() is not None
+            if self._in_worker:
+                cv2.setNumThreads(0)  # workers are the parallelism; OpenCV's threads would oversubscribe
+        if self._in_worker:
+            return self._build(sample)
+        with single_thread():
+            return self._build(sample)
+
+    def _build(self, sample: dict) -> list[dict]:
         meta = read_meta(sample)
         views = meta["views"]
         cache: dict[int, dict] = {}
         out = []
-        for sel in self.selections(len(views)):
+        for sel in self.selections(len(views), meta):
             order = sel.context + sel.target + sel.dense
             for i in order:
                 if i not in cache:
                     cache[i] = self._load(sample, views[i])
-            out.append(self._assemble(meta, [cache[i] for i in order], order, sel))
+            index = [int(views[i].get("index", i)) for i in order]
+            out.append(self._assemble(meta, [cache[i] for i in order], index, sel))
         return out
 
     def _assemble(self, meta: dict, vs: list[dict], order: list[int], sel: Selection) -> dict:
+        """Per-view arrays -> per-group tensors, written once into (shared, in a worker) batch-ready buffers:
+        images ``[V, 3, H, W]`` float [0, 1], depth float32 in normalised units, mask bool, normals (``compact``:
+        uint8 images, float16 depth and normals)."""
+        V, nc = len(vs), self.nc
+        H, W = vs[0]["image"].shape[:2]
+        if any(v["image"].shape[:2] != (H, W) for v in vs):
+            raise ValueError(f"scene {meta['scene']}: views resize to different sizes "
+                             f"{sorted({v['image'].shape[:2] for v in vs})}; use resize_mode 'crop' or one "
+                             "aspect ratio per scene")
         w2c = torch.as_tensor(np.stack([v["w2c"] for v in vs]))
         K = torch.as_tensor(np.stack([v["K"] for v in vs]))
         has_depth = all(v["depth"] is not None for v in vs)
-        depth = mask = None
-        if has_depth:
-            depth = torch.as_tensor(np.stack([v["depth"] for v in vs]))[:, None]
-            mask = torch.as_tensor(np.stack([v["mask"] for v in vs]))[:, None]
-        w2c, s, T = normalise(w2c, K, self.nc, depth, mask)
+        ctx_depth = ctx_mask = None
+        if has_depth:  # the scale comes from the context views only
+            ctx_depth = torch.as_tensor(np.stack([v["depth"] for v in vs[:nc]]))[:, None]
+            if any(v["mask"] is not None for v in vs[:nc]):  # else normalise() takes depth > 0
+                ctx_mask = torch.as_tensor(np.stack([v["depth"] > 0 if v["mask"] is None else v["mask"]
+                                                     for v in vs[:nc]]))[:, None]
+        w2c, s, T = normalise(w2c, K, nc, ctx_depth, ctx_mask)
         T = T @ torch.as_tensor(np.asarray(meta["world_from_source"], np.float64))
-        images = torch.as_tensor(np.stack([v["image"] for v in vs])).permute(0, 3, 1, 2)  # uint8 [V, 3, H, W]
-        normal = None
+        # fresh (shared) memory is the dominant cost per sample on small VMs: write each buffer once
+        real = torch.float16 if self.compact else torch.float32
+        images = _alloc((V, 3, H, W), torch.uint8 if self.compact else torch.float32)
+        for i, v in enumerate(vs):
+            img = torch.from_numpy(v["image"]).permute(2, 0, 1)
+            if self.compact:
+                images[i].copy_(img)
+            else:
+                torch.div(img, 255.0, out=images[i])
+        depth = mask = normal = None
+        if has_depth:
+            depth, mask = _alloc((V, 1, H, W), real), _alloc((V, 1, H, W), torch.bool)
+            for i, v in enumerate(vs):
+                torch.div(torch.from_numpy(v["depth"]), s, out=depth[i, 0])
+                if v["mask"] is None:
+                    torch.gt(depth[i, 0], 0, out=mask[i, 0])
+                else:
+                    mask[i, 0].copy_(torch.from_numpy(v["mask"]))
         if all(v["normal"] is not None for v in vs):
-            normal = torch.as_tensor(np.stack([v["normal"] for v in vs])).permute(0, 3, 1, 2).float()
+            normal = _alloc((V, 3, H, W), real)
+            for i, v in enumerate(vs):
+                normal[i].copy_(torch.from_numpy(v["normal"]).permute(2, 0, 1))
+        elif self.with_normals and depth is not None:
+            normal = _normals_from_depth([v["depth"] for v in vs], mask, K.float(), real)
         out: dict = {"scene": meta["scene"], "scale": s * (meta.get("metres_per_unit") or 1.0),
                      "world_from_source": T.float()}
         bounds = np.cumsum([0, len(sel.context), len(sel.target), len(sel.dense)])
@@ -141,23 +233,96 @@ class SampleBuilder:
             grp = {"images": images[a:b], "w2c": w2c[a:b].float(), "K": K[a:b].float(),
                    "index": torch.as_tensor(order[a:b], dtype=torch.long)}
             if depth is not None:
-                grp["depth"] = (depth[a:b] / s).float()
-                grp["mask"] = mask[a:b]
+                grp["depth"], grp["mask"] = depth[a:b], mask[a:b]
             if normal is not None:
                 grp["normal"] = normal[a:b]
             out[g] = grp
         return out
 
 
+def _normals_from_depth(depth: list | torch.Tensor, mask: torch.Tensor, K: torch.Tensor,
+                        dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    """V z-depth maps (``[V, 1, H, W]`` or a list of ``[H, W]`` arrays, any units) + validity ``[V, 1, H, W]`` ->
+    camera-frame unit normals ``[V, 3, H, W]`` facing the camera, zero on the border and where the pixel or a
+    4-neighbour is invalid.
+
+    The normal of the back-projected surface ``P = z (K^-1 [u, v, 1])`` in closed form from central depth
+    differences ``g_u, g_v``: ``n ~ (fx g_u, fy g_v, -((u - cx) g_u + (v - cy) g_v + z))``; it agrees with
+    :func:`anycity.geometry.depth_to_normals` (finite differences of the points) to first order, on 2-D planes,
+    several times faster (this runs per sample in the data workers).
+    """
+    H, W = mask.shape[-2:]
+    n = _alloc((len(depth), 3, H, W), dtype)
+    uu = torch.arange(W, dtype=torch.float32) + 0.5
+    vv = torch.arange(H, dtype=torch.float32)[:, None] + 0.5
+    gu, gv = torch.zeros(H, W), torch.zeros(H, W)
+    for i, d in enumerate(depth):
+        z = torch.as_tensor(d).float().reshape(H, W)
+        fx, fy, cx, cy = (float(x) for x in (K[i, 0, 0], K[i, 1, 1], K[i, 0, 2], K[i, 1, 2]))
+        torch.sub(z[:, 2:], z[:, :-2], out=gu[:, 1:-1]).mul_(0.5)
+        torch.sub(z[2:], z[:-2], out=gv[1:-1]).mul_(0.5)
+        nz = torch.addcmul(z, uu - cx, gu).addcmul_(vv - cy, gv).neg_()
+        nx, ny = gu * fx, gv * fy
+        inv = (nx * nx).addcmul_(ny, ny).addcmul_(nz, nz).rsqrt_()
+        for c, comp in enumerate((nx, ny, nz)):
+            n[i, c].copy_(comp.mul_(inv))
+    ok = mask.clone()
+    ok[..., 1:, :] &= mask[..., :-1, :]
+    ok[..., :-1, :] &= mask[..., 1:, :]
+    ok[..., :, 1:] &= mask[..., :, :-1]
+    ok[..., :, :-1] &= mask[..., :, 1:]
+    ok[..., 0, :] = ok[..., -1, :] = False
+    ok[..., :, 0] = ok[..., :, -1] = False
+    return n.mul_(ok)
+
+
+def _alloc(shape: tuple[int, ...], dtype: torch.dtype) -> torch.Tensor:
+    """An empty tensor, in shared memory inside a DataLoader worker (it then crosses to the main process
+    without a copy)."""
+    if torch.utils.data.get_worker_info() is None:
+        return torch.empty(shape, dtype=dtype)
+    numel = int(np.prod(shape))
+    storage = torch.UntypedStorage._new_shared(numel * torch.empty((), dtype=dtype).element_size())
+    return torch.empty(0, dtype=dtype).set_(storage, 0, shape)
+
+
+def _stack(xs: list[torch.Tensor]) -> torch.Tensor:
+    """``torch.stack`` into shared memory (in a worker); a single item becomes a view, no copy."""
+    if len(xs) == 1:
+        return xs[0][None]
+    out = _alloc((len(xs), *xs[0].shape), xs[0].dtype)
+    return torch.stack(xs, out=out)
+
+
+def to_float32(batch: ViewBatch) -> ViewBatch:
+    """A ``compact`` batch (uint8 images, float16 depth/normals) -> the usual float32 batch (images in [0, 1]),
+    in place, on the batch's device; other batches pass unchanged."""
+    for v in (batch.context, batch.target, batch.dense):
+        if v is None:
+            continue
+        if v.images.dtype == torch.uint8:
+            v.images = v.images.float().div_(255.0)
+        if v.depth is not None and v.depth.dtype != torch.float32:
+            v.depth = v.depth.float()
+        if v.normal is not None and v.normal.dtype != torch.float32:
+            v.normal = v.normal.float()
+    return batch
+
+
 def collate(samples: list[dict]) -> ViewBatch:
-    """Stack per-sample dicts from :class:`SampleBuilder` into a :class:`ViewBatch` (images -> float [0, 1])."""
+    """Stack per-sample dicts from :class:`SampleBuilder` into a :class:`ViewBatch`."""
+    with single_thread():
+        return _collate(samples)
+
+
+def _collate(samples: list[dict]) -> ViewBatch:
 
     def views(g: str) -> Views | None:
         if g not in samples[0]:
             return None
         grp = [s[g] for s in samples]
-        opt = lambda k: torch.stack([x[k] for x in grp]) if all(k in x for x in grp) else None  # noqa: E731
-        return Views(images=torch.stack([x["images"] for x in grp]).float().div_(255), w2c=opt("w2c"), K=opt("K"),
+        opt = lambda k: _stack([x[k] for x in grp]) if all(k in x for x in grp) else None  # noqa: E731
+        return Views(images=_stack([x["images"] for x in grp]), w2c=opt("w2c"), K=opt("K"),
                      depth=opt("depth"), mask=opt("mask"), normal=opt("normal"), index=opt("index"))
 
     return ViewBatch(context=views("context"), target=views("target"), dense=views("dense"),
@@ -218,7 +383,7 @@ def make_pipeline(urls: list[str], builder: SampleBuilder, *, train: bool, resam
                   wds.split_by_node, wds.split_by_worker]
     else:
         stages = [wds.SimpleShardList(urls)]
-    stages.append(wds.tarfile_to_samples(handler=handler))
+    stages.append(functools.partial(tar_samples, handler=handler))
     if not train:
         stages.append(_eval_shard)
     elif shuffle > 1:

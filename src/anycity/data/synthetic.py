@@ -2,10 +2,12 @@
 
 ``anycity data synth --out DIR --scenes N --views V --size HxW --seed S --trajectory orbit|nadir|mixed``
 
-Each scene is one webdataset sample with V views (RGB, z-depth in metres, camera-frame normals, sky mask) along
-one trajectory. Trajectories reproduce the evidence imbalance of real captures: *orbit* circles the city at
-30-60 deg pitch (GoogleEarth / MatrixCity-like), *nadir* flies a serpentine lawnmower grid looking straight
-down, *mixed* picks orbit, nadir or an oblique (45 deg forward) lawnmower per scene. Everything is deterministic
+Each scene is V views (RGB, z-depth in metres, optionally camera-frame normals; the sky mask is ``depth > 0``)
+along one trajectory, written as overlapping trajectory windows of ``window`` views (training split; see
+:class:`~anycity.data.writer.ShardSetWriter`). Trajectories reproduce the evidence imbalance of real captures:
+*orbit* circles the city at 30-60 deg pitch (GoogleEarth / MatrixCity-like), *nadir* flies a serpentine
+lawnmower grid looking straight down, *mixed* picks orbit, nadir or an oblique (45 deg forward) lawnmower per
+scene. Everything is deterministic
 from ``(seed, scene index)``.
 """
 
@@ -24,8 +26,9 @@ import torch
 
 from anycity.data.city import City, make_city
 from anycity.data.raycast import SceneTensors, fov_intrinsics, look_at, render
-from anycity.data.schema import SceneRecord, ViewRecord, decode_image, decode_npy
+from anycity.data.schema import SceneRecord, ViewRecord, decode_image, decode_npy, encode_image
 from anycity.data.writer import ShardSetWriter, split_scenes
+from anycity.geometry import depth_to_normals
 
 TRAJECTORIES = ("orbit", "nadir", "mixed")
 HFOV_DEG = 60.0
@@ -122,17 +125,33 @@ def render_scene(seed: int, index: int, views: int, size: tuple[int, int], traj:
 
 def _worker_init() -> None:
     torch.set_num_threads(1)
+    cv2.setNumThreads(1)
 
 
 def _job(args):
-    return render_scene(*args)
+    """Render one scene and encode it where it was rendered (a fraction of the bytes travel back)."""
+    *render_args, normals, depth_dtype = args
+    rec = render_scene(*render_args)
+    for v in rec.views:
+        v.image = encode_image(v.image, v.ext)
+        v.depth = np.asarray(v.depth, depth_dtype)
+        v.mask = None  # the sky mask is depth > 0: the reader derives it
+        if not normals:
+            v.normal = None
+    return rec
 
 
 def synth(out: str | Path, scenes: int = 8, views: int = 48, size: str | tuple[int, int] = "256x256", seed: int = 0,
           trajectory: str = "mixed", preview: bool = False, workers: int | None = None, image_format: str = "jpg",
-          depth_dtype: str = "float16", maxcount: int = 64, aa: bool = True) -> dict:
+          depth_dtype: str = "float16", maxcount: int = 64, aa: bool = True, normals: bool = False,
+          window: int | None = 24, stride: int | None = None) -> dict:
     """Render ``scenes`` synthetic cities into ``{train,val,test}-*.tar`` shards under ``out`` (8:1:1 split).
 
+    Args:
+        normals: also store ground-truth normals (float16, 3x the bytes of depth; no loss needs them and the
+            reader derives them from depth on request).
+        window, stride: training samples are windows of ``window`` consecutive views every ``stride`` (default
+            ``window // 2``) views; None: one sample per scene. Validation and test scenes stay whole.
     Returns the written ``index.json`` content plus ``seconds``.
     """
     if trajectory not in TRAJECTORIES:
@@ -144,23 +163,21 @@ def synth(out: str | Path, scenes: int = 8, views: int = 48, size: str | tuple[i
     hw = parse_size(size)
     workers = min(scenes, workers if workers is not None else min(2, os.cpu_count() or 1))
     t0 = time.perf_counter()
-    jobs = [(seed, i, views, hw, trajectory, image_format, aa) for i in range(scenes)]
+    jobs = [(seed, i, views, hw, trajectory, image_format, aa, normals, depth_dtype) for i in range(scenes)]
     splits = split_scenes(scenes, seed)
     first: list[SceneRecord] = []
-    with ShardSetWriter(out, maxcount=maxcount, depth_dtype=depth_dtype) as writer:
-        if workers > 1:
-            with ProcessPoolExecutor(workers, mp_context=get_context("spawn"), initializer=_worker_init) as ex:
-                records = ex.map(_job, jobs)
-                for i, rec in enumerate(records):
-                    writer.write(rec, splits[i])
-                    if len(first) < 4:
-                        first.append(rec)
-        else:
-            for i, job in enumerate(jobs):
-                rec = _job(job)
+    with ShardSetWriter(out, maxcount=maxcount, depth_dtype=depth_dtype, window=window, stride=stride) as writer:
+        pool = ProcessPoolExecutor(workers, mp_context=get_context("spawn"), initializer=_worker_init) \
+            if workers > 1 else None
+        try:
+            records = pool.map(_job, jobs) if pool else map(_job, jobs)
+            for i, rec in enumerate(records):
                 writer.write(rec, splits[i])
                 if len(first) < 4:
                     first.append(rec)
+        finally:
+            if pool:
+                pool.shutdown()
     index = writer.close()
     index["seconds"] = time.perf_counter() - t0
     if preview:
@@ -190,8 +207,12 @@ def write_preview(records: list[SceneRecord], path: str | Path, per_scene: int =
         if v0.depth is not None:
             m = v0.mask.astype(bool) if v0.mask is not None else v0.depth > 0
             tiles.append(_colour_depth(np.asarray(v0.depth, np.float32), m))
-        if v0.normal is not None:
-            tiles.append(((np.asarray(v0.normal, np.float32) * 0.5 + 0.5) * 255).clip(0, 255).astype(np.uint8))
+        normal = v0.normal
+        if normal is None and v0.depth is not None:  # not stored: derive from depth, as the reader does
+            d = torch.as_tensor(np.asarray(v0.depth, np.float32))[None]
+            normal = depth_to_normals(d, torch.as_tensor(v0.K, dtype=torch.float32)).permute(1, 2, 0).numpy()
+        if normal is not None:
+            tiles.append(((np.asarray(normal, np.float32) * 0.5 + 0.5) * 255).clip(0, 255).astype(np.uint8))
         th = tile
         tw = round(tile * tiles[0].shape[1] / tiles[0].shape[0])
         rows.append(np.concatenate([cv2.resize(t, (tw, th), interpolation=cv2.INTER_AREA) for t in tiles], 1))

@@ -4,9 +4,11 @@ Selection works on trajectory positions ``0..n-1``:
 
 * training: a sliding window of consecutive views; the context is stratified over the window, targets are drawn
   from the other window views, the dense teacher set from the window minus the targets;
-* evaluation (``llffhold=8``): view ``i`` is a target when ``i % 8 == 0``; targets are cut into chunks of T (the
-  last chunk repeats its own views), and each chunk's context and dense views are spread evenly over the non-held-out
-  views nearest to it. Deterministic.
+* evaluation (``llffhold=8``): the view at scene position ``i`` is a target when ``i % 8 == 0`` (positions are the
+  views' ``index`` in the scene, so a trajectory window holds out the same views as its whole scene, and only the
+  targets in the window's own range are scored: overlapping windows score each once); targets are cut into chunks
+  of T (the last chunk repeats its own views), and each chunk's context and dense views are spread evenly over the
+  non-held-out views nearest to it. Deterministic.
 """
 
 from __future__ import annotations
@@ -68,11 +70,24 @@ def llffhold_split(n: int, hold: int = 8) -> tuple[list[int], list[int]]:
     return [i for i in range(n) if i % hold != 0], test
 
 
-def select_eval(n: int, num_context: int, num_targets: int, num_dense: int, hold: int = 8) -> list[Selection]:
-    """Deterministic llffhold selections covering every held-out view of an n-view scene."""
-    train, test = llffhold_split(n, hold)
+def select_eval(n: int, num_context: int, num_targets: int, num_dense: int, hold: int = 8,
+                index: list[int] | None = None, own: tuple[int, int] | None = None) -> list[Selection]:
+    """Deterministic llffhold selections covering every held-out view of an n-view sample (positions 0..n-1).
+
+    Args:
+        index: trajectory position of each of the n views in its scene (default ``0..n-1``); llffhold applies to
+            it, so a window of a longer trajectory holds out the same views as the whole scene would.
+        own: ``[lo, hi)`` scene positions whose held-out views this sample scores (overlapping windows of a
+            scene own disjoint ranges, so every held-out view is scored once); default all.
+    Returns:
+        selections in sample positions; empty when the sample owns no held-out view.
+    """
+    index = list(range(n)) if index is None else [int(i) for i in index]
+    lo, hi = own if own is not None else (min(index, default=0), max(index, default=0) + 1)
+    train = [i for i in range(n) if index[i] % hold != 0]
+    test = [i for i in range(n) if index[i] % hold == 0 and lo <= index[i] < hi]
     if not train:
-        raise ValueError(f"view selection: a {n}-view scene has no non-held-out views for llffhold={hold}")
+        raise ValueError(f"view selection: a {n}-view sample has no non-held-out views for llffhold={hold}")
     out = []
     for c in range(0, len(test), num_targets):
         part = test[c:c + num_targets]
@@ -84,37 +99,50 @@ def select_eval(n: int, num_context: int, num_targets: int, num_dense: int, hold
     return out
 
 
-def resize_view(image: np.ndarray, K: np.ndarray, size: tuple[int, int], mode: str = "crop", patch: int = 14,
-                depth: np.ndarray | None = None, normal: np.ndarray | None = None, mask: np.ndarray | None = None):
-    """Resize (and centre-crop) a view to ``size = (H, W)``, updating K.
-
-    Args:
-        image: ``[h, w, 3]`` uint8; K: ``[3, 3]`` pixels of ``image``.
-        mode: "crop" scales to cover ``size`` then centre-crops (exact output size); "keep" keeps the aspect
-            ratio with about ``H*W`` pixels and both sides multiples of ``patch``.
-        depth/normal/mask: ``[h, w]``, ``[h, w, 3]``, ``[h, w]`` resampled with nearest neighbours.
-    Returns:
-        image, K (float64 numpy), depth, normal, mask at the new size.
-    """
-    h, w = image.shape[:2]
+def resize_plan(h: int, w: int, size: tuple[int, int], mode: str = "crop", patch: int = 14
+                ) -> tuple[int, int, int, int]:
+    """Resized size ``(nh, nw)`` before the centre crop and the output size ``(H, W)`` (see :func:`resize_view`)."""
     H, W = size
     if mode == "crop":
         s = max(H / h, W / w)
-        nw, nh = max(W, round(w * s)), max(H, round(h * s))
-    elif mode == "keep":
+        return max(H, round(h * s)), max(W, round(w * s)), H, W
+    if mode == "keep":
         s = (H * W / (h * w)) ** 0.5
         nw, nh = max(patch, round(w * s / patch) * patch), max(patch, round(h * s / patch) * patch)
-        H, W = nh, nw
-    else:
-        raise ValueError(f"resize mode: expected 'crop' or 'keep', got {mode!r}")
+        return nh, nw, nh, nw
+    raise ValueError(f"resize mode: expected 'crop' or 'keep', got {mode!r}")
+
+
+def resize_view(image: np.ndarray, K: np.ndarray, size: tuple[int, int], mode: str = "crop", patch: int = 14,
+                depth: np.ndarray | None = None, normal: np.ndarray | None = None, mask: np.ndarray | None = None,
+                src_hw: tuple[int, int] | None = None):
+    """Resize (and centre-crop) a view to ``size = (H, W)``, updating K.
+
+    Args:
+        image: ``[h, w, 3]`` uint8; K: ``[3, 3]`` pixels of the ``src_hw`` image.
+        mode: "crop" scales to cover ``size`` then centre-crops (exact output size); "keep" keeps the aspect
+            ratio with about ``H*W`` pixels and both sides multiples of ``patch``.
+        depth/normal/mask: ``[h, w]``, ``[h, w, 3]``, ``[h, w]`` resampled with nearest neighbours.
+        src_hw: the ``(h, w)`` that K describes (default: the image's); arrays of another size covering the same
+            field of view (a JPEG decoded at 1/2, 1/4 or 1/8 scale) are resampled from their own size.
+    Returns:
+        image, K (float64 numpy), depth, normal, mask at the new size.
+    """
+    h, w = src_hw if src_hw is not None else image.shape[:2]
+    nh, nw, H, W = resize_plan(h, w, size, mode, patch)
     Kt = torch.as_tensor(np.asarray(K, np.float64))
     if (nw, nh) != (w, h):
-        interp = cv2.INTER_AREA if nw < w else cv2.INTER_LINEAR
-        image = cv2.resize(image, (nw, nh), interpolation=interp)
         Kt = rescale_intrinsics(Kt, nw / w, nh / h)
-        near = lambda a: None if a is None else cv2.resize(a, (nw, nh), interpolation=cv2.INTER_NEAREST)  # noqa: E731
-        depth, normal = near(depth), near(normal)
-        mask = None if mask is None else near(mask.astype(np.uint8)).astype(bool)
+
+    def fit(a, interp=cv2.INTER_NEAREST):
+        if a is None or a.shape[:2] == (nh, nw):
+            return a
+        if interp != cv2.INTER_NEAREST:
+            interp = cv2.INTER_AREA if a.shape[1] > nw else cv2.INTER_LINEAR
+        return cv2.resize(a, (nw, nh), interpolation=interp)
+
+    image, depth, normal = fit(image, cv2.INTER_LINEAR), fit(depth), fit(normal)
+    mask = None if mask is None else fit(mask.view(np.uint8) if mask.dtype == bool else mask).astype(bool)
     x0, y0 = (nw - W) // 2, (nh - H) // 2
     if (x0, y0) != (0, 0) or (nw, nh) != (W, H):
         Kt = crop_intrinsics(Kt, x0, y0)

@@ -1,14 +1,15 @@
-"""Write scenes into webdataset shards per split, plus ``index.json`` (shards, scenes, views, split)."""
+"""Write scenes into webdataset shards per split, plus ``index.json`` (shards, scenes, samples, views, split)."""
 
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 
 import numpy as np
 import webdataset as wds
 
-from anycity.data.schema import SCHEMA_VERSION, SceneRecord, encode_scene
+from anycity.data.schema import SCHEMA_VERSION, SceneRecord, encode_scene, split_windows
 
 SPLITS = ("train", "val", "test")
 
@@ -36,38 +37,64 @@ class ShardSetWriter:
         maxcount: most samples per shard.
         maxsize: most bytes per shard (a shard may exceed it by one sample).
         depth_dtype: "float16" or "float32" for the stored depth.
+        window: cut each scene of the ``window_splits`` into samples of this many consecutive views (None: one
+            sample per scene). Training reads only what it uses: a 24-view window of a 48-view scene is half
+            the bytes per sample, and view selection happens within a window anyway.
+        stride: views between window starts (default ``window // 2``: half-overlapping windows).
+        window_splits: the splits that are windowed; evaluation splits stay whole scenes by default (each
+            held-out view is scored once either way: windows own disjoint ranges).
     """
 
-    def __init__(self, out: str | Path, maxcount: int = 64, maxsize: float = 1e9, depth_dtype: str = "float16"):
+    def __init__(self, out: str | Path, maxcount: int = 64, maxsize: float = 1e9, depth_dtype: str = "float16",
+                 window: int | None = None, stride: int | None = None,
+                 window_splits: tuple[str, ...] = ("train",)) -> None:
         self.out = Path(out)
         self.out.mkdir(parents=True, exist_ok=True)
         self.maxcount, self.maxsize, self.depth_dtype = maxcount, maxsize, depth_dtype
+        self.window, self.stride, self.window_splits = window, stride, tuple(window_splits)
         self._writers: dict[str, wds.ShardWriter] = {}
-        self._scenes: list[dict] = []
+        self._scenes: dict[str, dict] = {}
+        self._samples: list[dict] = []
 
     def write(self, rec: SceneRecord, split: str = "train") -> None:
+        """Write one scene (or a part of one: ``rec.scene`` / ``rec.first_index`` say where it lies)."""
         if split not in SPLITS:
             raise ValueError(f"split: expected one of {SPLITS}, got {split!r}")
         if split not in self._writers:
+            # an integer mtime keeps tar headers plain ustar (a float one adds a pax header to every member)
             self._writers[split] = wds.ShardWriter(str(self.out / f"{split}-%06d.tar"), maxcount=self.maxcount,
-                                                   maxsize=self.maxsize, verbose=0)
+                                                   maxsize=self.maxsize, verbose=0, mtime=int(time.time()))
         w = self._writers[split]
-        w.write(encode_scene(rec, split, self.depth_dtype))
-        self._scenes.append({"key": rec.key, "split": split, "num_views": len(rec.views),
-                             "shard": Path(w.fname).name, "source": rec.source})
+        parts = split_windows(rec, self.window, self.stride) if split in self.window_splits else [rec]
+        for part in parts:
+            w.write(encode_scene(part, split, self.depth_dtype))
+            self._samples.append({"key": part.key, "scene": part.scene or part.key, "split": split,
+                                  "first": part.first_index, "num_views": len(part.views),
+                                  "shard": Path(w.fname).name})
+        sid = rec.scene or rec.key
+        sc = self._scenes.setdefault(sid, {"key": sid, "split": split, "num_views": 0, "num_samples": 0,
+                                           "source": rec.source})
+        sc["num_views"] = max(sc["num_views"], rec.scene_views or rec.first_index + len(rec.views))
+        sc["num_samples"] += len(parts)
 
     def close(self) -> dict:
-        """Finish all shards and write ``index.json`` (idempotent); returns the index."""
+        """Finish all shards and write ``index.json`` (idempotent); returns the index.
+
+        ``scenes``: one entry per scene (``key``, ``split``, ``num_views``, ``num_samples``, ``source``);
+        ``samples``: one per sample (``key``, ``scene``, ``split``, ``first``, ``num_views``, ``shard``).
+        """
         if getattr(self, "_index", None) is not None:
             return self._index
         for w in self._writers.values():
             w.close()
         shards: dict[str, dict] = {}
-        for s in self._scenes:
+        for s in self._samples:
             e = shards.setdefault(s["shard"], {"path": s["shard"], "split": s["split"], "num_samples": 0})
             e["num_samples"] += 1
         index = {"schema_version": SCHEMA_VERSION, "shards": sorted(shards.values(), key=lambda e: e["path"]),
-                 "scenes": self._scenes,
+                 "scenes": list(self._scenes.values()), "samples": self._samples,
+                 "window": {"size": self.window, "stride": self.stride or (self.window and self.window // 2),
+                            "splits": list(self.window_splits)},
                  "splits": {sp: sorted(e["path"] for e in shards.values() if e["split"] == sp) for sp in SPLITS}}
         (self.out / "index.json").write_text(json.dumps(index, indent=1))
         self._index = index

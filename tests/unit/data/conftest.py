@@ -1,4 +1,5 @@
-"""Shared fixtures: tiny synthetic shards (built once per session) and the shared real data folder."""
+"""Shared fixtures: tiny synthetic shards (8-view training windows; built once per session) and the shared real
+data folder."""
 
 from __future__ import annotations
 
@@ -15,7 +16,8 @@ REAL = SHARED / "data" / "real_aerial"
 @pytest.fixture(scope="session")
 def synth_root(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("synth")
-    synth(out, scenes=4, views=16, size="40x48", seed=3, trajectory="mixed", workers=1, depth_dtype="float32")
+    synth(out, scenes=4, views=16, size="40x48", seed=3, trajectory="mixed", workers=1, depth_dtype="float32",
+          window=8, stride=4)
     return out
 
 

@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from anycity.data.pipeline import SampleBuilder, make_pipeline
-from anycity.data.writer import shard_urls
+from anycity.data.writer import read_index, shard_urls
 from anycity.lit.datamodule import AerialDataModule
 from anycity.structures import ViewBatch
 
@@ -49,8 +49,11 @@ def test_eval_split_by_rank_is_disjoint_and_complete(synth_root, monkeypatch):
         monkeypatch.setenv("RANK", str(rank))
         monkeypatch.setenv("WORLD_SIZE", "2")
         pipe = make_pipeline(urls, SampleBuilder(2, 2, 0, (16, 16), train=False), train=False)
-        seen.append([s["scene"] for s in pipe])
-    assert seen[0] and seen[1] and not set(seen[0]) & set(seen[1])
+        seen.append({(s["scene"], i) for s in pipe for i in s["target"]["index"].tolist()})
+    # the shards hold 8-view windows of 16-view scenes: each held-out view (0, 8) is scored once, by one rank
+    scenes = {s["key"] for s in read_index(synth_root)["scenes"] if s["split"] == "train"}
+    assert seen[0] and seen[1] and not seen[0] & seen[1]
+    assert seen[0] | seen[1] == {(sc, i) for sc in scenes for i in (0, 8)}
     # resampled training streams differ between ranks but are reproducible
     streams = {}
     for rank in (0, 1, 0):

@@ -91,5 +91,14 @@ def test_cli_synth(tmp_path, capsys):
     sample = next(iter(wds.WebDataset(str(out / index["shards"][0]["path"]), shardshuffle=False)))
     meta = json.loads(sample["cameras.json"])
     assert meta["units"] == "metres" and len(meta["views"]) == 3 and "000.depth.npy" in sample
+    # normals only on request; the sky mask is depth > 0, so it is not stored
+    assert "000.normal.npy" not in sample and "000.mask.png" not in sample and meta["views"][0]["normal"] is None
     K = np.array(meta["views"][0]["K"])
     assert math.isclose(K[0, 2], 16) and math.isclose(K[1, 2], 12)
+    out2 = tmp_path / "n"
+    assert data_main(["synth", "--out", str(out2), "--scenes", "1", "--views", "6", "--size", "24x32", "--workers",
+                      "1", "--normals", "--window", "4", "--stride", "2"]) == 0
+    index = json.loads((out2 / "index.json").read_text())
+    assert [s["first"] for s in index["samples"]] == [0, 2]
+    sample = next(iter(wds.WebDataset(str(out2 / index["shards"][0]["path"]), shardshuffle=False)))
+    assert sample["__key__"].endswith("_w0000") and "003.normal.npy" in sample and "004.jpg" not in sample

@@ -115,7 +115,8 @@ def to_records(scene: ParsedScene, max_views: int = 64, max_side: int | None = N
         yield SceneRecord(key=key, views=[_load_view(v, max_side) for v in scene.views[a:b]], source=scene.source,
                           units=scene.units, metres_per_unit=scene.metres_per_unit,
                           world_from_source=scene.world_from_source,
-                          extra={**scene.extra, "scene": scene.name, "window": [a, b]})
+                          extra={**scene.extra, "scene": scene.name, "window": [a, b]},
+                          scene=safe_key(scene.source, scene.name), first_index=a, scene_views=n)
 
 
 def write_scenes(scenes: list[ParsedScene], out: str | Path, split: str = "auto", max_views: int = 64,

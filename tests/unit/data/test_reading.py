@@ -1,0 +1,142 @@
+"""The fast read path: lazy tar members, reduced JPEG decoding, optional stored normals and masks, normals derived
+from depth, compact batches."""
+
+import cv2
+import numpy as np
+import pytest
+import torch
+import webdataset as wds
+
+from anycity.data.pipeline import SampleBuilder, _normals_from_depth, make_pipeline, to_float32
+from anycity.data.schema import SceneRecord, ViewRecord, decode_normals, encode_normals, encode_scene
+from anycity.data.synthetic import synth
+from anycity.data.tario import Member, tar_samples
+from anycity.data.views import resize_view
+from anycity.data.writer import ShardSetWriter, shard_urls
+from anycity.geometry import depth_to_normals
+from anycity.lit.datamodule import AerialDataModule
+
+
+def _raise(e):
+    raise e
+
+
+def test_lazy_members_and_truncated_shard(synth_root, tmp_path):
+    url = shard_urls(synth_root, "train")[0]
+    sample = next(tar_samples([{"url": url}], handler=_raise))
+    assert isinstance(sample["cameras.json"], bytes) and isinstance(sample["000.jpg"], Member)
+    ref = next(iter(wds.WebDataset(url, shardshuffle=False)))
+    assert sample["__key__"] == ref["__key__"] and sample["000.depth.npy"].read() == ref["000.depth.npy"]
+    cut = tmp_path / "train-000000.tar"
+    data = open(url, "rb").read()
+    cut.write_bytes(data[: data.find(b"cameras.json") - 3000])  # inside the last view's payload
+    with pytest.raises(ValueError, match=r"train-000000.tar.*(truncated|unexpected end)"):
+        list(make_pipeline([str(cut)], SampleBuilder(2, 2, 0, (16, 16), train=False), train=False))
+
+
+def test_reduced_jpeg_decode_matches_full_decode(tmp_path):
+    h, w = 96, 128
+    yy, xx = np.mgrid[0:h, 0:w]
+    img = np.stack([xx * 2, yy * 2, 128 + 60 * np.sin(xx / 9.0) * np.cos(yy / 7.0)], -1).clip(0, 255).astype(np.uint8)
+    K = np.array([[90.0, 0, 61.0], [0, 92.0, 50.0], [0, 0, 1]])
+    rec = SceneRecord(key="r", views=[ViewRecord(name="a.jpg", image=img, w2c=np.eye(4), K=K, width=w, height=h)
+                                      for _ in range(3)], source="t", units="m")
+    sample = encode_scene(rec, "test")
+    out = SampleBuilder(1, 1, 0, (40, 40), train=False, with_depth=False)(sample)[0]  # decoded at 1/2
+    full = cv2.cvtColor(cv2.imdecode(np.frombuffer(sample["000.jpg"], np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+    ref, K_ref, *_ = resize_view(full, K, (40, 40))
+    got = (out["context"]["images"][0].permute(1, 2, 0).numpy() * 255).round()
+    assert np.abs(got - ref.astype(float)).mean() < 2.0  # same pixels up to resampling
+    assert np.allclose(out["context"]["K"][0].numpy(), K_ref, atol=1e-5)
+
+
+def test_mask_written_only_when_informative():
+    depth = np.full((8, 8), 3.0, np.float32)
+    depth[0] = 0
+    v = lambda m: ViewRecord(name="a.png", image=np.zeros((8, 8, 3), np.uint8), w2c=np.eye(4), K=np.eye(3),  # noqa: E731
+                             width=8, height=8, depth=depth, mask=m, ext="png")
+    s = encode_scene(SceneRecord(key="m", views=[v(depth > 0), v(np.ones((8, 8), bool))], source="t", units="m"),
+                     "train")
+    assert "000.mask.png" not in s and "001.mask.png" in s
+
+
+@pytest.fixture(scope="module")
+def normals_root(tmp_path_factory):
+    out = tmp_path_factory.mktemp("normals")
+    synth(out, scenes=1, views=3, size="96x128", seed=1, trajectory="orbit", workers=1, normals=True, aa=False,
+          depth_dtype="float32")
+    return out
+
+
+def test_normals_octahedral_roundtrip():
+    rng = np.random.default_rng(0)
+    n = rng.normal(size=(64, 64, 3)).astype(np.float32)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    n[0] = 0  # no normal
+    c = encode_normals(n)
+    assert c.dtype == np.uint8 and c.shape == (64, 64, 2)
+    back = decode_normals(c)
+    cos = (back[1:] * n[1:]).sum(-1)
+    assert np.degrees(np.arccos(cos.clip(-1, 1))).max() < 1.0 and (back[0] == 0).all()
+
+
+def test_fast_normals_match_geometry_depth_to_normals():
+    """The closed-form normals of the data path agree with the reference finite differences of the points."""
+    K = torch.tensor([[60.0, 0, 33.0], [0, 62.0, 23.0], [0, 0, 1]])
+    H, W = 48, 64
+    v, u = torch.meshgrid(torch.arange(H) + 0.5, torch.arange(W) + 0.5, indexing="ij")
+    rx, ry = (u - 33.0) / 60.0, (v - 23.0) / 62.0
+    n_true = torch.tensor([0.3, -0.5, -0.8]) / torch.tensor([0.3, -0.5, -0.8]).norm()
+    depth = (-1.0 / (n_true[0] * rx + n_true[1] * ry + n_true[2])) * 10  # plane n.P = 10 seen from the camera
+    depth = depth[None, None].float()
+    mask = torch.ones(1, 1, H, W, dtype=torch.bool)
+    mask[..., 10, 20] = False
+    fast = _normals_from_depth(depth, mask, K[None])[0]
+    ref = depth_to_normals(depth[0], K)
+    ok = fast.abs().sum(0) > 0
+    assert ok.sum() == (H - 2) * (W - 2) - 5  # border and the invalid pixel's 4-neighbourhood are zero
+    assert torch.allclose(fast[:, ok], ref[:, ok], atol=1e-4)
+    assert torch.allclose(fast[:, ok], n_true[:, None].expand(3, int(ok.sum())), atol=1e-4)
+
+
+def test_stored_and_derived_normals_agree(normals_root):
+    url = shard_urls(normals_root, "train")[0]
+    sample = next(iter(wds.WebDataset(url, shardshuffle=False)))
+    assert "000.normal.npy" in sample and "000.mask.png" not in sample
+    item = SampleBuilder(2, 1, 0, (96, 128), train=False)(sample)[0]
+    ctx = item["context"]
+    derived = _normals_from_depth(ctx["depth"], ctx["mask"], ctx["K"])
+    ok = derived.abs().sum(1) > 0
+    cos = (derived * ctx["normal"]).sum(1)[ok]
+    # they agree except next to depth discontinuities (central differences straddle them)
+    assert ok.float().mean() > 0.5 and cos.median() > 0.999 and (cos > 0.99).float().mean() > 0.6
+
+
+def test_compact_batches_and_derived_normals(synth_root):
+    kw = dict(root=str(synth_root), image_size=(32, 32), num_context=2, num_dense=2, num_targets=2, batch_size=2,
+              num_workers=0, epoch_samples=2, seed=4)
+    f = next(iter(AerialDataModule(**kw).train_dataloader()))
+    dm = AerialDataModule(**kw, compact_batches=True)
+    c = next(iter(dm.train_dataloader()))
+    assert c.context.images.dtype == torch.uint8 and c.context.depth.dtype == c.target.normal.dtype == torch.float16
+    c = dm.on_after_batch_transfer(c, 0)
+    assert torch.equal(c.context.images, f.context.images) and torch.equal(c.dense.images, f.dense.images)
+    assert c.context.depth.dtype == torch.float32 and torch.equal(c.context.mask, f.context.mask)
+    assert torch.allclose(c.context.depth, f.context.depth, rtol=1e-3)
+    assert torch.allclose(c.target.normal, f.target.normal, atol=2e-3)
+    assert to_float32(f) is f and f.context.images.dtype == torch.float32
+    # the fixture stores no normals: they come from depth, unit length where valid and zero elsewhere
+    n = f.target.normal
+    norm = n.norm(dim=2)
+    assert ((norm - 1).abs() < 1e-4)[norm > 0].all() and (norm[~f.target.mask[:, :, 0]] == 0).all()
+
+
+def test_resampled_single_sample_shard_repeats(tmp_path):
+    """The same one-sample shard drawn twice in a row yields two samples (samples never span shards)."""
+    with ShardSetWriter(tmp_path) as w:
+        w.write(SceneRecord(key="one", views=[ViewRecord(name=f"{i}.png", image=np.full((8, 8, 3), i, np.uint8),
+                                                         w2c=np.eye(4), K=np.eye(3), width=8, height=8, ext="png")
+                                              for i in range(4)], source="t", units="m"), "train")
+    pipe = make_pipeline(shard_urls(tmp_path, "train"), SampleBuilder(1, 1, 0, (8, 8), with_depth=False),
+                         train=True, epoch_samples=3, shuffle=0)
+    assert [s["scene"] for s in pipe] == ["one"] * 3
