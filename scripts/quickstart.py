@@ -35,8 +35,8 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--data", default="data/quickstart", help="shard directory (generated when absent)")
     p.add_argument("--out", default="runs/quickstart", help="run directory")
-    p.add_argument("--scenes", type=int, default=20, help="synthetic cities to generate when the data is absent")
-    p.add_argument("--views", type=int, default=48, help="views per city")
+    p.add_argument("--scenes", type=int, default=80, help="synthetic cities to generate when the data is absent")
+    p.add_argument("--views", type=int, default=96, help="views per city (more = denser, overlapping views)")
     p.add_argument("--stage1_steps", type=int, default=None, help="override configs/quickstart.yaml max_steps")
     p.add_argument("--stage2_steps", type=int, default=None, help="override configs/quickstart_stage2.yaml")
     args, extra = p.parse_known_args(argv)  # unknown --x.y options go to every training CLI call

@@ -40,22 +40,6 @@ def warmup_cosine(step: int, warmup: int, total: int, min_ratio: float) -> float
     return min_ratio + (1 - min_ratio) * 0.5 * (1 + math.cos(math.pi * progress))
 
 
-def init_camera_head(net: torch.nn.Module, fov: float = 1.0) -> None:
-    """Random-init networks only: bias the camera head towards an identity rotation and a ``fov``-radian field
-    of view. VGGT's ReLU field-of-view activation otherwise starts at 0 for about half the outputs (infinite
-    focal length, no gradient), and a zero quaternion has no defined rotation. Each of the head's refinement
-    iterations adds its output, so the bias is spread over them."""
-    fc2 = getattr(getattr(getattr(net, "camera_head", None), "pose_branch", None), "fc2", None)
-    if not isinstance(fc2, torch.nn.Linear) or fc2.bias is None or fc2.bias.shape[0] != 9:
-        return
-    iters = max(1, int(getattr(getattr(net, "cfg", None), "camera_iterations", 1)))
-    with torch.no_grad():
-        fc2.weight[3:9].mul_(0.01)
-        fc2.bias[3:9] = 0.0
-        fc2.bias[6] = 1.0 / iters  # quaternion xyzw: w
-        fc2.bias[7:9] = fov / iters
-
-
 class AnyCityModule(pl.LightningModule):
     """Base of :class:`ScaffoldModule` and :class:`RefinementModule` (not used directly).
 
@@ -110,8 +94,6 @@ class AnyCityModule(pl.LightningModule):
             from anycity.models.pretrained import load_pretrained
 
             load_pretrained(self.net, pretrained, kind=pretrained_kind)
-        else:
-            init_camera_head(self.net)
         self.val_metrics = EvalMetrics(self.variants)
         self.test_metrics = EvalMetrics(self.variants)
 

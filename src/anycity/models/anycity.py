@@ -10,7 +10,7 @@ from torch import Tensor, nn
 from anycity.geometry.pose_encoding import pose_encoding_to_extri_intri
 from anycity.models.aggregator import Aggregator
 from anycity.models.completion import CompletionBranch
-from anycity.models.gaussians import pixel_centres, raw_to_gaussians
+from anycity.models.gaussians import pixel_centres, pixel_footprint, raw_to_gaussians
 from anycity.models.heads import CameraHead, DepthHead, GaussianHead
 from anycity.models.presets import NetConfig
 from anycity.models.video_prior import WanVideoPrior, build_video_prior
@@ -48,6 +48,10 @@ class AnyCityNet(nn.Module):
         self.camera_head = CameraHead(dim2, cfg.camera_trunk_depth, cfg.camera_num_heads)
         self.depth_head = DepthHead(dim2, **dpt)
         self.gaussian_head = GaussianHead(dim2, sh_degree=cfg.sh_degree, **dpt)
+        if cfg.camera_init_fov is not None:
+            self.camera_head.init_pose_bias(cfg.camera_init_fov, cfg.camera_iterations)
+        if cfg.color_mode == "pixel":
+            self.gaussian_head.init_sh_residual()
         self.video_prior = None
         self.completion = None
         if cfg.completion:
@@ -115,13 +119,15 @@ class AnyCityNet(nn.Module):
             depth, depth_conf = self.depth_head(tokens, images, psi)
             means = pixel_centres(depth, K, w2c)
             raw = self.gaussian_head(tokens, images, psi)
-            scaffold = raw_to_gaussians(raw, means, self.cfg.sh_degree, self.cfg.voxel_size)
+            aux = {"rgb": images if self.cfg.color_mode == "pixel" else None,
+                   "footprint": pixel_footprint(depth, K) if self.cfg.scale_mode == "pixel" else None}
+            scaffold = raw_to_gaussians(raw, means, self.cfg.sh_degree, self.cfg.voxel_size, **aux)
             gaussians, delta, gates = scaffold, None, None
             if refine:
                 vid = self.video_prior(images) if self.video_prior is not None else None
                 delta, gates = self.completion(tokens, psi, vid)
                 raw = self.gaussian_head(tokens, images, psi, delta=delta)
-                gaussians = raw_to_gaussians(raw, means, self.cfg.sh_degree, self.cfg.voxel_size)
+                gaussians = raw_to_gaussians(raw, means, self.cfg.sh_degree, self.cfg.voxel_size, **aux)
         return {"pose_enc": pose_enc_list[-1], "pose_enc_list": pose_enc_list, "w2c": w2c, "K": K, "depth": depth,
                 "depth_conf": depth_conf, "pixel_means": means, "gaussians": gaussians,
                 "scaffold_gaussians": scaffold, "raw_gaussians": raw, "delta": delta, "gates": gates}

@@ -37,6 +37,15 @@ class NetConfig:
     dpt_out_channels: tuple[int, ...] = (256, 512, 1024, 1024)
     sh_degree: int = 4
     voxel_size: float | None = None  # None: pixel-aligned Gaussians, no merge
+    # "head": the Gaussian head predicts the full SH (AnySplat); "pixel": SH DC = the input pixel's colour plus the
+    # head's residual (the head's SH outputs start near zero at random init)
+    color_mode: str = "head"
+    # "absolute": scale = 0.001 * softplus (AnySplat); "pixel": scale = (depth / focal) * softplus, i.e. relative to
+    # the pixel's footprint in its own view
+    scale_mode: str = "absolute"
+    # random init only: bias the camera head to an identity rotation and this field of view (radians); None keeps
+    # VGGT's init (whose ReLU FoV starts at 0: infinite focal length, no gradient). Pretrained weights override it.
+    camera_init_fov: float | None = None
     # completion branch + video prior
     completion: bool = True
     completion_dim: int = 1024
@@ -62,13 +71,16 @@ class NetConfig:
 PRESETS: dict[str, NetConfig] = {
     "tiny": NetConfig(embed_dim=64, depth=4, num_heads=4, patch_size=8, patch_embed="conv", camera_trunk_depth=1,
                       camera_num_heads=4, dpt_features=32, dpt_out_channels=(16, 32, 64, 64), sh_degree=1,
-                      completion_dim=64, completion_tokens=16, completion_heads=4, prior_dim=64, prior_depth=1),
+                      completion_dim=64, completion_tokens=16, completion_heads=4, prior_dim=64, prior_depth=1,
+                      color_mode="pixel", scale_mode="pixel", camera_init_fov=1.0),
     "small": NetConfig(embed_dim=256, depth=8, num_heads=8, patch_size=14, patch_embed="conv", camera_trunk_depth=2,
                        camera_num_heads=8, dpt_features=128, dpt_out_channels=(64, 128, 256, 256), sh_degree=2,
-                       completion_dim=256, completion_tokens=64, completion_heads=8, prior_dim=128),
+                       completion_dim=256, completion_tokens=64, completion_heads=8, prior_dim=128,
+                       camera_init_fov=1.0),
     "base": NetConfig(embed_dim=768, depth=12, num_heads=12, patch_embed="dinov2_vitb14_reg", camera_trunk_depth=2,
                       camera_num_heads=12, dpt_features=256, dpt_out_channels=(128, 256, 512, 512), sh_degree=3,
-                      completion_dim=512, completion_tokens=128, completion_heads=8, prior_dim=256),
+                      completion_dim=512, completion_tokens=128, completion_heads=8, prior_dim=256,
+                      camera_init_fov=1.0),
     "vggt-1b": NetConfig(),
 }
 
@@ -80,7 +92,11 @@ def preset_config(preset: str, **overrides) -> NetConfig:
     unknown = sorted(set(overrides) - names)
     if unknown:
         raise ValueError(f"build_network: unknown option(s) {unknown}; valid options are {sorted(names)}")
-    return replace(PRESETS[preset], **overrides)
+    cfg = replace(PRESETS[preset], **overrides)
+    for name, allowed in (("color_mode", ("head", "pixel")), ("scale_mode", ("absolute", "pixel"))):
+        if getattr(cfg, name) not in allowed:
+            raise ValueError(f"{name}: expected one of {list(allowed)}, got {getattr(cfg, name)!r}")
+    return cfg
 
 
 def build_network(preset: str = "tiny", **overrides):

@@ -58,3 +58,14 @@ def test_pixel_aligned_order():
     assert torch.equal(g.means[0, 5], means[0, 0, 1, 1])
     with pytest.raises(ValueError, match="voxel_size"):
         raw_to_gaussians(raw, means, sh_degree=0, voxel_size=-1.0)
+
+
+def test_rgb_and_footprint_survive_voxel_merge():
+    raw = torch.zeros(1, 1, 9 + 3, 2, 2)  # SH degree 0
+    means = torch.zeros(1, 1, 2, 2, 3)  # one voxel
+    rgb = torch.tensor([[0.2, 0.4], [0.6, 0.8]]).expand(1, 1, 3, 2, 2)
+    fp = torch.full((1, 1, 1, 2, 2), 0.02)
+    g = raw_to_gaussians(raw, means, sh_degree=0, voxel_size=1.0, rgb=rgb, footprint=fp)
+    assert g.num_gaussians == 1
+    assert torch.allclose(0.5 + 0.28209479177387814 * g.sh[0, 0, 0], torch.full((3,), 0.5), atol=1e-5)
+    assert torch.allclose(g.scales[0, 0], torch.full((3,), 0.02 * torch.log(torch.tensor(2.0))), atol=1e-6)

@@ -123,3 +123,49 @@ def test_gradient_checkpointing_gives_the_same_outputs():
     assert torch.allclose(out, ref, atol=1e-6)
     out.mean().backward()
     assert net.aggregator.frame_blocks[0].attn.qkv.weight.grad is not None
+
+
+def test_pixel_colour_mode_reproduces_input_colours_at_init(tiny):
+    assert tiny.cfg.color_mode == "pixel"
+    images = torch.rand(1, 2, 3, 32, 32)
+    with torch.no_grad():
+        g = tiny(images, refine=False)["gaussians"]
+    colour = 0.5 + 0.28209479177387814 * g.sh[0, :, 0, :]  # DC colour [N, 3]
+    assert torch.allclose(colour, images[0].permute(0, 2, 3, 1).reshape(-1, 3), atol=0.02)
+    torch.manual_seed(0)
+    head = build_network("tiny", color_mode="head", completion=False)
+    with torch.no_grad():
+        gh = head(images, refine=False)["gaussians"]
+    assert not torch.allclose(0.5 + 0.28209479177387814 * gh.sh[0, :, 0, :],
+                              images[0].permute(0, 2, 3, 1).reshape(-1, 3), atol=0.02)
+
+
+def test_pixel_scale_mode_scales_with_depth_over_focal(tiny):
+    from anycity.models.gaussians import raw_to_gaussians
+
+    raw = torch.zeros(1, 1, 9 + 3 * 4, 2, 2)
+    means = torch.zeros(1, 1, 2, 2, 3)
+    footprint = torch.tensor([0.01, 0.02, 0.04, 0.08]).reshape(1, 1, 1, 2, 2)
+    g = raw_to_gaussians(raw, means, 1, footprint=footprint)
+    expected = footprint.flatten() * torch.log(torch.tensor(2.0))
+    assert torch.allclose(g.scales[0], expected[:, None].expand(4, 3))
+    with torch.no_grad():
+        out = tiny(torch.rand(1, 2, 3, 32, 32), refine=False)
+    ratio = out["gaussians"].scales.reshape(1, 2, 32, 32, 3)[..., 0] / out["depth"][:, :, 0]
+    focal = 0.5 * (out["K"][..., 0, 0] + out["K"][..., 1, 1])
+    # scale / (depth / focal) = softplus(raw): of order one pixel at init, independent of depth
+    per_px = ratio * focal[..., None, None]
+    assert 0.1 < float(per_px.median()) < 3.0
+
+
+def test_mode_options_validated_and_camera_init():
+    with pytest.raises(ValueError, match="scale_mode"):
+        build_network("tiny", scale_mode="pixels")
+    with pytest.raises(ValueError, match="color_mode"):
+        build_network("tiny", color_mode="rgb")
+    torch.manual_seed(0)
+    net = build_network("tiny", completion=False)
+    with torch.no_grad():
+        enc = net(torch.rand(1, 2, 3, 32, 32), refine=False)["pose_enc"]
+    assert (enc[..., 7:] > 0.5).all() and (enc[..., 7:] < 1.5).all()  # FoV near 1 rad: finite focal
+    assert (enc[..., 6] > 0.5).all()  # quaternion w near 1: identity rotation

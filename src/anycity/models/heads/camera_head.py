@@ -30,6 +30,18 @@ class CameraHead(nn.Module):
         self.adaln_norm = nn.LayerNorm(dim_in, elementwise_affine=False, eps=1e-6)
         self.pose_branch = Mlp(dim_in, dim_in // 2, self.target_dim)
 
+    def init_pose_bias(self, fov: float = 1.0, iterations: int = 4) -> None:
+        """Random init only: bias the output towards an identity rotation and a ``fov``-radian field of view.
+        With VGGT's init the ReLU FoV starts at 0 for about half the outputs (infinite focal length, no gradient)
+        and a zero quaternion has no rotation. Each iteration adds its output, so the bias is spread over them."""
+        fc2 = self.pose_branch.fc2
+        iters = max(1, int(iterations))
+        with torch.no_grad():
+            fc2.weight[3:9].mul_(0.01)
+            fc2.bias[3:9] = 0.0
+            fc2.bias[6] = 1.0 / iters  # quaternion xyzw: w
+            fc2.bias[7:9] = fov / iters
+
     def forward(self, tokens_list: list[Tensor | None], num_iterations: int = 4) -> list[Tensor]:
         tokens = self.token_norm(tokens_list[-1][:, :, 0])
         b, v, _ = tokens.shape

@@ -10,6 +10,7 @@ of each read layer before the head's LayerNorm.
 
 from __future__ import annotations
 
+import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
@@ -29,6 +30,15 @@ class GaussianHead(DPTHead):
         super().__init__(dim_in, output_dim=output_dim, features=features, hidden=hidden, **kwargs)
         self.sh_degree = sh_degree
         self.input_merger = nn.Sequential(nn.Conv2d(3, merged, 7, 1, 3), nn.ReLU())
+
+    def init_sh_residual(self, gain: float = 0.01) -> None:
+        """Random init for ``color_mode="pixel"``: shrink the SH outputs of the last conv so the head starts as a
+        near-zero residual on the pixel colours (AnySplat's full-colour head is left as it is otherwise)."""
+        last = self.scratch.output_conv2[-1]
+        k = (self.sh_degree + 1) ** 2
+        with torch.no_grad():
+            last.weight[8:8 + 3 * k].mul_(gain)
+            last.bias[8:8 + 3 * k].zero_()
 
     def decode(self, feats: Tensor, images: Tensor) -> Tensor:
         h, w = images.shape[-2:]
