@@ -100,6 +100,24 @@ def _sh_dir_grad(x, y, z, K, s):
     return gx, gy, gz
 
 
+@njit(inline="always", cache=True)
+def _cov2d(cams, c, rot, s0, s1, s2, j00, j02, j11, j12):
+    """Upper triangle (a, b, c) of Σ2D = A Aᵀ + eps2d·I, A = J W M with M = rot·diag(s) and J's nonzero entries
+    (j00, j02; j11, j12); W is camera c's rotation in ``cams[c, :9]``."""
+    ca = cb = cc = 0.0
+    for k in range(3):  # column k of M: A[:, k] = (J W) M[:, k]
+        sk = s0 if k == 0 else (s1 if k == 1 else s2)
+        w0 = (cams[c, 0] * rot[k] + cams[c, 1] * rot[3 + k] + cams[c, 2] * rot[6 + k]) * sk
+        w1 = (cams[c, 3] * rot[k] + cams[c, 4] * rot[3 + k] + cams[c, 5] * rot[6 + k]) * sk
+        w2 = (cams[c, 6] * rot[k] + cams[c, 7] * rot[3 + k] + cams[c, 8] * rot[6 + k]) * sk
+        a0 = j00 * w0 + j02 * w2
+        a1 = j11 * w1 + j12 * w2
+        ca += a0 * a0
+        cb += a0 * a1
+        cc += a1 * a1
+    return ca + EPS2D, cb, cc + EPS2D
+
+
 @njit(parallel=True, cache=True)
 def project_fwd(means, quats, scales, opac, sh, valid, cams, V, width, height, near, far, tiles_x, tiles_y,
                 P, z_out, rect, ntiles, ext_y):
@@ -136,19 +154,7 @@ def project_fwd(means, quats, scales, opac, sh, valid, cams, V, width, height, n
             v = min(max(y * iz, cams[c, 21]), cams[c, 22])
             # rows of J R (J = [[fx/z, 0, -fx u/z], [0, fy/z, -fy v/z]])
             j00, j02, j11, j12 = fx * iz, -fx * u * iz, fy * iz, -fy * v * iz
-            ca = cb = cc = 0.0
-            for k in range(3):  # column k of M = rot diag(s): A[:, k] = (J R) M[:, k]
-                sk = s0 if k == 0 else (s1 if k == 1 else s2)
-                w0 = (cams[c, 0] * rot[k] + cams[c, 1] * rot[3 + k] + cams[c, 2] * rot[6 + k]) * sk
-                w1 = (cams[c, 3] * rot[k] + cams[c, 4] * rot[3 + k] + cams[c, 5] * rot[6 + k]) * sk
-                w2 = (cams[c, 6] * rot[k] + cams[c, 7] * rot[3 + k] + cams[c, 8] * rot[6 + k]) * sk
-                a0 = j00 * w0 + j02 * w2
-                a1 = j11 * w1 + j12 * w2
-                ca += a0 * a0
-                cb += a0 * a1
-                cc += a1 * a1
-            ca += EPS2D
-            cc += EPS2D
+            ca, cb, cc = _cov2d(cams, c, rot, s0, s1, s2, j00, j02, j11, j12)
             det = ca * cc - cb * cb
             if not det > 0:
                 continue
@@ -240,18 +246,7 @@ def project_bwd(means, quats, scales, opac, sh, cams, V, pstart, G,
                 u = min(max(xz, cams[c, 19]), cams[c, 20])
                 vv = min(max(yz, cams[c, 21]), cams[c, 22])
                 j00, j02, j11, j12 = fx * iz, -fx * u * iz, fy * iz, -fy * vv * iz
-                # forward again: w_k = R rot[:, k] s_k, A = J [w_0 w_1 w_2]
-                ca = cb = cc = 0.0
-                for k in range(3):
-                    w0 = (cams[c, 0] * rot[k] + cams[c, 1] * rot[3 + k] + cams[c, 2] * rot[6 + k]) * sc[k]
-                    w1 = (cams[c, 3] * rot[k] + cams[c, 4] * rot[3 + k] + cams[c, 5] * rot[6 + k]) * sc[k]
-                    w2 = (cams[c, 6] * rot[k] + cams[c, 7] * rot[3 + k] + cams[c, 8] * rot[6 + k]) * sc[k]
-                    a0, a1 = j00 * w0 + j02 * w2, j11 * w1 + j12 * w2
-                    ca += a0 * a0
-                    cb += a0 * a1
-                    cc += a1 * a1
-                ca += EPS2D
-                cc += EPS2D
+                ca, cb, cc = _cov2d(cams, c, rot, sc[0], sc[1], sc[2], j00, j02, j11, j12)  # forward again
                 det = ca * cc - cb * cb
                 idet = 1.0 / det
                 qa, qb, qc = cc * idet, -cb * idet, ca * idet
