@@ -9,6 +9,7 @@ Backends share one contract (all inputs already validated, ``valid`` filled, ``b
 
 from __future__ import annotations
 
+import functools
 import importlib
 from typing import Literal
 
@@ -27,6 +28,7 @@ _BACKENDS = {
 }
 
 
+@functools.cache  # availability cannot change within a process; keep import probing off the per-call path
 def _module_available(name: str) -> bool:
     try:
         importlib.import_module(name)
@@ -49,6 +51,7 @@ def resolve_backend(backend: str, device: torch.device, dtype: torch.dtype = tor
     return "torch"
 
 
+@functools.cache
 def _cpu_backend_available() -> bool:
     return importlib.util.find_spec("anycity.render.cpu_backend") is not None and _module_available("numba")
 
