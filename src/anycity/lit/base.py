@@ -100,17 +100,17 @@ class AnyCityModule(pl.LightningModule):
     # ----------------------------------------------------------------------------------------- rendering
     def render(self, gaussians: Gaussians, w2c: Tensor, K: Tensor, hw: tuple[int, int], context: Tensor,
                normals: bool = False) -> RenderOutput:
-        """Render ``gaussians`` in float32 (outside autocast) into cameras ``w2c [B, V, 4, 4]``, ``K``;
-        ``context [B, V', 3, H', W']`` are the input images (for ``background_mode="context_mean"``)."""
+        """Render ``gaussians`` into cameras ``w2c [B, V, 4, 4]``, ``K`` (``anycity.render.render`` itself runs in
+        float32 outside autocast); ``context [B, V', 3, H', W']`` are the input images (for
+        ``background_mode="context_mean"``)."""
         from anycity.render import render
 
         if self.hparams.background_mode == "context_mean":
             bg = context.detach().float().mean(dim=(1, 3, 4))[:, None].expand(-1, w2c.shape[1], -1).contiguous()
         else:
             bg = torch.tensor(self.hparams.background, device=w2c.device, dtype=torch.float32)
-        with torch.autocast(w2c.device.type, enabled=False):
-            return render(gaussians.float(), w2c.float(), K.float(), hw[1], hw[0], background=bg,
-                          render_normals=normals, backend=self.hparams.render_backend)
+        return render(gaussians, w2c, K, hw[1], hw[0], background=bg, render_normals=normals,
+                      backend=self.hparams.render_backend)
 
     def target_cameras(self, pred_w2c: Tensor, context: Views, query: Views) -> tuple[Tensor, Tensor]:
         """Ground-truth ``query`` cameras in the predicted frame and the depth scale ``s [B]`` (pred = s * gt)."""
