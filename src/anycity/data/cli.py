@@ -33,6 +33,9 @@ def _synth_parser() -> ArgumentParser:
     p.add_argument("--window", type=int | None, default=24,
                    help="training samples are trajectory windows of this many views (0 or None: whole scenes)")
     p.add_argument("--stride", type=int | None, default=None, help="views between window starts (default window/2)")
+    p.add_argument("--supersample", type=int, default=1,
+                   help="colour = box filter of k x k sub-pixel rays (1: one ray per pixel + edge anti-aliasing)")
+    p.add_argument("--hfov", type=float, default=60.0, help="horizontal field of view in degrees")
     return p
 
 
@@ -74,7 +77,8 @@ def data_main(argv: list[str]) -> int:
         a = cfg.synth
         index = synth(a.out, scenes=a.scenes, views=a.views, size=a.size, seed=a.seed, trajectory=a.trajectory,
                       preview=a.preview, workers=a.workers, image_format=a.image_format, depth_dtype=a.depth_dtype,
-                      normals=a.normals, window=a.window or None, stride=a.stride)
+                      normals=a.normals, window=a.window or None, stride=a.stride,
+                      supersample=a.supersample, hfov=a.hfov)
         print(f"synth: {_summary(index)} -> {a.out} in {index['seconds']:.1f} s"
               + (f"; preview {a.out}/preview.png" if a.preview else ""))
     else:

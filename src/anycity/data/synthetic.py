@@ -23,12 +23,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 import torch
+from torch import Tensor
 
 from anycity.data.city import City, make_city
 from anycity.data.raycast import SceneTensors, fov_intrinsics, look_at, render
 from anycity.data.schema import SceneRecord, ViewRecord, decode_image, decode_npy, encode_image
 from anycity.data.writer import ShardSetWriter, split_scenes
-from anycity.geometry import depth_to_normals
+from anycity.geometry import depth_to_normals, rescale_intrinsics
 
 TRAJECTORIES = ("orbit", "nadir", "mixed")
 HFOV_DEG = 60.0
@@ -93,21 +94,37 @@ def trajectory(kind: str, n: int, city: City, rng: np.random.Generator) -> tuple
     return np.stack(poses), kind
 
 
+def render_view(scene: SceneTensors, w2c: Tensor, K: Tensor, h: int, w: int, aa: bool = True,
+                supersample: int = 1) -> dict[str, Tensor]:
+    """Ray-cast one view; ``supersample`` k > 1 box-filters colour over a k x k grid of sub-pixel rays (what a
+    camera pixel integrates: texture detail finer than a pixel averages out instead of aliasing differently in
+    every view). Depth, normals and the mask stay those of the pixel-centre ray."""
+    r = render(scene, w2c, K, h, w, aa=aa and supersample == 1)
+    if supersample > 1:
+        k = int(supersample)
+        fine = render(scene, w2c, rescale_intrinsics(K, k, k), k * h, k * w, aa=aa)["rgb"]
+        r["rgb"] = fine.view(h, k, w, k, 3).mean(dim=(1, 3))
+    return r
+
+
 def render_scene(seed: int, index: int, views: int, size: tuple[int, int], traj: str = "mixed",
-                 image_format: str = "jpg", aa: bool = True) -> SceneRecord:
-    """Generate and ray-cast scene ``index`` of the dataset with this ``seed``."""
+                 image_format: str = "jpg", aa: bool = True, supersample: int = 1,
+                 hfov: float = HFOV_DEG) -> SceneRecord:
+    """Generate and ray-cast scene ``index`` of the dataset with this ``seed`` (``supersample``: see
+    :func:`render_view`; ``hfov``: horizontal field of view in degrees)."""
     rng = np.random.default_rng([seed, index])
     city = make_city(rng)
     w2c, kind = trajectory(traj, views, city, rng)
     h, w = size
-    K = fov_intrinsics(w, h, HFOV_DEG)
+    K = fov_intrinsics(w, h, hfov)
     scene = SceneTensors(city)
     Kt = torch.as_tensor(K, dtype=torch.float32)
     out = []
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # many small ops: threads cost more than they give; scenes run in processes
     try:
-        renders = [render(scene, torch.as_tensor(w2c[i], dtype=torch.float32), Kt, h, w, aa=aa) for i in range(views)]
+        renders = [render_view(scene, torch.as_tensor(w2c[i], dtype=torch.float32), Kt, h, w, aa, supersample)
+                   for i in range(views)]
     finally:
         torch.set_num_threads(threads)
     for i, r in enumerate(renders):
@@ -120,7 +137,8 @@ def render_scene(seed: int, index: int, views: int, size: tuple[int, int], traj:
                               ext=image_format))
     return SceneRecord(key=f"synth{seed}_{index:05d}", views=out, source="synthetic", units="metres",
                        metres_per_unit=1.0, extra={"trajectory": kind, "seed": seed, "index": index,
-                                                   "sun": city.sun.tolist(), "hfov_deg": HFOV_DEG})
+                                                   "sun": city.sun.tolist(), "hfov_deg": float(hfov),
+                                                   "supersample": int(supersample)})
 
 
 def _worker_init() -> None:
@@ -144,7 +162,8 @@ def _job(args):
 def synth(out: str | Path, scenes: int = 8, views: int = 48, size: str | tuple[int, int] = "256x256", seed: int = 0,
           trajectory: str = "mixed", preview: bool = False, workers: int | None = None, image_format: str = "jpg",
           depth_dtype: str = "float16", maxcount: int = 64, aa: bool = True, normals: bool = False,
-          window: int | None = 24, stride: int | None = None) -> dict:
+          window: int | None = 24, stride: int | None = None, supersample: int = 1,
+          hfov: float = HFOV_DEG) -> dict:
     """Render ``scenes`` synthetic cities into ``{train,val,test}-*.tar`` shards under ``out`` (8:1:1 split).
 
     Args:
@@ -152,18 +171,26 @@ def synth(out: str | Path, scenes: int = 8, views: int = 48, size: str | tuple[i
             reader derives them from depth on request).
         window, stride: training samples are windows of ``window`` consecutive views every ``stride`` (default
             ``window // 2``) views; None: one sample per scene. Validation and test scenes stay whole.
+        supersample: colour from a k x k box filter of sub-pixel rays (k^2 + 1 times the rays; 1 = one ray per
+            pixel plus adaptive 5-ray anti-aliasing at contrast edges).
+        hfov: horizontal field of view in degrees (a narrower lens resolves the city in more pixels).
     Returns the written ``index.json`` content plus ``seconds``.
     """
     if trajectory not in TRAJECTORIES:
         raise ValueError(f"trajectory: expected one of {TRAJECTORIES}, got {trajectory!r}")
     if scenes < 1 or views < 1:
         raise ValueError(f"scenes and views: expected >= 1, got scenes={scenes}, views={views}")
+    if not 10 <= float(hfov) <= 120:
+        raise ValueError(f"hfov: expected a horizontal field of view of 10..120 degrees, got {hfov!r}")
+    if not 1 <= int(supersample) <= 4:
+        raise ValueError(f"supersample: expected 1..4 (sub-pixel rays per side), got {supersample!r}")
     if image_format not in ("jpg", "png"):
         raise ValueError(f"image_format: expected 'jpg' or 'png', got {image_format!r}")
     hw = parse_size(size)
     workers = min(scenes, workers if workers is not None else min(2, os.cpu_count() or 1))
     t0 = time.perf_counter()
-    jobs = [(seed, i, views, hw, trajectory, image_format, aa, normals, depth_dtype) for i in range(scenes)]
+    jobs = [(seed, i, views, hw, trajectory, image_format, aa, int(supersample), float(hfov), normals, depth_dtype)
+            for i in range(scenes)]
     splits = split_scenes(scenes, seed)
     first: list[SceneRecord] = []
     with ShardSetWriter(out, maxcount=maxcount, depth_dtype=depth_dtype, window=window, stride=stride) as writer:

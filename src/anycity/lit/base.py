@@ -18,7 +18,7 @@ import torch
 from torch import Tensor
 
 from anycity.lit.evaluation import AlignMode, EvalMetrics, cameras_in_pred_frame, fit_gt_to_pred
-from anycity.metrics import depth_metrics, mean_colour_baseline
+from anycity.metrics import depth_metrics, mean_colour_baseline, nearest_view_reference
 from anycity.models.presets import NetConfig
 from anycity.structures import Gaussians, RenderOutput, ViewBatch, Views
 
@@ -161,6 +161,8 @@ class AnyCityModule(pl.LightningModule):
         hw = tgt.hw
         gt = tgt.images.flatten(0, 1)
         metrics.update("baseline", mean_colour_baseline(ctx.images, tuple(tgt.images.shape)).flatten(0, 1), gt)
+        if ctx.index is not None and tgt.index is not None and ctx.hw == hw:
+            metrics.update("nearest", nearest_view_reference(ctx.images, ctx.index, tgt.index).flatten(0, 1), gt)
         preview = {"context": ctx.images[0, :1].expand(tgt.num_views, -1, -1, -1), "target": tgt.images[0]}
         for name, g in variants.items():
             r = self.render(g, w2c_t, tgt.K, hw, ctx.images)

@@ -65,7 +65,8 @@ def cameras_in_pred_frame(gt_w2c: Tensor, s: Tensor, R: Tensor, t: Tensor) -> Te
 
 
 class EvalMetrics(nn.Module):
-    """Per-image PSNR / SSIM (torchmetrics) and per-image AbsRel / delta1 means, for named variants.
+    """Per-image PSNR / SSIM (torchmetrics) and per-image AbsRel / delta1 means, for named variants (plus PSNR of
+    the ``baseline`` and ``nearest`` view references).
 
     ``update(variant, pred, target)`` takes ``[M, 3, H, W]`` images; ``update_depth(variant, abs_rel, delta1)``
     takes per-image values. ``items()`` yields ``(name, metric)`` pairs ready for ``LightningModule.log``.
@@ -75,7 +76,7 @@ class EvalMetrics(nn.Module):
         super().__init__()
         self.variants = variants
         m: dict[str, nn.Module] = {}
-        for v in (*variants, "baseline"):
+        for v in (*variants, "baseline", "nearest"):
             m[f"psnr_{v}"] = PeakSignalNoiseRatio(data_range=1.0, dim=(1, 2, 3), reduction="elementwise_mean")
         for v in variants:
             m[f"ssim_{v}"] = StructuralSimilarityIndexMeasure(data_range=1.0)

@@ -7,6 +7,8 @@ into the predicted frame) and of the context views (predicted cameras).
 
 from __future__ import annotations
 
+from typing import Literal
+
 from torch import Tensor
 
 from anycity.geometry.pose_encoding import extri_intri_to_pose_encoding
@@ -29,7 +31,8 @@ class ScaffoldModule(AnyCityModule):
     Args:
         depth_weight: weight of ``L_depth = L_z + L_xy`` (paper: 0.1).
         normal_weight: weight of ``L_normal`` (paper: 0.1).
-        camera_weight: weight of the pose-encoding Huber loss.
+        camera_weight: weight of the pose-encoding loss.
+        camera_loss_type: "l1" (VGGT's default) or "huber" on the pose encoding.
         ssim_weight: weight of ``1 - SSIM`` inside ``L_rgb`` (0 = MSE only).
         context_rgb_weight: weight of the context-view photometric term relative to the target views.
         depth_warmup_steps: optimiser steps before the depth and normal terms switch on (paper: 200).
@@ -64,6 +67,7 @@ class ScaffoldModule(AnyCityModule):
         depth_weight: float = 0.1,
         normal_weight: float = 0.1,
         camera_weight: float = 1.0,
+        camera_loss_type: Literal["l1", "huber"] = "l1",
         ssim_weight: float = 0.0,
         context_rgb_weight: float = 1.0,
         depth_warmup_steps: int = 200,
@@ -96,7 +100,7 @@ class ScaffoldModule(AnyCityModule):
             loss = loss + hp.context_rgb_weight * terms["rgb_ctx"]
         if hp.camera_weight > 0:
             gt_enc = extri_intri_to_pose_encoding(ctx.w2c, ctx.K, ctx.hw)
-            terms["cam"] = camera_loss(out["pose_enc_list"], gt_enc)["total"]
+            terms["cam"] = camera_loss(out["pose_enc_list"], gt_enc, loss_type=hp.camera_loss_type)["total"]
             loss = loss + hp.camera_weight * terms["cam"]
         if geo_on and hp.depth_weight > 0 and ctx.depth is not None:
             dz = depth_z_loss(out["depth"], ctx.depth, ctx.mask, out.get("depth_conf"), hp.depth_conf_threshold,

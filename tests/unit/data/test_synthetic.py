@@ -9,7 +9,7 @@ import webdataset as wds
 from anycity.data.city import make_city
 from anycity.data.cli import data_main
 from anycity.data.raycast import SceneTensors, fov_intrinsics, look_at, render
-from anycity.data.synthetic import parse_size, render_scene, trajectory
+from anycity.data.synthetic import parse_size, render_scene, render_view, synth, trajectory
 from anycity.geometry import project_points, unproject_depth
 
 
@@ -72,6 +72,33 @@ def test_scene_deterministic_and_learnable():
     assert all(np.array_equal(x.image, y.image) for x, y in zip(a.views, b.views))
     assert not np.array_equal(a.views[0].image, c.views[0].image)
     assert a.views[0].image.std() > 20  # structured, not flat
+
+
+def test_supersample_box_filters_colour_and_keeps_centre_depth():
+    sc = SceneTensors(make_city(np.random.default_rng(3)))
+    K = torch.tensor(fov_intrinsics(32, 24, 60.0), dtype=torch.float32)
+    w2c = torch.tensor(look_at([140, -110, 150], [0, 0, 0]), dtype=torch.float32)
+    ss = render_view(sc, w2c, K, 24, 32, supersample=2)
+    fine = render(sc, w2c, K * torch.tensor([[2.0], [2.0], [1.0]]), 48, 64)["rgb"]
+    centre = render(sc, w2c, K, 24, 32, aa=False)
+    # colour: the mean of each pixel's 2x2 sub-pixel rays; depth, normals, mask: the pixel-centre ray
+    assert torch.allclose(ss["rgb"], fine.view(24, 2, 32, 2, 3).mean(dim=(1, 3)), atol=1e-6)
+    assert torch.equal(ss["depth"], centre["depth"]) and torch.equal(ss["mask"], centre["mask"])
+    one = render_view(sc, w2c, K, 24, 32)
+    # box filtering removes sub-pixel texture energy: the image is smoother than one ray per pixel
+    grad = lambda im: (im[1:] - im[:-1]).abs().mean() + (im[:, 1:] - im[:, :-1]).abs().mean()  # noqa: E731
+    assert grad(ss["rgb"]) < grad(one["rgb"])
+    with pytest.raises(ValueError, match="supersample"):
+        synth("/nonexistent", scenes=1, supersample=0)
+
+
+def test_hfov_sets_the_intrinsics():
+    rec = render_scene(7, 1, 2, (24, 32), "orbit", hfov=40.0)
+    fx = rec.views[0].K[0, 0]
+    assert fx == pytest.approx(16 / math.tan(math.radians(20)))
+    assert rec.extra["hfov_deg"] == 40.0
+    with pytest.raises(ValueError, match="hfov"):
+        synth("/nonexistent", scenes=1, hfov=200)
 
 
 def test_parse_size():

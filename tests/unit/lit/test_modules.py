@@ -10,18 +10,19 @@ from anycity.structures import ViewBatch, Views
 H = W = 32
 
 
-def _views(n, seed):
+def _views(n, seed, index=None):
     g = torch.Generator().manual_seed(seed)
     w2c = torch.eye(4).repeat(1, n, 1, 1)
     w2c[..., 0, 3] = torch.linspace(0, 0.3, n)
     K = make_intrinsics(30.0, 30.0, 16.0, 16.0).expand(1, n, 3, 3).clone()
     return Views(images=torch.rand(1, n, 3, H, W, generator=g), w2c=w2c, K=K,
-                 depth=torch.rand(1, n, 1, H, W, generator=g) + 1, mask=torch.ones(1, n, 1, H, W, dtype=torch.bool))
+                 depth=torch.rand(1, n, 1, H, W, generator=g) + 1, mask=torch.ones(1, n, 1, H, W, dtype=torch.bool),
+                 index=None if index is None else torch.tensor([index]))
 
 
 @pytest.fixture(scope="module")
 def batch():
-    return ViewBatch(context=_views(2, 0), target=_views(1, 1), dense=_views(3, 2))
+    return ViewBatch(context=_views(2, 0, [1, 3]), target=_views(1, 1, [2]), dense=_views(3, 2))
 
 
 def _no_log(module):
@@ -57,7 +58,11 @@ def test_refinement_freezes_scaffold_starts_at_scaffold_and_loads_stage1(batch, 
     res = {k: v.compute() for k, v in m.val_metrics.items()}
     # P_delta is zero-initialised: before training the refined model renders exactly the scaffold
     assert res["psnr_refined"].item() == pytest.approx(res["psnr_scaffold"].item(), abs=1e-4)
-    assert {"psnr_baseline", "ssim_refined", "abs_rel_refined", "delta1_scaffold"} <= set(res)
+    assert {"psnr_baseline", "psnr_nearest", "ssim_refined", "abs_rel_refined", "delta1_scaffold"} <= set(res)
+    # the nearest-view reference copies context view 0 (trajectory position 1 vs 3; ties go to the first)
+    from anycity.metrics import psnr
+    expected = psnr(batch.context.images[:, :1], batch.target.images).mean()
+    assert res["psnr_nearest"].item() == pytest.approx(expected.item(), abs=1e-4)
 
 
 def test_refinement_rejects_missing_init_and_bad_gate_mode(tmp_path):

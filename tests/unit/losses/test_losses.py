@@ -121,6 +121,18 @@ def test_camera_loss_zero_at_gt_and_weights_last_iteration_most():
         camera_loss([gt[..., :7]], gt)
 
 
+def test_camera_loss_types_known_values():
+    gt = torch.zeros(1, 2, 9)
+    gt[..., 6] = 1.0  # identity quaternion (xyzw)
+    pred = gt.clone()
+    pred[..., 0] = 0.1  # translation x off by 0.1 in every view
+    # mean over the 3 translation entries: L1 0.1 / 3; Huber (quadratic below delta) 0.5 * 0.1^2 / 3
+    assert camera_loss(pred, gt)["cam_t"].item() == pytest.approx(0.1 / 3)
+    assert camera_loss(pred, gt, loss_type="huber")["cam_t"].item() == pytest.approx(0.005 / 3)
+    with pytest.raises(ValueError, match="loss_type"):
+        camera_loss(pred, gt, loss_type="l2")
+
+
 def _render(rgb, depth, alpha):
     return RenderOutput(rgb=rgb, depth=depth, alpha=alpha)
 

@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from anycity.metrics import depth_metrics, mean_colour_baseline, psnr, ssim
+from anycity.metrics import depth_metrics, mean_colour_baseline, nearest_view_reference, psnr, ssim
 
 
 def test_psnr_known_value_per_image():
@@ -28,6 +28,17 @@ def test_mean_colour_baseline():
     base = mean_colour_baseline(ctx, (1, 3, 3, 5, 6))
     assert base.shape == (1, 3, 3, 5, 6)
     torch.testing.assert_close(base[0, 0, :, 0, 0], torch.tensor([0.5, 0.0, 0.0]))
+
+
+def test_nearest_view_reference_copies_the_closest_context_view():
+    ctx = torch.arange(3.0)[None, :, None, None, None].expand(2, 3, 3, 4, 4)  # view k is filled with k
+    ci = torch.tensor([[1, 5, 9], [0, 10, 20]])
+    ti = torch.tensor([[0, 6, 8, 3], [19, 4, 11, 0]])
+    ref = nearest_view_reference(ctx, ci, ti)
+    assert ref.shape == (2, 4, 3, 4, 4)
+    torch.testing.assert_close(ref[:, :, 0, 0, 0], torch.tensor([[0.0, 1, 2, 0], [2, 0, 1, 0]]))
+    with pytest.raises(ValueError, match="nearest_view_reference"):
+        nearest_view_reference(ctx, ci[:, :2], ti)
 
 
 def test_depth_metrics_known_values():
