@@ -2,7 +2,6 @@
 VENV ?= .venv
 PY := $(VENV)/bin/python
 PIP := $(PY) -m pip
-export OMP_WAIT_POLICY ?= PASSIVE
 
 .PHONY: setup test test-all bench lint quickstart clean
 

@@ -2,8 +2,10 @@
 
 import json
 
+import numpy as np
 import pytest
 import torch
+from PIL import Image
 
 from anycity.cli import build_cli, main
 
@@ -63,6 +65,17 @@ def test_fit_test_predict_stage1_then_stage2(tiny_shards, tmp_path):
     assert scenes and (scenes[0] / "scene.ply").stat().st_size > 1000
     cams = json.loads((scenes[0] / "cameras.json").read_text())
     assert len(cams["views"]) == 2 and len(list((scenes[0] / "renders").glob("*.png"))) == 2
+
+    # the user's own photos: a folder of one scene, no poses
+    photos = tmp_path / "my_photos"
+    photos.mkdir()
+    for i in range(3):
+        pixels = np.random.default_rng(i).integers(0, 255, (40, 56, 3), dtype=np.uint8)
+        Image.fromarray(pixels).save(photos / f"{i}.jpg")
+    build_cli(["predict", *_tiny_args(tiny_shards, p, **stage2), "--ckpt_path", str(ckpt2),
+               "--data.predict_images", str(photos), "--export.out_dir", str(p / "mine")])
+    cams = json.loads((p / "mine" / "my_photos" / "cameras.json").read_text())
+    assert len(cams["views"]) == 3 and (p / "mine" / "my_photos" / "scene.ply").stat().st_size > 1000
 
 
 def test_resume_continues_step_optimizer_and_schedule(tiny_shards, tmp_path):

@@ -202,14 +202,18 @@ class AnyCityModule(pl.LightningModule):
 
     # ----------------------------------------------------------------------------------------- prediction
     @torch.no_grad()
-    def predict_step(self, batch: ViewBatch | Views | Tensor, batch_idx: int) -> dict[str, Any]:
-        """Reconstruct from context images; returns Gaussians, predicted cameras and context re-renders."""
-        ctx = batch.context if isinstance(batch, ViewBatch) else batch
-        images = ctx.images if isinstance(ctx, Views) else ctx
+    def predict_step(self, batch: ViewBatch | Views | Tensor | dict, batch_idx: int) -> dict[str, Any]:
+        """Reconstruct from context images (a batch of shards, of :class:`Views`, images ``[B, V, 3, H, W]`` or a
+        photo-folder dict ``{"images", "scene"}``); returns Gaussians, predicted cameras and context re-renders."""
+        if isinstance(batch, dict):
+            images, scene = batch["images"], batch.get("scene")
+        else:
+            ctx = batch.context if isinstance(batch, ViewBatch) else batch
+            images, scene = (ctx.images if isinstance(ctx, Views) else ctx), getattr(batch, "scene", None)
         out, variants = self.predict_variants(images)
         final = variants[list(variants)[-1]]
         hw = (int(images.shape[-2]), int(images.shape[-1]))
         renders = self.render(final, out["w2c"], out["K"], hw, images)
         return {"gaussians": final.detach(), "w2c": out["w2c"].detach(), "K": out["K"].detach(),
-                "images": images, "renders": renders, "scene": getattr(batch, "scene", None),
+                "images": images, "renders": renders, "scene": scene,
                 "batch_idx": batch_idx}

@@ -13,6 +13,7 @@ import math
 from pathlib import Path
 
 import lightning.pytorch as pl
+import torch
 from lightning.pytorch.utilities import rank_zero_warn
 from torch.utils.data import DataLoader
 
@@ -31,6 +32,13 @@ def _expand(spec: str | list[str] | None, split: str) -> list[str]:
     import webdataset as wds
 
     return list(wds.shardlists.expand_urls(spec))
+
+
+def _collate_photos(items: list[dict]) -> dict:
+    """Photo folders (see :func:`anycity.data.photos.load_photo_folder`) -> ``{"images": [B, V, 3, H, W], "scene":
+    [B], "names": [B][V]}``."""
+    return {"images": torch.stack([it["images"] for it in items]), "scene": [it["scene"] for it in items],
+            "names": [it["names"] for it in items]}
 
 
 class AerialDataModule(pl.LightningDataModule):
@@ -70,6 +78,8 @@ class AerialDataModule(pl.LightningDataModule):
             batch on the device after the transfer (``on_after_batch_transfer``). The LightningModule sees the
             same batch either way; code that iterates the DataLoader itself calls
             :func:`anycity.data.pipeline.to_float32`. Recommended for training at 448 px.
+        predict_images: a folder of one scene's own photos (2..64 ``.jpg``/``.png``, no poses) that ``anycity
+            predict`` reconstructs, resized like the training data; None: ``predict`` reconstructs the test scenes.
     """
 
     def __init__(self, root: str | None = None, train_shards: str | list[str] | None = None,
@@ -80,7 +90,7 @@ class AerialDataModule(pl.LightningDataModule):
                  epoch_samples: int = 1000, resampled: bool = True, shuffle_buffer: int = 16,
                  window: int | None = None, llffhold: int = 8, with_depth: bool = True, with_normals: bool = True,
                  seed: int = 0, skip_corrupt: bool = False, pin_memory: bool = False,
-                 compact_batches: bool = False) -> None:
+                 compact_batches: bool = False, predict_images: str | None = None) -> None:
         super().__init__()
         if not 1 <= num_context <= 64:
             raise ValueError(f"num_context: expected 1..64 views, got {num_context}")
@@ -126,6 +136,15 @@ class AerialDataModule(pl.LightningDataModule):
 
     def test_dataloader(self) -> DataLoader:
         return self._loader("test")
+
+    def predict_dataloader(self) -> DataLoader:
+        if self.hp.predict_images is None:
+            return self.test_dataloader()
+        from anycity.data.photos import load_photo_folder
+
+        scene = load_photo_folder(self.hp.predict_images, tuple(self.hp.image_size), self.hp.resize_mode,
+                                  self.hp.patch_size)
+        return DataLoader([scene], batch_size=1, collate_fn=_collate_photos)
 
     @property
     def num_skipped(self) -> int:
