@@ -15,7 +15,8 @@ MAX_VIEWS = 64
 
 
 def load_photo_folder(folder: str | Path, size: tuple[int, int], mode: str = "crop", patch: int = 14) -> dict:
-    """Read every ``.jpg``/``.jpeg``/``.png`` in ``folder`` (sorted by name) and resize it like the training data.
+    """Read every ``.jpg``/``.jpeg``/``.png`` in ``folder`` (sorted by name, EXIF orientation applied) and resize it
+    like the training data.
 
     Args:
         folder: one scene's photos, 2..64 of them.

@@ -26,6 +26,20 @@ def test_folder_loads_sorted_resized_rgb(tmp_path):
     np.testing.assert_allclose(out["images"][1].mean(dim=(1, 2)).numpy(), mean_rgb, atol=0.01)
 
 
+def test_exif_orientation_is_applied(tmp_path):
+    from PIL import Image
+
+    d = tmp_path / "phone"
+    d.mkdir()
+    for name in ("a.jpg", "b.jpg"):
+        exif = Image.Exif()
+        exif[0x0112] = 6  # stored landscape, shown rotated 90 degrees clockwise (portrait)
+        Image.new("RGB", (64, 32), (200, 40, 40)).save(d / name, exif=exif)
+    out = load_photo_folder(d, (32, 32), mode="keep", patch=8)
+    h, w = out["images"].shape[-2:]
+    assert h > w  # portrait, as the phone showed it
+
+
 def test_folder_errors_name_the_problem(tmp_path):
     with pytest.raises(FileNotFoundError, match="not a folder"):
         load_photo_folder(tmp_path / "missing", (32, 32))
