@@ -73,7 +73,8 @@ def test_fit_test_predict_stage1_then_stage2(tiny_shards, tmp_path):
         pixels = np.random.default_rng(i).integers(0, 255, (40, 56, 3), dtype=np.uint8)
         Image.fromarray(pixels).save(photos / f"{i}.jpg")
     build_cli(["predict", *_tiny_args(tiny_shards, p, **stage2), "--ckpt_path", str(ckpt2),
-               "--data.predict_images", str(photos), "--export.out_dir", str(p / "mine")])
+               "--data.predict_images", str(photos), "--data.compact_batches", "true",
+               "--export.out_dir", str(p / "mine")])
     cams = json.loads((p / "mine" / "my_photos" / "cameras.json").read_text())
     assert len(cams["views"]) == 3 and (p / "mine" / "my_photos" / "scene.ply").stat().st_size > 1000
 

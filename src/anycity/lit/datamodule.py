@@ -19,6 +19,7 @@ from torch.utils.data import DataLoader
 
 from anycity.data.pipeline import SampleBuilder, SkipCounter, collate, make_pipeline, to_float32
 from anycity.data.writer import shard_urls
+from anycity.structures import ViewBatch
 
 
 def _expand(spec: str | list[str] | None, split: str) -> list[str]:
@@ -152,7 +153,7 @@ class AerialDataModule(pl.LightningDataModule):
         return self.skip_counter.count
 
     def on_after_batch_transfer(self, batch, dataloader_idx: int):
-        if self.hp.compact_batches:
+        if self.hp.compact_batches and isinstance(batch, ViewBatch):  # photo folders are float32 already
             batch = to_float32(batch)
         if self.hp.skip_corrupt and self.trainer is not None and self.trainer.global_step % 50 == 0:
             n = self.num_skipped
