@@ -17,7 +17,7 @@ import lightning.pytorch as pl
 import torch
 from torch import Tensor
 
-from anycity.lit.evaluation import AlignMode, EvalMetrics, cameras_in_pred_frame, fit_gt_to_pred
+from anycity.lit.evaluation import AlignMode, EvalMetrics, align_target_poses, cameras_in_pred_frame, fit_gt_to_pred
 from anycity.metrics import depth_metrics, mean_colour_baseline, nearest_view_reference
 from anycity.models.presets import NetConfig
 from anycity.structures import Gaussians, RenderOutput, ViewBatch, Views
@@ -61,6 +61,11 @@ class AnyCityModule(pl.LightningModule):
         eval_align: how target cameras enter the predicted frame at evaluation (and when rendering targets in
             training): "sim3" fits the predicted context cameras to the ground truth; "none" uses the shared
             convention (first context camera at the origin) as is.
+        eval_pose_align_steps: test-time pose alignment of each target camera before it is scored (test only: Adam
+            steps on a rotation and translation delta with the Gaussians frozen, AnySplat's ``test.align_pose``,
+            which uses 100 steps); 0 = off. ``psnr_<variant>`` are then scored after alignment and
+            ``psnr_<variant>_unaligned`` keep the figures at the ``eval_align`` cameras.
+        eval_pose_align_lr: Adam learning rate of that alignment (AnySplat: 0.005; radians and scene units).
         gradient_checkpointing: recompute transformer blocks in backward (passed to the network).
     """
 
@@ -82,6 +87,8 @@ class AnyCityModule(pl.LightningModule):
         background: tuple[float, float, float] = (0.0, 0.0, 0.0),
         background_mode: BackgroundMode = "fixed",
         eval_align: AlignMode = "sim3",
+        eval_pose_align_steps: int = 0,
+        eval_pose_align_lr: float = 0.005,
         gradient_checkpointing: bool = False,
     ) -> None:
         super().__init__()
@@ -154,18 +161,25 @@ class AnyCityModule(pl.LightningModule):
         return out, variants
 
     @torch.no_grad()
-    def evaluate(self, batch: ViewBatch, metrics: EvalMetrics, want_preview: bool) -> dict[str, Any] | None:
+    def evaluate(self, batch: ViewBatch, metrics: EvalMetrics, want_preview: bool,
+                 align_steps: int = 0) -> dict[str, Any] | None:
+        """Score every variant on the batch's targets; ``align_steps > 0`` refines each target camera per variant
+        first (:func:`align_target_poses`) and also records the unaligned PSNR."""
         ctx, tgt = batch.context, batch.target
         out, variants = self.predict_variants(ctx.images)
         w2c_t, s = self.target_cameras(out["w2c"], ctx, tgt)
         hw = tgt.hw
         gt = tgt.images.flatten(0, 1)
         metrics.update("baseline", mean_colour_baseline(ctx.images, tuple(tgt.images.shape)).flatten(0, 1), gt)
+        metrics.update_pose(out["w2c"], ctx.w2c)
         if ctx.index is not None and tgt.index is not None and ctx.hw == hw:
             metrics.update("nearest", nearest_view_reference(ctx.images, ctx.index, tgt.index).flatten(0, 1), gt)
         preview = {"context": ctx.images[0, :1].expand(tgt.num_views, -1, -1, -1), "target": tgt.images[0]}
         for name, g in variants.items():
             r = self.render(g, w2c_t, tgt.K, hw, ctx.images)
+            if align_steps > 0:
+                metrics.update(f"{name}_unaligned", r.rgb.flatten(0, 1), gt)
+                r = self.render(g, self.align_targets(g, w2c_t, tgt, ctx.images, align_steps), tgt.K, hw, ctx.images)
             metrics.update(name, r.rgb.flatten(0, 1), gt)
             if tgt.depth is not None:
                 d = depth_metrics(r.depth / s[:, None, None, None, None], tgt.depth, tgt.mask)
@@ -183,6 +197,16 @@ class AnyCityModule(pl.LightningModule):
                 preview.pop(f"{name}_depth")
         return {"preview": {k: v.detach().float().cpu() for k, v in preview.items()}}
 
+    def align_targets(self, g: Gaussians, w2c: Tensor, tgt: Views, context: Tensor, steps: int) -> Tensor:
+        """``w2c [B, T, 4, 4]`` target cameras refined photometrically against ``tgt.images`` (see
+        :func:`anycity.lit.evaluation.align_target_poses`)."""
+        t = w2c.shape[1]
+        with torch.inference_mode(False):  # the alignment needs autograd; Lightning tests under inference mode
+            K = tgt.K.float().reshape(-1, 1, 3, 3).clone()
+            ctx = context.repeat_interleave(t, dim=0).clone()
+        return align_target_poses(lambda scenes, cams: self.render(scenes, cams, K, tgt.hw, ctx).rgb,
+                                  g, w2c, tgt.images, steps, self.hparams.eval_pose_align_lr)
+
     def _log_metrics(self, metrics: EvalMetrics, split: str, batch_size: int) -> None:
         for name, m in metrics.items():
             if not m.update_called:  # e.g. no valid ground-truth depth in this split
@@ -196,7 +220,7 @@ class AnyCityModule(pl.LightningModule):
         return res
 
     def test_step(self, batch: ViewBatch, batch_idx: int) -> dict[str, Any] | None:
-        res = self.evaluate(batch, self.test_metrics, batch_idx == 0)
+        res = self.evaluate(batch, self.test_metrics, batch_idx == 0, self.hparams.eval_pose_align_steps)
         self._log_metrics(self.test_metrics, "test", batch.batch_size)
         return res
 

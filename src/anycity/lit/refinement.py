@@ -64,6 +64,8 @@ class RefinementModule(AnyCityModule):
         background: tuple[float, float, float] = (0.0, 0.0, 0.0),
         background_mode: BackgroundMode = "fixed",
         eval_align: AlignMode = "sim3",
+        eval_pose_align_steps: int = 0,
+        eval_pose_align_lr: float = 0.005,
         gradient_checkpointing: bool = False,
         init_from: str | None = None,
         d2s_weight: float = 1.0,
@@ -76,7 +78,7 @@ class RefinementModule(AnyCityModule):
     ) -> None:
         super().__init__(preset, net, pretrained, pretrained_kind, lr, weight_decay, pretrained_lr_scale,
                          pretrained_patterns, warmup_steps, min_lr_ratio, render_backend, background, background_mode,
-                         eval_align, gradient_checkpointing)
+                         eval_align, eval_pose_align_steps, eval_pose_align_lr, gradient_checkpointing)
         self.save_hyperparameters()
         if gate_mode not in ("entropy", "mean"):
             raise ValueError(f"model.gate_mode: expected 'entropy' or 'mean', got {gate_mode!r}")

@@ -63,6 +63,8 @@ class ScaffoldModule(AnyCityModule):
         background: tuple[float, float, float] = (0.0, 0.0, 0.0),
         background_mode: BackgroundMode = "fixed",
         eval_align: AlignMode = "sim3",
+        eval_pose_align_steps: int = 0,
+        eval_pose_align_lr: float = 0.005,
         gradient_checkpointing: bool = False,
         depth_weight: float = 0.1,
         normal_weight: float = 0.1,
@@ -79,7 +81,7 @@ class ScaffoldModule(AnyCityModule):
     ) -> None:
         super().__init__(preset, net, pretrained, pretrained_kind, lr, weight_decay, pretrained_lr_scale,
                          pretrained_patterns, warmup_steps, min_lr_ratio, render_backend, background, background_mode,
-                         eval_align, gradient_checkpointing)
+                         eval_align, eval_pose_align_steps, eval_pose_align_lr, gradient_checkpointing)
         self.save_hyperparameters()
 
     def training_step(self, batch: ViewBatch, batch_idx: int) -> Tensor:

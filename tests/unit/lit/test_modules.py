@@ -55,7 +55,7 @@ def test_refinement_freezes_scaffold_starts_at_scaffold_and_loads_stage1(batch, 
     loss.backward()
     assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in m.net.refinement_parameters())
     m.evaluate(batch, m.val_metrics, want_preview=False)
-    res = {k: v.compute() for k, v in m.val_metrics.items()}
+    res = {k: v.compute() for k, v in m.val_metrics.items() if v.update_called}
     # P_delta is zero-initialised: before training the refined model renders exactly the scaffold
     assert res["psnr_refined"].item() == pytest.approx(res["psnr_scaffold"].item(), abs=1e-4)
     assert {"psnr_baseline", "psnr_nearest", "ssim_refined", "abs_rel_refined", "delta1_scaffold"} <= set(res)
@@ -84,3 +84,17 @@ def test_context_mean_background_fills_uncovered_pixels(batch):
     r = m.render(empty, tgt.w2c, tgt.K, tgt.hw, batch.context.images)
     mean = batch.context.images.mean(dim=(1, 3, 4))
     torch.testing.assert_close(r.rgb[0, 0, :, 5, 7], mean[0])
+
+
+def test_test_step_aligns_target_poses_when_asked(batch):
+    torch.manual_seed(0)
+    m = _no_log(ScaffoldModule(eval_pose_align_steps=20, eval_align="none", render_backend="torch")).eval()
+    m.validation_step(batch, 1)
+    assert not m.val_metrics.metrics["psnr_scaffold_unaligned"].update_called  # validation never aligns
+    with torch.inference_mode():  # as in Lightning's test loop: the batch itself holds inference tensors
+        m.test_step(ViewBatch(context=_views(2, 0, [1, 3]), target=_views(1, 1, [2])), 1)
+    res = {k: v.compute().item() for k, v in m.test_metrics.items() if v.update_called}
+    assert {"psnr_scaffold", "psnr_scaffold_unaligned", "ssim_scaffold", "rre", "rte", "pose_auc30"} <= set(res)
+    assert 0 <= res["rre"] <= 180 and 0 <= res["rte"] <= 90 and 0 <= res["pose_auc30"] <= 1
+    # photometric alignment against the target image does not make the render worse
+    assert res["psnr_scaffold"] >= res["psnr_scaffold_unaligned"] - 0.05
