@@ -103,6 +103,9 @@ class AnyCityModule(pl.LightningModule):
             load_pretrained(self.net, pretrained, kind=pretrained_kind)
         self.val_metrics = EvalMetrics(self.variants)
         self.test_metrics = EvalMetrics(self.variants)
+        # Called here, Lightning collects the arguments of every __init__ on the stack: the subclass's own and
+        # those it passes on in **base, so checkpoints and LightningCLI see one flat set of hyperparameters.
+        self.save_hyperparameters()
 
     # ----------------------------------------------------------------------------------------- rendering
     def render(self, gaussians: Gaussians, w2c: Tensor, K: Tensor, hw: tuple[int, int], context: Tensor,

@@ -12,15 +12,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from anycity.lit.base import (
-    AlignMode,
-    AnyCityModule,
-    BackgroundMode,
-    NetOverrides,
-    Preset,
-    PretrainedKind,
-    RenderBackend,
-)
+from anycity.lit.base import AnyCityModule
 from anycity.losses import d2s_loss, preservation_loss, regularizer_loss, rgb_loss
 from anycity.structures import RenderOutput, ViewBatch
 
@@ -34,6 +26,7 @@ class RefinementModule(AnyCityModule):
     """Stage II training: scaffold frozen; completion tokens, gates, projections and LoRA train.
 
     Args:
+        lr: peak learning rate of AdamW (Stage II: 1e-4, the paper's).
         init_from: Stage I checkpoint (``.ckpt``) whose ``net.*`` weights initialise the network; loaded when
             training starts from scratch (not when resuming, testing or predicting from a Stage II checkpoint).
         d2s_weight: weight of ``L_d2s`` (paper: 1.0).
@@ -50,23 +43,7 @@ class RefinementModule(AnyCityModule):
 
     def __init__(
         self,
-        preset: Preset = "tiny",
-        net: NetOverrides | None = None,
-        pretrained: str | None = None,
-        pretrained_kind: PretrainedKind = "vggt",
         lr: float = 1e-4,
-        weight_decay: float = 0.05,
-        pretrained_lr_scale: float = 0.1,
-        pretrained_patterns: list[str] | None = None,
-        warmup_steps: int = 100,
-        min_lr_ratio: float = 0.1,
-        render_backend: RenderBackend = "auto",
-        background: tuple[float, float, float] = (0.0, 0.0, 0.0),
-        background_mode: BackgroundMode = "fixed",
-        eval_align: AlignMode = "sim3",
-        eval_pose_align_steps: int = 0,
-        eval_pose_align_lr: float = 0.005,
-        gradient_checkpointing: bool = False,
         init_from: str | None = None,
         d2s_weight: float = 1.0,
         pres_weight: float = 0.1,
@@ -75,11 +52,9 @@ class RefinementModule(AnyCityModule):
         context_rgb_weight: float = 1.0,
         gate_mode: str = "entropy",
         freeze_scaffold: bool = True,
+        **base,
     ) -> None:
-        super().__init__(preset, net, pretrained, pretrained_kind, lr, weight_decay, pretrained_lr_scale,
-                         pretrained_patterns, warmup_steps, min_lr_ratio, render_backend, background, background_mode,
-                         eval_align, eval_pose_align_steps, eval_pose_align_lr, gradient_checkpointing)
-        self.save_hyperparameters()
+        super().__init__(lr=lr, **base)  # also records every argument, these and the base's, as hparams
         if gate_mode not in ("entropy", "mean"):
             raise ValueError(f"model.gate_mode: expected 'entropy' or 'mean', got {gate_mode!r}")
         if init_from is not None and not Path(init_from).is_file():

@@ -12,15 +12,7 @@ from typing import Literal
 from torch import Tensor
 
 from anycity.geometry.pose_encoding import extri_intri_to_pose_encoding
-from anycity.lit.base import (
-    AlignMode,
-    AnyCityModule,
-    BackgroundMode,
-    NetOverrides,
-    Preset,
-    PretrainedKind,
-    RenderBackend,
-)
+from anycity.lit.base import AnyCityModule
 from anycity.losses import camera_loss, depth_z_loss, normal_loss, ray_anchor_loss, rgb_loss
 from anycity.structures import ViewBatch
 
@@ -49,23 +41,6 @@ class ScaffoldModule(AnyCityModule):
 
     def __init__(
         self,
-        preset: Preset = "tiny",
-        net: NetOverrides | None = None,
-        pretrained: str | None = None,
-        pretrained_kind: PretrainedKind = "vggt",
-        lr: float = 2e-4,
-        weight_decay: float = 0.05,
-        pretrained_lr_scale: float = 0.1,
-        pretrained_patterns: list[str] | None = None,
-        warmup_steps: int = 100,
-        min_lr_ratio: float = 0.1,
-        render_backend: RenderBackend = "auto",
-        background: tuple[float, float, float] = (0.0, 0.0, 0.0),
-        background_mode: BackgroundMode = "fixed",
-        eval_align: AlignMode = "sim3",
-        eval_pose_align_steps: int = 0,
-        eval_pose_align_lr: float = 0.005,
-        gradient_checkpointing: bool = False,
         depth_weight: float = 0.1,
         normal_weight: float = 0.1,
         camera_weight: float = 1.0,
@@ -78,11 +53,9 @@ class ScaffoldModule(AnyCityModule):
         ray_weight: float = 1.0,
         depth_conf_threshold: float | None = None,
         flat_weight: float = 0.0,
+        **base,
     ) -> None:
-        super().__init__(preset, net, pretrained, pretrained_kind, lr, weight_decay, pretrained_lr_scale,
-                         pretrained_patterns, warmup_steps, min_lr_ratio, render_backend, background, background_mode,
-                         eval_align, eval_pose_align_steps, eval_pose_align_lr, gradient_checkpointing)
-        self.save_hyperparameters()
+        super().__init__(**base)  # also records every argument, these and the base's, as hparams
 
     def training_step(self, batch: ViewBatch, batch_idx: int) -> Tensor:
         hp = self.hparams

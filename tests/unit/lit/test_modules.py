@@ -98,3 +98,13 @@ def test_test_step_aligns_target_poses_when_asked(batch):
     assert 0 <= res["rre"] <= 180 and 0 <= res["rte"] <= 90 and 0 <= res["pose_auc30"] <= 1
     # photometric alignment against the target image does not make the render worse
     assert res["psnr_scaffold"] >= res["psnr_scaffold_unaligned"] - 0.05
+
+
+def test_hparams_hold_the_subclass_and_base_arguments():
+    m = ScaffoldModule(lr=3e-3, depth_weight=0.5, eval_align="none")
+    assert (m.hparams.lr, m.hparams.depth_weight, m.hparams.eval_align) == (3e-3, 0.5, "none")
+    assert m.hparams.preset == "tiny" and m.hparams.warmup_steps == 100 and "base" not in m.hparams
+    r = RefinementModule()
+    assert r.hparams.lr == 1e-4 and r.hparams.d2s_weight == 1.0 and r.hparams.eval_pose_align_steps == 0
+    with pytest.raises(TypeError, match="depht_weight"):
+        ScaffoldModule(depht_weight=0.1)
