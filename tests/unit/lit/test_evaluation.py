@@ -2,6 +2,7 @@
 
 import pytest
 import torch
+from helpers.scenes import make_cameras, make_gaussians
 
 from anycity.geometry import project_points, quat_to_rotmat
 from anycity.lit.base import warmup_cosine
@@ -55,12 +56,6 @@ def test_warmup_cosine_shape():
 
 
 def _scene_and_cameras():
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-    from helpers.scenes import make_cameras, make_gaussians
-
     g = make_gaussians(B=1, N=300, seed=3, dtype=torch.float32, spread=(1.2, 1.0, 0.3), scale=(0.05, 0.15))
     w2c, K = make_cameras(B=1, V=2, width=32, height=32, dtype=torch.float32, seed=4)
     return g, w2c, K
