@@ -12,7 +12,7 @@ from torch import Tensor, nn
 from torchmetrics import MeanMetric
 from torchmetrics.image import PeakSignalNoiseRatio, StructuralSimilarityIndexMeasure
 
-from anycity.geometry import camera_centers, umeyama
+from anycity.geometry import camera_centers, invert_rigid, transform_points, umeyama
 from anycity.geometry.rotations import quat_multiply, rotmat_to_quat
 from anycity.metrics.pose import pose_auc, relative_pose_errors
 from anycity.structures import Gaussians
@@ -71,10 +71,8 @@ def cameras_in_pred_frame(gt_w2c: Tensor, s: Tensor, R: Tensor, t: Tensor) -> Te
 
 def transform_gaussians(g: Gaussians, A: Tensor) -> Gaussians:
     """Apply a rigid transform ``A [B, 4, 4]`` (world to world) to a batch of B scenes: centres and rotations."""
-    R, t = A[:, :3, :3], A[:, :3, 3]
-    means = (g.means @ R.transpose(-1, -2)) + t[:, None]
-    quats = quat_multiply(rotmat_to_quat(R)[:, None].expand_as(g.quats), g.quats)
-    return Gaussians(means, quats, g.scales, g.opacities, g.sh, g.valid)
+    quats = quat_multiply(rotmat_to_quat(A[:, :3, :3])[:, None].expand_as(g.quats), g.quats)
+    return Gaussians(transform_points(A, g.means), quats, g.scales, g.opacities, g.sh, g.valid)
 
 
 def align_target_poses(render_rgb, gaussians: Gaussians, w2c: Tensor, images: Tensor, steps: int = 100,
@@ -98,7 +96,7 @@ def align_target_poses(render_rgb, gaussians: Gaussians, w2c: Tensor, images: Te
         return w2c
     with torch.inference_mode(False), torch.enable_grad():  # Lightning evaluates under inference mode
         cams = w2c.detach().float().reshape(b * t, 4, 4).clone()
-        inv = torch.linalg.inv(cams)
+        inv = invert_rigid(cams)
         scenes = Gaussians(*(None if x is None else x.detach().repeat_interleave(t, dim=0).clone()
                              for x in (gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities,
                                        gaussians.sh, gaussians.valid)))

@@ -5,6 +5,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from anycity.geometry import invert_rigid
+
 
 def _angle_deg(cos: Tensor) -> Tensor:
     return torch.rad2deg(torch.acos(cos.clamp(-1.0, 1.0)))
@@ -25,9 +27,8 @@ def relative_pose_errors(pred_w2c: Tensor, gt_w2c: Tensor) -> tuple[Tensor, Tens
 
     def rel(w2c: Tensor) -> tuple[Tensor, Tensor]:
         w2c = w2c.double()
-        R, t = w2c[..., :3, :3], w2c[..., :3, 3]
-        Rr = R[:, j] @ R[:, i].transpose(-1, -2)
-        return Rr, t[:, j] - (Rr @ t[:, i, :, None])[..., 0]
+        T = w2c[:, j] @ invert_rigid(w2c[:, i])  # camera i -> camera j
+        return T[..., :3, :3], T[..., :3, 3]
 
     (Rp, tp), (Rg, tg) = rel(pred_w2c), rel(gt_w2c)
     tr = (Rp.transpose(-1, -2) @ Rg).diagonal(dim1=-2, dim2=-1).sum(-1)
