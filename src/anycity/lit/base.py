@@ -17,7 +17,15 @@ import lightning.pytorch as pl
 import torch
 from torch import Tensor
 
-from anycity.lit.evaluation import AlignMode, EvalMetrics, align_target_poses, cameras_in_pred_frame, fit_gt_to_pred
+from anycity.lit.evaluation import (
+    AlignMode,
+    EvalMetrics,
+    align_target_poses,
+    cameras_in_pred_frame,
+    fit_gt_to_pred,
+    refine_context_cameras,
+    transform_gaussians,
+)
 from anycity.metrics import depth_metrics, mean_colour_baseline, nearest_view_reference
 from anycity.models.presets import NetConfig
 from anycity.structures import Gaussians, RenderOutput, ViewBatch, Views
@@ -66,6 +74,12 @@ class AnyCityModule(pl.LightningModule):
             which uses 100 steps); 0 = off. ``psnr_<variant>`` are then scored after alignment and
             ``psnr_<variant>_unaligned`` keep the figures at the ``eval_align`` cameras.
         eval_pose_align_lr: Adam learning rate of that alignment (AnySplat: 0.005; radians and scene units).
+        camera_refine_steps: test-time refinement of the predicted context cameras in ``test`` and ``predict``
+            (:func:`~anycity.lit.evaluation.refine_context_cameras`: Adam steps fitting a rigid delta per view so
+            that all views' Gaussians reproduce the context images; no target image is used); 0 = off, the
+            feed-forward cameras. In ``test`` each variant refines its own cameras before the targets are placed;
+            ``psnr_<variant>_feedforward`` keeps the figure without any test-time optimisation.
+        camera_refine_lr: Adam learning rate of that refinement (radians and scene units).
         gradient_checkpointing: recompute transformer blocks in backward (passed to the network).
     """
 
@@ -89,6 +103,8 @@ class AnyCityModule(pl.LightningModule):
         eval_align: AlignMode = "sim3",
         eval_pose_align_steps: int = 0,
         eval_pose_align_lr: float = 0.005,
+        camera_refine_steps: int = 0,
+        camera_refine_lr: float = 0.01,
         gradient_checkpointing: bool = False,
     ) -> None:
         super().__init__()
@@ -165,12 +181,12 @@ class AnyCityModule(pl.LightningModule):
 
     @torch.no_grad()
     def evaluate(self, batch: ViewBatch, metrics: EvalMetrics, want_preview: bool,
-                 align_steps: int = 0) -> dict[str, Any] | None:
-        """Score every variant on the batch's targets; ``align_steps > 0`` refines each target camera per variant
-        first (:func:`align_target_poses`) and also records the unaligned PSNR."""
+                 align_steps: int = 0, refine_steps: int = 0) -> dict[str, Any] | None:
+        """Score every variant on the batch's targets. ``refine_steps > 0`` first refines the variant's context
+        cameras (:meth:`refine_cameras`) and records the feed-forward PSNR too; ``align_steps > 0`` then refines
+        each target camera (:func:`align_target_poses`) and records the unaligned PSNR too."""
         ctx, tgt = batch.context, batch.target
         out, variants = self.predict_variants(ctx.images)
-        w2c_t, s = self.target_cameras(out["w2c"], ctx, tgt)
         hw = tgt.hw
         gt = tgt.images.flatten(0, 1)
         metrics.update("baseline", mean_colour_baseline(ctx.images, tuple(tgt.images.shape)).flatten(0, 1), gt)
@@ -179,6 +195,14 @@ class AnyCityModule(pl.LightningModule):
             metrics.update("nearest", nearest_view_reference(ctx.images, ctx.index, tgt.index).flatten(0, 1), gt)
         preview = {"context": ctx.images[0, :1].expand(tgt.num_views, -1, -1, -1), "target": tgt.images[0]}
         for name, g in variants.items():
+            w2c_t, s = self.target_cameras(out["w2c"], ctx, tgt)
+            if refine_steps > 0:
+                feedforward = self.render(g, w2c_t, tgt.K, hw, ctx.images).rgb
+                metrics.update(f"{name}_feedforward", feedforward.flatten(0, 1), gt)
+                w2c, A = self.refine_cameras(g, out["w2c"], out["K"], ctx.images, refine_steps)
+                g = transform_gaussians(g, A)
+                metrics.update_pose(w2c, ctx.w2c, name)
+                w2c_t, s = self.target_cameras(w2c, ctx, tgt)
             r = self.render(g, w2c_t, tgt.K, hw, ctx.images)
             if align_steps > 0:
                 metrics.update(f"{name}_unaligned", r.rgb.flatten(0, 1), gt)
@@ -210,6 +234,18 @@ class AnyCityModule(pl.LightningModule):
         return align_target_poses(lambda scenes, cams: self.render(scenes, cams, K, tgt.hw, ctx).rgb,
                                   g, w2c, tgt.images, steps, self.hparams.eval_pose_align_lr)
 
+    def refine_cameras(self, g: Gaussians, w2c: Tensor, K: Tensor, images: Tensor, steps: int) -> tuple[Tensor, Tensor]:
+        """Context cameras ``w2c [B, V, 4, 4]`` (intrinsics ``K``) refined against their own ``images`` and the
+        per-view Gaussian transforms that go with them (see
+        :func:`anycity.lit.evaluation.refine_context_cameras`)."""
+        v = w2c.shape[1]
+        hw = (int(images.shape[-2]), int(images.shape[-1]))
+        with torch.inference_mode(False):  # the refinement needs autograd; Lightning tests under inference mode
+            Ks = K.float().reshape(-1, 1, 3, 3).clone()
+            ctx = images.repeat_interleave(v, dim=0).clone()
+        return refine_context_cameras(lambda scenes, cams: self.render(scenes, cams, Ks, hw, ctx).rgb,
+                                      g, w2c, images, steps, self.hparams.camera_refine_lr)
+
     def _log_metrics(self, metrics: EvalMetrics, split: str, batch_size: int) -> None:
         for name, m in metrics.items():
             if not m.update_called:  # e.g. no valid ground-truth depth in this split
@@ -223,7 +259,8 @@ class AnyCityModule(pl.LightningModule):
         return res
 
     def test_step(self, batch: ViewBatch, batch_idx: int) -> dict[str, Any] | None:
-        res = self.evaluate(batch, self.test_metrics, batch_idx == 0, self.hparams.eval_pose_align_steps)
+        res = self.evaluate(batch, self.test_metrics, batch_idx == 0, self.hparams.eval_pose_align_steps,
+                            self.hparams.camera_refine_steps)
         self._log_metrics(self.test_metrics, "test", batch.batch_size)
         return res
 
@@ -238,9 +275,12 @@ class AnyCityModule(pl.LightningModule):
             ctx = batch.context if isinstance(batch, ViewBatch) else batch
             images, scene = (ctx.images if isinstance(ctx, Views) else ctx), getattr(batch, "scene", None)
         out, variants = self.predict_variants(images)
-        final = variants[list(variants)[-1]]
+        final, w2c = variants[list(variants)[-1]], out["w2c"]
+        if self.hparams.camera_refine_steps > 0:
+            w2c, A = self.refine_cameras(final, w2c, out["K"], images, self.hparams.camera_refine_steps)
+            final = transform_gaussians(final, A)
         hw = (int(images.shape[-2]), int(images.shape[-1]))
-        renders = self.render(final, out["w2c"], out["K"], hw, images)
-        return {"gaussians": final.detach(), "w2c": out["w2c"].detach(), "K": out["K"].detach(),
+        renders = self.render(final, w2c, out["K"], hw, images)
+        return {"gaussians": final.detach(), "w2c": w2c.detach(), "K": out["K"].detach(),
                 "images": images, "renders": renders, "scene": scene,
                 "batch_idx": batch_idx}

@@ -70,9 +70,49 @@ def cameras_in_pred_frame(gt_w2c: Tensor, s: Tensor, R: Tensor, t: Tensor) -> Te
 
 
 def transform_gaussians(g: Gaussians, A: Tensor) -> Gaussians:
-    """Apply a rigid transform ``A [B, 4, 4]`` (world to world) to a batch of B scenes: centres and rotations."""
-    quats = quat_multiply(rotmat_to_quat(A[:, :3, :3])[:, None].expand_as(g.quats), g.quats)
-    return Gaussians(transform_points(A, g.means), quats, g.scales, g.opacities, g.sh, g.valid)
+    """Rigid world-to-world transforms of a batch of B scenes: centres and rotations.
+
+    ``A [B, 4, 4]`` moves each scene; ``A [B, V, 4, 4]`` moves each view's pixel-aligned Gaussians (N = V*H*W in
+    view order, as the network emits them without voxel merging) by its own transform.
+    """
+    per_view = A[:, None] if A.dim() == 3 else A
+    b, n = g.means.shape[:2]
+    v = per_view.shape[1]
+    if n % v:
+        raise ValueError(f"transform_gaussians: {n} Gaussians do not split into {v} views of pixel-aligned "
+                         "Gaussians; per-view transforms need the network's unmerged output (voxel_size=None)")
+    means = transform_points(per_view, g.means.unflatten(1, (v, n // v)))
+    rot = rotmat_to_quat(per_view[..., :3, :3])[:, :, None].expand(b, v, n // v, 4)
+    quats = quat_multiply(rot, g.quats.unflatten(1, (v, n // v)))
+    return Gaussians(means.flatten(1, 2), quats.flatten(1, 2), g.scales, g.opacities, g.sh, g.valid)
+
+
+def _se3(rot: Tensor, trans: Tensor) -> Tensor:
+    """Axis-angle ``[..., 3]`` and translation ``[..., 3]`` -> ``[..., 4, 4]`` rigid transforms."""
+    out = torch.eye(4, device=rot.device).expand(*rot.shape[:-1], 4, 4).clone()
+    out[..., :3, :3] = axis_angle_to_rotation_matrix(rot.reshape(-1, 3)).reshape(*rot.shape[:-1], 3, 3)
+    out[..., :3, 3] = trans
+    return out
+
+
+def _fit_deltas(loss_fn, shape: tuple[int, ...], device, steps: int, lr: float) -> tuple[Tensor, Tensor]:
+    """Adam on zero-initialised axis-angle and translation deltas of ``shape + (3,)``; ``loss_fn(rot, trans)``."""
+    rot = torch.zeros(*shape, 3, device=device, requires_grad=True)
+    trans = torch.zeros(*shape, 3, device=device, requires_grad=True)
+    opt = torch.optim.Adam([rot, trans], lr=lr)
+    for _ in range(steps):
+        loss = loss_fn(rot, trans)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+    return rot.detach(), trans.detach()
+
+
+def _frozen(g: Gaussians, repeats: int) -> Gaussians:
+    """Detached copies of the B scenes, each repeated ``repeats`` times (normal tensors even when ``g`` was made
+    under inference mode)."""
+    return Gaussians(*(None if x is None else x.detach().repeat_interleave(repeats, dim=0).clone()
+                       for x in (g.means, g.quats, g.scales, g.opacities, g.sh, g.valid)))
 
 
 def align_target_poses(render_rgb, gaussians: Gaussians, w2c: Tensor, images: Tensor, steps: int = 100,
@@ -97,37 +137,84 @@ def align_target_poses(render_rgb, gaussians: Gaussians, w2c: Tensor, images: Te
     with torch.inference_mode(False), torch.enable_grad():  # Lightning evaluates under inference mode
         cams = w2c.detach().float().reshape(b * t, 4, 4).clone()
         inv = invert_rigid(cams)
-        scenes = Gaussians(*(None if x is None else x.detach().repeat_interleave(t, dim=0).clone()
-                             for x in (gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities,
-                                       gaussians.sh, gaussians.valid)))
+        scenes = _frozen(gaussians, t)
         target = images.detach().float().reshape(b * t, 1, *images.shape[2:]).clone()
-        rot = torch.zeros(b * t, 3, device=cams.device, requires_grad=True)
-        trans = torch.zeros(b * t, 3, device=cams.device, requires_grad=True)
-        opt = torch.optim.Adam([rot, trans], lr=lr)
 
-        def delta() -> Tensor:
-            d = torch.eye(4, device=cams.device).repeat(b * t, 1, 1)
-            d[:, :3, :3] = axis_angle_to_rotation_matrix(rot)
-            d[:, :3, 3] = trans
-            return d
-
-        for _ in range(steps):
+        def loss(rot: Tensor, trans: Tensor) -> Tensor:
             # camera delta @ w2c == w2c applied to the scene moved by inv(w2c) @ delta @ w2c
-            moved = transform_gaussians(scenes, inv @ delta() @ cams)
-            loss = (render_rgb(moved, cams[:, None]) - target).square().mean()
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-        with torch.no_grad():
-            out = (delta() @ cams).reshape(b, t, 4, 4)
+            moved = transform_gaussians(scenes, inv @ _se3(rot, trans) @ cams)
+            return (render_rgb(moved, cams[:, None]) - target).square().mean()
+
+        rot, trans = _fit_deltas(loss, (b * t,), cams.device, steps, lr)
+        out = (_se3(rot, trans) @ cams).reshape(b, t, 4, 4)
     return out.to(w2c.dtype)
+
+
+def refine_context_cameras(render_rgb, gaussians: Gaussians, w2c: Tensor, images: Tensor, steps: int = 50,
+                           lr: float = 0.01) -> tuple[Tensor, Tensor]:
+    """Test-time refinement of the predicted context cameras from the context images alone (a photometric bundle
+    adjustment with the structure frozen).
+
+    Every view's pixel-aligned Gaussians ride on that view's camera, so a camera error shows up as the views'
+    Gaussian sets disagreeing. Each view but the first (the reference frame) gets a rigid delta, a rotation about
+    the point at its Gaussians' median depth on its optical axis (an orbit-like correction is then one rotation
+    instead of a coupled rotation and translation) plus a translation, fitted by Adam so that all views' Gaussians,
+    rendered together into every context camera, reproduce the context images (MSE). No target image is used.
+
+    Args:
+        render_rgb: ``f(gaussians [B*V scenes], w2c [B*V, 1, 4, 4]) -> rgb [B*V, 1, 3, H, W]``; scene ``b*V + i``
+            is rendered into context camera ``i`` of scene ``b``.
+        gaussians: B scenes of N = V*H*W pixel-aligned Gaussians in view order (no gradient needed).
+        w2c: ``[B, V, 4, 4]`` predicted context cameras. images: ``[B, V, 3, H, W]`` the context images.
+    Returns:
+        ``w2c [B, V, 4, 4]``, the refined cameras (the first unchanged), and ``A [B, V, 4, 4]``, the world transform
+        of each view's Gaussians (:func:`transform_gaussians`) that puts the scene in agreement with them: view i's
+        Gaussians moved by ``A_i`` project through ``w2c_i`` exactly as before through the predicted camera.
+    """
+    b, v = w2c.shape[:2]
+    eye = torch.eye(4, device=w2c.device, dtype=w2c.dtype).expand(b, v, 4, 4)
+    if steps <= 0 or v < 2:
+        return w2c, eye
+    n = gaussians.means.shape[1]
+    if gaussians.valid is not None or n % v:
+        raise ValueError(f"camera refinement: expected {v} views of pixel-aligned Gaussians, got {n} Gaussians"
+                         f"{' with a valid mask' if gaussians.valid is not None else ''}; it needs the network's "
+                         "unmerged output (net.voxel_size=None)")
+    with torch.inference_mode(False), torch.enable_grad():  # Lightning evaluates and predicts under inference mode
+        cams = w2c.detach().float().clone()
+        inv = invert_rigid(cams)
+        scenes = _frozen(gaussians, v)
+        target = images.detach().float().reshape(b * v, 1, *images.shape[2:]).clone()
+        z = transform_points(cams, scenes.means[::v].unflatten(1, (v, n // v)))[..., 2]  # [B, V, HW] camera z
+        pivot = torch.eye(4, device=cams.device).repeat(b, v, 1, 1)
+        pivot[..., 2, 3] = z.median(dim=-1).values
+        first = torch.zeros(b, 1, 3, device=cams.device)
+
+        def transforms(rot: Tensor, trans: Tensor) -> Tensor:  # [B, V, 4, 4] world transforms, view 0 fixed
+            d = _se3(torch.cat([first, rot], 1), torch.cat([first, trans], 1))
+            return inv @ pivot @ d @ invert_rigid(pivot) @ cams
+
+        def loss(rot: Tensor, trans: Tensor) -> Tensor:
+            A = transforms(rot, trans)
+            # scene (b, i): view j's Gaussians moved by inv(A_i) A_j, seen through the predicted camera i, which is
+            # the moved scene seen through the refined camera w2c_i inv(A_i)
+            rel = (invert_rigid(A)[:, :, None] @ A[:, None]).flatten(0, 1)  # [B*V, V, 4, 4]
+            moved = transform_gaussians(scenes, rel)
+            return (render_rgb(moved, cams.flatten(0, 1)[:, None]) - target).square().mean()
+
+        rot, trans = _fit_deltas(loss, (b, v - 1), cams.device, steps, lr)
+        A = transforms(rot, trans)
+        out = cams @ invert_rigid(A)
+    return out.to(w2c.dtype), A.to(w2c.dtype)
 
 
 class EvalMetrics(nn.Module):
     """Per-image PSNR / SSIM (torchmetrics) and per-image AbsRel / delta1 means, for named variants (plus PSNR of
-    the ``baseline`` and ``nearest`` view references, and of ``<variant>_unaligned`` before test-time pose
-    alignment), and the context cameras' mean relative rotation / translation-direction errors in degrees
-    (``rre``, ``rte``) and pose AUC@30 (``pose_auc30``, in [0, 1]) over all view pairs.
+    the ``baseline`` and ``nearest`` view references, of ``<variant>_unaligned`` before test-time target pose
+    alignment and of ``<variant>_feedforward`` with no test-time optimisation at all), and the context cameras'
+    mean relative rotation / translation-direction errors in degrees (``rre``, ``rte``) and pose AUC@30
+    (``pose_auc30``, in [0, 1]) over all view pairs: of the network's cameras, and as ``rre_<variant>`` etc. of a
+    variant's cameras after test-time camera refinement.
 
     ``update(variant, pred, target)`` takes ``[M, 3, H, W]`` images; ``update_depth(variant, abs_rel, delta1)``
     takes per-image values. ``items()`` yields ``(name, metric)`` pairs ready for ``LightningModule.log``.
@@ -137,14 +224,16 @@ class EvalMetrics(nn.Module):
         super().__init__()
         self.variants = variants
         m: dict[str, nn.Module] = {}
-        for v in (*variants, *(f"{v}_unaligned" for v in variants), "baseline", "nearest"):
+        for v in (*variants, *(f"{v}_{k}" for v in variants for k in ("unaligned", "feedforward")), "baseline",
+                  "nearest"):
             m[f"psnr_{v}"] = PeakSignalNoiseRatio(data_range=1.0, dim=(1, 2, 3), reduction="elementwise_mean")
         for v in variants:
             m[f"ssim_{v}"] = StructuralSimilarityIndexMeasure(data_range=1.0)
             m[f"abs_rel_{v}"] = MeanMetric()
             m[f"delta1_{v}"] = MeanMetric()
-        for name in ("rre", "rte", "pose_auc30"):  # predicted context cameras (shared by all variants)
-            m[name] = MeanMetric()
+        for suffix in ("", *(f"_{v}" for v in variants)):
+            for name in ("rre", "rte", "pose_auc30"):
+                m[f"{name}{suffix}"] = MeanMetric()
         self.metrics = nn.ModuleDict(m)
 
     def update(self, variant: str, pred: Tensor, target: Tensor) -> None:
@@ -158,14 +247,16 @@ class EvalMetrics(nn.Module):
             self.metrics[f"abs_rel_{variant}"].update(abs_rel[valid])
             self.metrics[f"delta1_{variant}"].update(delta1[valid])
 
-    def update_pose(self, pred_w2c: Tensor, gt_w2c: Tensor) -> None:
-        """Relative pose errors of every context view pair, ``[B, V, 4, 4]`` predicted and ground truth."""
+    def update_pose(self, pred_w2c: Tensor, gt_w2c: Tensor, variant: str | None = None) -> None:
+        """Relative pose errors of every context view pair, ``[B, V, 4, 4]`` predicted and ground truth; under
+        ``rre_<variant>`` etc. when ``variant`` is given (its refined cameras)."""
         if pred_w2c.shape[1] < 2:
             return
+        suffix = f"_{variant}" if variant else ""
         rre, rte = relative_pose_errors(pred_w2c, gt_w2c)
-        self.metrics["rre"].update(rre)
-        self.metrics["rte"].update(rte)
-        self.metrics["pose_auc30"].update(pose_auc(rre, rte, 30))
+        self.metrics[f"rre{suffix}"].update(rre)
+        self.metrics[f"rte{suffix}"].update(rte)
+        self.metrics[f"pose_auc30{suffix}"].update(pose_auc(rre, rte, 30))
 
     def items(self):
         return self.metrics.items()

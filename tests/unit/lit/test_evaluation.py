@@ -98,3 +98,84 @@ def test_align_target_poses_recovers_a_perturbed_camera(backend):
     after = psnr(render(g, out, K, 32, 32, backend="torch").rgb, images)
     assert (before < 20).all() and (after > 40).all()
     assert torch.equal(align_target_poses(render_rgb, g, start, images, steps=0), start)
+
+
+def test_per_view_transforms_move_each_views_gaussians_by_its_own_transform():
+    from anycity.lit.evaluation import transform_gaussians
+    from anycity.structures import Gaussians
+
+    g, _, _ = _scene_and_cameras()  # 300 Gaussians = 3 "views" of 100
+    A = _rand_w2c(1, 3, seed=9)
+    per_view = transform_gaussians(g, A)
+    for j in range(3):
+        part = Gaussians(*(x[:, 100 * j:100 * (j + 1)] for x in (g.means, g.quats, g.scales, g.opacities, g.sh)))
+        whole = transform_gaussians(part, A[:, j])
+        torch.testing.assert_close(per_view.means[:, 100 * j:100 * (j + 1)], whole.means)
+        torch.testing.assert_close(per_view.quats[:, 100 * j:100 * (j + 1)], whole.quats)
+    with pytest.raises(ValueError, match="voxel_size"):
+        transform_gaussians(g, _rand_w2c(1, 7))
+
+
+def _views_with_a_camera_error(backend="torch"):
+    """Three views of one scene; the "network" got view 1's and view 2's cameras wrong by a few degrees and placed
+    their (otherwise perfect) Gaussians with them: group j = inv(pred_j) @ gt_j @ scene."""
+    from anycity.render import render
+    from anycity.structures import Gaussians
+
+    g = make_gaussians(B=1, N=400, seed=3, dtype=torch.float32, spread=(1.2, 1.0, 0.3), scale=(0.05, 0.15))
+    gt, K = make_cameras(B=1, V=3, width=32, height=32, dtype=torch.float32, seed=4)
+    images = render(g, gt, K, 32, 32, backend="torch").rgb.detach()
+    err = torch.eye(4).repeat(1, 3, 1, 1)
+    err[0, 1, :3, :3] = quat_to_rotmat(torch.tensor([1.0, 0.03, -0.04, 0.02]))
+    err[0, 2, :3, :3] = quat_to_rotmat(torch.tensor([1.0, -0.03, 0.02, 0.03]))
+    err[0, 1:, :3, 3] = torch.tensor([[0.05, -0.04, 0.03], [-0.04, 0.03, 0.05]])
+    pred = err @ gt
+    from anycity.lit.evaluation import transform_gaussians
+
+    three = Gaussians(*(x.repeat(1, 3, *([1] * (x.dim() - 2))) for x in (g.means, g.quats, g.scales, g.opacities,
+                                                                           g.sh)))
+    placed = transform_gaussians(three, torch.linalg.inv(pred) @ gt)
+
+    def render_rgb(scenes, cams):
+        return render(scenes, cams, K[0].repeat(scenes.means.shape[0] // 3, 1, 1)[:, None], 32, 32,
+                      backend=backend).rgb
+
+    return placed, gt, pred, K, images, render_rgb
+
+
+@pytest.mark.parametrize("backend", ["torch", "auto"])
+def test_refine_context_cameras_recovers_the_relative_poses_from_the_context_images(backend):
+    from anycity.lit.evaluation import refine_context_cameras, transform_gaussians
+    from anycity.metrics.pose import relative_pose_errors
+
+    placed, gt, pred, K, images, render_rgb = _views_with_a_camera_error(backend)
+    with torch.inference_mode():  # as in Lightning's test and predict loops
+        w2c, A = refine_context_cameras(render_rgb, placed, pred, images, steps=150, lr=0.01)
+    assert w2c.shape == A.shape == (1, 3, 4, 4) and not w2c.requires_grad
+    torch.testing.assert_close(w2c[:, 0], pred[:, 0])  # the reference view stays put
+    before, after = relative_pose_errors(pred, gt)[0], relative_pose_errors(w2c, gt)[0]
+    assert before.mean() > 4 and after.mean() < 0.5 * before.mean()
+    # the moved Gaussians agree across views: each view's set now lies where the scene is
+    moved = transform_gaussians(placed, A)
+    drift = lambda g: (g.means[:, 400:] - g.means[:, :400].repeat(1, 2, 1)).norm(dim=-1).mean()  # noqa: E731
+    assert drift(moved) < 0.5 * drift(placed)
+    # view j's Gaussians through the refined camera project as they did through the predicted one
+    from anycity.geometry import project_points
+
+    for j in range(3):
+        uv0, _ = project_points(placed.means[:, 400 * j:400 * (j + 1)], pred[:, j], K[:, j])
+        uv1, _ = project_points(moved.means[:, 400 * j:400 * (j + 1)], w2c[:, j], K[:, j])
+        torch.testing.assert_close(uv1, uv0, atol=1e-3, rtol=1e-3)
+    same, eye = refine_context_cameras(render_rgb, placed, pred, images, steps=0)
+    assert torch.equal(same, pred) and torch.equal(eye, torch.eye(4).expand(1, 3, 4, 4))
+
+
+def test_refine_context_cameras_rejects_merged_gaussians():
+    from anycity.lit.evaluation import refine_context_cameras
+    from anycity.structures import Gaussians
+
+    placed, _, pred, _, images, render_rgb = _views_with_a_camera_error()
+    merged = Gaussians(placed.means, placed.quats, placed.scales, placed.opacities, placed.sh,
+                       torch.ones(placed.means.shape[:2], dtype=torch.bool))
+    with pytest.raises(ValueError, match="voxel_size=None"):
+        refine_context_cameras(render_rgb, merged, pred, images, steps=5)

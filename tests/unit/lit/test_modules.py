@@ -100,6 +100,24 @@ def test_test_step_aligns_target_poses_when_asked(batch):
     assert res["psnr_scaffold"] >= res["psnr_scaffold_unaligned"] - 0.05
 
 
+def test_test_and_predict_refine_the_context_cameras_when_asked(batch):
+    torch.manual_seed(0)
+    m = _no_log(ScaffoldModule(camera_refine_steps=5, camera_refine_lr=0.05, eval_align="none",
+                               render_backend="torch")).eval()
+    m.validation_step(batch, 1)
+    assert not m.val_metrics.metrics["rre_scaffold"].update_called  # validation scores the feed-forward output
+    with torch.inference_mode():
+        m.test_step(ViewBatch(context=_views(2, 0, [1, 3]), target=_views(1, 1, [2])), 1)
+        pred = m.predict_step(batch.context.images, 0)
+    res = {k: v.compute().item() for k, v in m.test_metrics.items() if v.update_called}
+    assert {"psnr_scaffold", "psnr_scaffold_feedforward", "rre", "rre_scaffold", "rte_scaffold"} <= set(res)
+    assert "psnr_scaffold_unaligned" not in res  # no target alignment asked
+    raw = m.net(batch.context.images)["w2c"]
+    moved = (pred["w2c"] - raw).abs().amax(dim=(-1, -2))
+    assert moved[0, 0] < 1e-5 and moved[0, 1] > 1e-4  # the reference view stays, the other one was refined
+    assert pred["gaussians"].means.shape == (1, 2 * H * W, 3)
+
+
 def test_hparams_hold_the_subclass_and_base_arguments():
     m = ScaffoldModule(lr=3e-3, depth_weight=0.5, eval_align="none")
     assert (m.hparams.lr, m.hparams.depth_weight, m.hparams.eval_align) == (3e-3, 0.5, "none")
