@@ -1,6 +1,6 @@
 """Quickstart: synthetic city shards -> Stage I -> Stage II (tiny preset, CPU) -> evaluation on unseen scenes.
 
-    python scripts/quickstart.py            # what `make quickstart` runs; about 14 minutes on 2 CPU cores
+    python scripts/quickstart.py            # what `make quickstart` runs; about 13 minutes on 2 CPU cores
 
 Writes ``runs/quickstart/metrics.json`` ({baseline,scaffold,refined}_psnr, {scaffold,refined}_ssim, abs_rel,
 delta1, minutes, nearest_view_psnr, {scaffold,refined}_psnr_{unaligned,feedforward}, and the context cameras' mean
