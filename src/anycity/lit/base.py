@@ -72,13 +72,15 @@ class AnyCityModule(pl.LightningModule):
         eval_pose_align_steps: test-time pose alignment of each target camera before it is scored (test only: Adam
             steps on a rotation and translation delta with the Gaussians frozen, AnySplat's ``test.align_pose``,
             which uses 100 steps); 0 = off. ``psnr_<variant>`` are then scored after alignment and
-            ``psnr_<variant>_unaligned`` keep the figures at the ``eval_align`` cameras.
+            ``psnr_<variant>_unaligned`` keep the figures at the ``eval_align`` cameras (placed from the refined
+            context cameras when ``camera_refine_steps > 0``).
         eval_pose_align_lr: Adam learning rate of that alignment (AnySplat: 0.005; radians and scene units).
         camera_refine_steps: test-time refinement of the predicted context cameras in ``test`` and ``predict``
             (:func:`~anycity.lit.evaluation.refine_context_cameras`: Adam steps fitting a rigid delta per view so
             that all views' Gaussians reproduce the context images; no target image is used); 0 = off, the
             feed-forward cameras. In ``test`` each variant refines its own cameras before the targets are placed;
-            ``psnr_<variant>_feedforward`` keeps the figure without any test-time optimisation.
+            ``psnr_<variant>_feedforward`` keeps the figure without any test-time optimisation. Each step renders
+            all V views' Gaussians into every context camera (cost grows as V^2): meant for a sparse context.
         camera_refine_lr: Adam learning rate of that refinement (radians and scene units).
         gradient_checkpointing: recompute transformer blocks in backward (passed to the network).
     """

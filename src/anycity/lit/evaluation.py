@@ -160,6 +160,7 @@ def refine_context_cameras(render_rgb, gaussians: Gaussians, w2c: Tensor, images
     the point at its Gaussians' median depth on its optical axis (an orbit-like correction is then one rotation
     instead of a coupled rotation and translation) plus a translation, fitted by Adam so that all views' Gaussians,
     rendered together into every context camera, reproduce the context images (MSE). No target image is used.
+    Each step renders V scenes of V*H*W Gaussians (cost grows as V^2 H W): meant for a sparse context.
 
     Args:
         render_rgb: ``f(gaussians [B*V scenes], w2c [B*V, 1, 4, 4]) -> rgb [B*V, 1, 3, H, W]``; scene ``b*V + i``
