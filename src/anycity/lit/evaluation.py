@@ -1,5 +1,6 @@
-"""Evaluation helpers: map ground-truth cameras into the predicted frame (Sim(3) fit of the context cameras),
-refine them photometrically (test-time pose alignment), and accumulate PSNR / SSIM / depth / pose metrics with
+"""Evaluation helpers: refine the predicted context cameras from the context images (test-time camera
+refinement), map ground-truth cameras into the predicted frame (Sim(3) fit of the context cameras), refine them
+photometrically (test-time target pose alignment), and accumulate PSNR / SSIM / depth / pose metrics with
 torchmetrics (DDP-safe)."""
 
 from __future__ import annotations
