@@ -196,8 +196,9 @@ class AnyCityModule(pl.LightningModule):
         if ctx.index is not None and tgt.index is not None and ctx.hw == hw:
             metrics.update("nearest", nearest_view_reference(ctx.images, ctx.index, tgt.index).flatten(0, 1), gt)
         preview = {"context": ctx.images[0, :1].expand(tgt.num_views, -1, -1, -1), "target": tgt.images[0]}
+        feedforward_targets = self.target_cameras(out["w2c"], ctx, tgt)
         for name, g in variants.items():
-            w2c_t, s = self.target_cameras(out["w2c"], ctx, tgt)
+            w2c_t, s = feedforward_targets
             if refine_steps > 0:
                 feedforward = self.render(g, w2c_t, tgt.K, hw, ctx.images).rgb
                 metrics.update(f"{name}_feedforward", feedforward.flatten(0, 1), gt)
@@ -226,27 +227,29 @@ class AnyCityModule(pl.LightningModule):
                 preview.pop(f"{name}_depth")
         return {"preview": {k: v.detach().float().cpu() for k, v in preview.items()}}
 
+    def _camera_renderer(self, K: Tensor, hw: tuple[int, int], context: Tensor):
+        """``f(scenes [B*N], w2c [B*N, 1, 4, 4]) -> rgb [B*N, 1, 3, H, W]`` rendering scene ``b*N + i`` into camera
+        ``i`` of scene ``b`` (``K [B, N, 3, 3]``; ``context [B, V, 3, H', W']`` for the background), the form the
+        test-time pose fits take; its tensors are made outside inference mode, so autograd can run through it."""
+        n = K.shape[1]
+        with torch.inference_mode(False):  # the fits need autograd; Lightning tests and predicts under inference mode
+            Ks = K.float().reshape(-1, 1, 3, 3).clone()
+            ctx = context.repeat_interleave(n, dim=0).clone()
+        return lambda scenes, cams: self.render(scenes, cams, Ks, hw, ctx).rgb
+
     def align_targets(self, g: Gaussians, w2c: Tensor, tgt: Views, context: Tensor, steps: int) -> Tensor:
         """``w2c [B, T, 4, 4]`` target cameras refined photometrically against ``tgt.images`` (see
         :func:`anycity.lit.evaluation.align_target_poses`)."""
-        t = w2c.shape[1]
-        with torch.inference_mode(False):  # the alignment needs autograd; Lightning tests under inference mode
-            K = tgt.K.float().reshape(-1, 1, 3, 3).clone()
-            ctx = context.repeat_interleave(t, dim=0).clone()
-        return align_target_poses(lambda scenes, cams: self.render(scenes, cams, K, tgt.hw, ctx).rgb,
-                                  g, w2c, tgt.images, steps, self.hparams.eval_pose_align_lr)
+        return align_target_poses(self._camera_renderer(tgt.K, tgt.hw, context), g, w2c, tgt.images, steps,
+                                  self.hparams.eval_pose_align_lr)
 
     def refine_cameras(self, g: Gaussians, w2c: Tensor, K: Tensor, images: Tensor, steps: int) -> tuple[Tensor, Tensor]:
         """Context cameras ``w2c [B, V, 4, 4]`` (intrinsics ``K``) refined against their own ``images`` and the
         per-view Gaussian transforms that go with them (see
         :func:`anycity.lit.evaluation.refine_context_cameras`)."""
-        v = w2c.shape[1]
         hw = (int(images.shape[-2]), int(images.shape[-1]))
-        with torch.inference_mode(False):  # the refinement needs autograd; Lightning tests under inference mode
-            Ks = K.float().reshape(-1, 1, 3, 3).clone()
-            ctx = images.repeat_interleave(v, dim=0).clone()
-        return refine_context_cameras(lambda scenes, cams: self.render(scenes, cams, Ks, hw, ctx).rgb,
-                                      g, w2c, images, steps, self.hparams.camera_refine_lr)
+        return refine_context_cameras(self._camera_renderer(K, hw, images), g, w2c, images, steps,
+                                      self.hparams.camera_refine_lr)
 
     def _log_metrics(self, metrics: EvalMetrics, split: str, batch_size: int) -> None:
         for name, m in metrics.items():
