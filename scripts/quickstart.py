@@ -2,20 +2,25 @@
 
     python scripts/quickstart.py            # what `make quickstart` runs; about 13 minutes on 2 CPU cores
 
-Writes ``runs/quickstart/metrics.json`` ({baseline,scaffold,refined}_psnr, {scaffold,refined}_ssim, abs_rel,
-delta1, minutes, nearest_view_psnr, {scaffold,refined}_psnr_{unaligned,feedforward}, and the context cameras' mean
-relative rotation / translation-direction errors rot_err_deg, trans_err_deg and pose_auc30, of the network and, with
-the suffix _refined_cameras, after test-time camera refinement), ``runs/quickstart/preview.png``
-(context | target | scaffold | refined | depth for held-out views of test scenes) and prints a table. The baseline
-paints every target pixel with the mean colour of the context views; the nearest-view reference shows the context
-image closest along the trajectory (what a model that learnt no 3D would show). All numbers come from the test
-split: scenes never seen in training.
-The protocol has two test-time steps, both photometric with the Gaussians frozen. First the predicted context
-cameras are refined from the context images alone (``model.camera_refine_steps``: every view's Gaussians must agree
-when rendered into every context camera). Then each held-out camera, placed at its ground-truth pose relative to
-the first context view, is aligned against its image (AnySplat's ``test.align_pose``, the usual protocol of pose-free
-methods). The ``*_unaligned`` figures are the renders before the second step, ``*_feedforward`` those with neither
-(the network's cameras as they come).
+Writes ``runs/quickstart/metrics.json``, ``runs/quickstart/preview.png`` (context | target | scaffold | refined |
+depth | regions for held-out views of test scenes) and prints two tables. All numbers come from the test split:
+scenes never seen in training. Every figure is named for the images it reads (``PROTOCOLS`` below; the key
+``protocols`` of metrics.json says the same):
+
+* no suffix, the feed-forward figures (they come first): context images in, Gaussians out, each held-out view
+  rendered at its ground-truth pose relative to the first context view; no target image is read.
+* ``_camrefine``: after the test-time refinement of the predicted context cameras from the context images alone
+  (``model.camera_refine_steps``); no target image is read.
+* ``_targetalign``: then each target camera aligned against its own target image (AnySplat's ``test.align_pose``,
+  NoPoSplat's protocol); this reads the target image.
+
+Keys: ``{scaffold,refined}_{psnr,ssim}[_camrefine|_targetalign]``, the region diagnostic's
+``psnr_{obs,weak}_{scaffold,refined,baseline}[_camrefine]`` (and ``ssim_``) with the regions' shares
+``region_{obs,weak}``, ``baseline_psnr`` (every target pixel = the mean context colour), ``nearest_view_psnr`` (the
+context image closest along the trajectory: what a model that learnt no 3D would show), ``abs_rel``/``delta1``
+(feed-forward depth), the context cameras' mean relative rotation / translation-direction errors ``rot_err_deg``,
+``trans_err_deg`` and ``pose_auc30`` of the network and, with the suffix ``_refined_cameras``, after camrefine;
+``minutes``.
 
 The cities are orbit captures (GoogleEarth / MatrixCity-like) rendered with 2 x 2 supersampling: the serpentine
 nadir grids of ``--trajectory mixed`` flip the heading by 180 degrees between flight lines, which the tiny CPU
@@ -94,47 +99,87 @@ def main(argv: list[str] | None = None) -> int:
 
     _banner("evaluation on held-out views of unseen (test) scenes", t0)
     cli = build_cli(["test", *stage2, *_run_args(out, "test"), "--ckpt_path", str(ckpt2)])
-    m = {k: float(v) for k, v in cli.trainer.callback_metrics.items() if k.startswith("test/")}
-    minutes = (time.monotonic() - t0) / 60
-    metrics = {
-        "baseline_psnr": m["test/psnr_baseline"], "scaffold_psnr": m["test/psnr_scaffold"],
-        "refined_psnr": m["test/psnr_refined"], "scaffold_ssim": m["test/ssim_scaffold"],
-        "refined_ssim": m["test/ssim_refined"], "abs_rel": m.get("test/abs_rel_refined", float("nan")),
-        "delta1": m.get("test/delta1_refined", float("nan")), "minutes": round(minutes, 2),
-        "nearest_view_psnr": m.get("test/psnr_nearest", float("nan")),
-        "scaffold_psnr_unaligned": m.get("test/psnr_scaffold_unaligned", m["test/psnr_scaffold"]),
-        "refined_psnr_unaligned": m.get("test/psnr_refined_unaligned", m["test/psnr_refined"]),
-        "rot_err_deg": m.get("test/rre", float("nan")), "trans_err_deg": m.get("test/rte", float("nan")),
-        "pose_auc30": m.get("test/pose_auc30", float("nan")),
-        "scaffold_psnr_feedforward": m.get("test/psnr_scaffold_feedforward", float("nan")),
-        "refined_psnr_feedforward": m.get("test/psnr_refined_feedforward", float("nan")),
-        "rot_err_deg_refined_cameras": m.get("test/rre_refined", float("nan")),
-        "trans_err_deg_refined_cameras": m.get("test/rte_refined", float("nan")),
-        "pose_auc30_refined_cameras": m.get("test/pose_auc30_refined", float("nan")),
-    }
+    m = {k[len("test/"):]: float(v) for k, v in cli.trainer.callback_metrics.items() if k.startswith("test/")}
+    metrics = quickstart_metrics(m, (time.monotonic() - t0) / 60)
     out.mkdir(parents=True, exist_ok=True)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
     previews = sorted((out / "test" / "previews").glob("test_*.png"))
     if previews:
         shutil.copy(previews[-1], out / "preview.png")
-
-    print("\n| model                      | PSNR (dB) | SSIM  |")
-    print("|----------------------------|-----------|-------|")
-    print(f"| mean-colour baseline       | {metrics['baseline_psnr']:9.2f} |   -   |")
-    print(f"| nearest context view       | {metrics['nearest_view_psnr']:9.2f} |   -   |")
-    print(f"| Stage I scaffold           | {metrics['scaffold_psnr']:9.2f} | {metrics['scaffold_ssim']:.3f} |")
-    print(f"| Stage II refined           | {metrics['refined_psnr']:9.2f} | {metrics['refined_ssim']:.3f} |")
-    print(f"| (refined, no target align) | {metrics['refined_psnr_unaligned']:9.2f} |   -   |")
-    print(f"| (refined, feed-forward)    | {metrics['refined_psnr_feedforward']:9.2f} |   -   |")
-    print(f"\ndepth (refined, held-out views): AbsRel {metrics['abs_rel']:.3f}  delta1 {metrics['delta1']:.3f}")
-    print(f"context cameras (all view pairs), network -> after test-time refinement: rotation error "
-          f"{metrics['rot_err_deg']:.1f} -> {metrics['rot_err_deg_refined_cameras']:.1f} deg, translation direction "
-          f"error {metrics['trans_err_deg']:.1f} -> {metrics['trans_err_deg_refined_cameras']:.1f} deg, AUC@30 "
-          f"{metrics['pose_auc30']:.3f} -> {metrics['pose_auc30_refined_cameras']:.3f}")
-    gain = metrics["refined_psnr"] - metrics["baseline_psnr"]
-    print(f"refined - baseline: {gain:+.2f} dB   total {minutes:.1f} min")
+    print_tables(metrics)
     print(f"wrote {out / 'metrics.json'} and {out / 'preview.png'}")
     return 0
+
+
+PROTOCOLS = {
+    "": "feed-forward: context images in, Gaussians out, targets rendered at their ground-truth poses relative to "
+        "the first context view; no target image is read",
+    "_camrefine": "after test-time refinement of the context cameras from the context images alone; no target "
+                  "image is read",
+    "_targetalign": "after camrefine, each target camera aligned against its own target image (AnySplat "
+                    "align_pose / NoPoSplat protocol): reads the target image",
+}
+
+
+def quickstart_metrics(m: dict[str, float], minutes: float) -> dict:
+    """``anycity test`` figures (names without ``test/``) -> the flat ``metrics.json`` of the quickstart.
+
+    Every figure is named for its protocol (see ``PROTOCOLS``): no suffix = feed-forward, ``_camrefine``,
+    ``_targetalign``."""
+    nan = float("nan")
+    out: dict = {"minutes": round(minutes, 2), "baseline_psnr": m["psnr_baseline"],
+                 "nearest_view_psnr": m.get("psnr_nearest", nan)}
+    for sfx in PROTOCOLS:
+        for v in ("scaffold", "refined"):
+            out[f"{v}_psnr{sfx}"] = m.get(f"psnr_{v}{sfx}", nan)
+            out[f"{v}_ssim{sfx}"] = m.get(f"ssim_{v}{sfx}", nan)
+            if sfx != "_targetalign":
+                for r in ("obs", "weak"):
+                    out[f"psnr_{r}_{v}{sfx}"] = m.get(f"psnr_{r}_{v}{sfx}", nan)
+                    out[f"ssim_{r}_{v}{sfx}"] = m.get(f"ssim_{r}_{v}{sfx}", nan)
+    for r in ("obs", "weak"):
+        out[f"psnr_{r}_baseline"] = m.get(f"psnr_{r}_baseline", nan)
+        out[f"region_{r}"] = m.get(f"region_{r}", nan)
+    out.update({
+        "abs_rel": m.get("abs_rel_refined", nan), "delta1": m.get("delta1_refined", nan),
+        "rot_err_deg": m.get("rre", nan), "trans_err_deg": m.get("rte", nan), "pose_auc30": m.get("pose_auc30", nan),
+        "rot_err_deg_refined_cameras": m.get("rre_refined_camrefine", nan),
+        "trans_err_deg_refined_cameras": m.get("rte_refined_camrefine", nan),
+        "pose_auc30_refined_cameras": m.get("pose_auc30_refined_camrefine", nan),
+        "protocols": {sfx.lstrip("_") or "feedforward": text for sfx, text in PROTOCOLS.items()},
+    })
+    return out
+
+
+def print_tables(x: dict) -> None:
+    """The PSNR table (feed-forward first, each test-time step named for the images it reads) and the region
+    table of the paper's Table 2 (observation-supported / weak pixels)."""
+    print("\n| model                      | feed-forward PSNR / SSIM | + camrefine (context only) | + targetalign "
+          "(reads target) |")
+    print("|----------------------------|--------------------------|----------------------------|------------------"
+          "-----------|")
+    print(f"| mean-colour baseline       | {x['baseline_psnr']:11.2f}              |                            |")
+    print(f"| nearest context view       | {x['nearest_view_psnr']:11.2f}              |                            |")
+    for v, label in (("scaffold", "Stage I scaffold"), ("refined", "Stage II refined")):
+        print(f"| {label:26s} | {x[f'{v}_psnr']:11.2f} / {x[f'{v}_ssim']:.3f}      | {x[f'{v}_psnr_camrefine']:11.2f}"
+              f" / {x[f'{v}_ssim_camrefine']:.3f}       | {x[f'{v}_psnr_targetalign']:12.2f} / "
+              f"{x[f'{v}_ssim_targetalign']:.3f}         |")
+    print(f"\nregions of the target pixels (ground-truth depth reprojected into the context views): observed "
+          f"{100 * x['region_obs']:.1f}%, weak {100 * x['region_weak']:.1f}% (the rest is sky)")
+    print("| model            | observed PSNR | weak PSNR | observed, camrefine | weak, camrefine |")
+    print("|------------------|---------------|-----------|---------------------|-----------------|")
+    print(f"| baseline         | {x['psnr_obs_baseline']:13.2f} | {x['psnr_weak_baseline']:9.2f} |"
+          "                     |                 |")
+    for v in ("scaffold", "refined"):
+        print(f"| {v:16s} | {x[f'psnr_obs_{v}']:13.2f} | {x[f'psnr_weak_{v}']:9.2f} | "
+              f"{x[f'psnr_obs_{v}_camrefine']:19.2f} | {x[f'psnr_weak_{v}_camrefine']:15.2f} |")
+    print(f"\ndepth (refined, feed-forward, held-out views): AbsRel {x['abs_rel']:.3f}  delta1 {x['delta1']:.3f}")
+    print(f"context cameras (all view pairs), network -> after camrefine: rotation error {x['rot_err_deg']:.1f} -> "
+          f"{x['rot_err_deg_refined_cameras']:.1f} deg, translation direction error {x['trans_err_deg']:.1f} -> "
+          f"{x['trans_err_deg_refined_cameras']:.1f} deg, AUC@30 {x['pose_auc30']:.3f} -> "
+          f"{x['pose_auc30_refined_cameras']:.3f}")
+    print(f"refined - baseline: {x['refined_psnr'] - x['baseline_psnr']:+.2f} dB feed-forward, "
+          f"{x['refined_psnr_camrefine'] - x['baseline_psnr']:+.2f} dB after camrefine   total {x['minutes']:.1f} min")
 
 
 if __name__ == "__main__":

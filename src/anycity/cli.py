@@ -8,6 +8,11 @@ from __future__ import annotations
 
 import sys
 
+# Test-time settings: taken from the config files and the command line even when --ckpt_path holds other values
+# (LightningCLI otherwise re-applies every hyperparameter stored in the checkpoint over them).
+TEST_TIME_KEYS = ("eval_align", "eval_pose_align_steps", "eval_pose_align_lr", "eval_joint", "camera_refine_steps",
+                  "camera_refine_lr", "render_backend")
+
 
 def _cli_class():
     from lightning.pytorch.cli import LightningCLI
@@ -25,6 +30,14 @@ def _cli_class():
             parser.add_lightning_class_args(ImagePreviews, "previews")
             parser.add_lightning_class_args(LossProgressBar, "progress")
             parser.add_lightning_class_args(PredictionExport, "export")
+
+        def _parse_ckpt_path(self) -> None:
+            sub = self.config.get("subcommand")
+            init = self.config.get(f"{sub}.model.init_args") if sub else None
+            keep = {k: init[k] for k in TEST_TIME_KEYS if init is not None and k in init}
+            super()._parse_ckpt_path()
+            for k, v in keep.items():
+                self.config[f"{sub}.model.init_args.{k}"] = v
 
         def before_predict(self) -> None:
             # A data module without a predict set reconstructs its test scenes.

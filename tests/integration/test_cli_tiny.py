@@ -57,6 +57,13 @@ def test_fit_test_predict_stage1_then_stage2(tiny_shards, tmp_path):
     metrics = cli.trainer.callback_metrics
     for key in ("test/psnr_scaffold", "test/psnr_refined", "test/psnr_baseline", "test/ssim_refined"):
         assert torch.isfinite(metrics[key]), key
+    assert "test/psnr_refined_joint" not in metrics
+    # test-time settings on the command line win over the hyperparameters stored in the checkpoint
+    cli = build_cli(["test", *_tiny_args(tiny_shards, t, **stage2), "--ckpt_path", str(ckpt2),
+                     "--model.init_args.eval_joint", "true", "--model.init_args.camera_refine_steps", "2"])
+    assert cli.model.hparams.eval_joint and cli.model.hparams.camera_refine_steps == 2
+    for key in ("test/psnr_refined_joint", "test/psnr_refined_camrefine", "test/rre_refined_camrefine"):
+        assert torch.isfinite(cli.trainer.callback_metrics[key]), key
 
     p = tmp_path / "pred"
     build_cli(["predict", *_tiny_args(tiny_shards, p, **stage2), "--ckpt_path", str(ckpt2),

@@ -25,6 +25,13 @@ def depth_to_rgb(depth: Tensor, mask: Tensor | None = None) -> Tensor:
     return torch.cat([x.sqrt(), x.square(), 0.4 * (1 - x) * valid], dim=-3)
 
 
+def region_colours(observed: Tensor, weak: Tensor) -> Tensor:
+    """Region masks ``[..., 1, H, W]`` -> ``[..., 3, H, W]``: observation-supported green, weak red, neither (sky)
+    black."""
+    o, w = observed.float(), weak.float()
+    return torch.cat([w, 0.8 * o, torch.zeros_like(o)], dim=-3)
+
+
 def preview_grid(columns: list[Tensor]) -> np.ndarray:
     """Columns of ``[R, 3, H, W]`` images (same R, H, W) -> an ``[R*H, C*W, 3]`` uint8 image."""
     rows = torch.cat([c.float().clamp(0, 1) for c in columns], dim=-1)  # [R, 3, H, C*W]

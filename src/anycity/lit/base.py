@@ -69,17 +69,18 @@ class AnyCityModule(pl.LightningModule):
         eval_align: how target cameras enter the predicted frame at evaluation (and when rendering targets in
             training): "sim3" fits the predicted context cameras to the ground truth; "none" uses the shared
             convention (first context camera at the origin) as is.
-        eval_pose_align_steps: test-time pose alignment of each target camera before it is scored (test only: Adam
+        eval_pose_align_steps: ``test`` only, the ``targetalign`` protocol (:mod:`anycity.lit.protocols`): each
+            placed target camera refined photometrically against its own target image before it is scored (Adam
             steps on a rotation and translation delta with the Gaussians frozen, AnySplat's ``test.align_pose``,
-            which uses 100 steps); 0 = off. ``psnr_<variant>`` are then scored after alignment and
-            ``psnr_<variant>_unaligned`` keep the figures at the ``eval_align`` cameras (placed from the refined
-            context cameras when ``camera_refine_steps > 0``).
+            which uses 100 steps), logged as ``*_targetalign``; 0 = off. It starts from the ``camrefine`` cameras
+            when ``camera_refine_steps > 0``.
         eval_pose_align_lr: Adam learning rate of that alignment (AnySplat: 0.005; radians and scene units).
-        camera_refine_steps: test-time refinement of the predicted context cameras in ``test`` and ``predict``
-            (:func:`~anycity.lit.evaluation.refine_context_cameras`: Adam steps fitting a rigid delta per view so
-            that all views' Gaussians reproduce the context images; no target image is used); 0 = off, the
-            feed-forward cameras. In ``test`` each variant refines its own cameras before the targets are placed;
-            ``psnr_<variant>_feedforward`` keeps the figure without any test-time optimisation. Each step renders
+        eval_joint: ``test`` only, the ``joint`` protocol (AnySplat / WorldMirror): context and target images through
+            the network together, targets rendered at the network's own target cameras; logged as ``*_joint``.
+        camera_refine_steps: test-time refinement of the predicted context cameras from the context images alone, in
+            ``test`` (the ``camrefine`` protocol, logged as ``*_camrefine``) and ``predict`` (the exported cameras
+            and Gaussians): Adam steps fitting a rigid delta per view so that all views' Gaussians reproduce the
+            context images (:func:`~anycity.lit.evaluation.refine_context_cameras`); 0 = off. Each step renders
             all V views' Gaussians into every context camera (cost grows as V^2): meant for a sparse context.
         camera_refine_lr: Adam learning rate of that refinement (radians and scene units).
         gradient_checkpointing: recompute transformer blocks in backward (passed to the network).
@@ -105,6 +106,7 @@ class AnyCityModule(pl.LightningModule):
         eval_align: AlignMode = "sim3",
         eval_pose_align_steps: int = 0,
         eval_pose_align_lr: float = 0.005,
+        eval_joint: bool = False,
         camera_refine_steps: int = 0,
         camera_refine_lr: float = 0.01,
         gradient_checkpointing: bool = False,
@@ -119,8 +121,11 @@ class AnyCityModule(pl.LightningModule):
             from anycity.models.pretrained import load_pretrained
 
             load_pretrained(self.net, pretrained, kind=pretrained_kind)
+        from anycity.metrics.regions import lpips_or_none
+
+        lpips, self.lpips_status = lpips_or_none()  # one line, printed when testing starts
         self.val_metrics = EvalMetrics(self.variants)
-        self.test_metrics = EvalMetrics(self.variants)
+        self.test_metrics = EvalMetrics(self.variants, lpips)
         # Called here, Lightning collects the arguments of every __init__ on the stack: the subclass's own and
         # those it passes on in **base, so checkpoints and LightningCLI see one flat set of hyperparameters.
         self.save_hyperparameters()
@@ -182,50 +187,70 @@ class AnyCityModule(pl.LightningModule):
         return out, variants
 
     @torch.no_grad()
-    def evaluate(self, batch: ViewBatch, metrics: EvalMetrics, want_preview: bool,
-                 align_steps: int = 0, refine_steps: int = 0) -> dict[str, Any] | None:
-        """Score every variant on the batch's targets. ``refine_steps > 0`` first refines the variant's context
-        cameras (:meth:`refine_cameras`) and records the feed-forward PSNR too; ``align_steps > 0`` then refines
-        each target camera (:func:`align_target_poses`) and records the unaligned PSNR too."""
+    def evaluate(self, batch: ViewBatch, metrics: EvalMetrics, want_preview: bool, protocols: tuple[str, ...] = (
+            "feedforward",)) -> dict[str, Any] | None:
+        """Score every variant on the batch's targets under each of ``protocols`` (see :mod:`anycity.lit.protocols`,
+        which says which images each reads). ``feedforward`` always runs and is logged without a suffix
+        (``psnr_<variant>``); the others add ``_camrefine``, ``_targetalign`` and ``_joint``. ``targetalign`` starts
+        from the ``camrefine`` cameras when that protocol runs too. Region-masked figures (``psnr_obs_*``,
+        ``psnr_weak_*``) come from :func:`anycity.metrics.regions.region_masks` on the ground truth."""
+        from anycity.lit import protocols as P
+
         ctx, tgt = batch.context, batch.target
+        cams = P.TargetCameras.of(tgt)
         out, variants = self.predict_variants(ctx.images)
-        hw = tgt.hw
         gt = tgt.images.flatten(0, 1)
-        metrics.update("baseline", mean_colour_baseline(ctx.images, tuple(tgt.images.shape)).flatten(0, 1), gt)
+        regions = self.region_masks(ctx, tgt)
+        metrics.update_regions(regions)
+        metrics.update("baseline", mean_colour_baseline(ctx.images, tuple(tgt.images.shape)).flatten(0, 1), gt,
+                       regions)
         metrics.update_pose(out["w2c"], ctx.w2c)
-        if ctx.index is not None and tgt.index is not None and ctx.hw == hw:
-            metrics.update("nearest", nearest_view_reference(ctx.images, ctx.index, tgt.index).flatten(0, 1), gt)
+        if ctx.index is not None and tgt.index is not None and ctx.hw == tgt.hw:
+            metrics.update("nearest", nearest_view_reference(ctx.images, ctx.index, tgt.index).flatten(0, 1), gt,
+                           regions)
         preview = {"context": ctx.images[0, :1].expand(tgt.num_views, -1, -1, -1), "target": tgt.images[0]}
-        feedforward_targets = self.target_cameras(out["w2c"], ctx, tgt)
+        hp = self.hparams
+        joint = P.joint(self, ctx, tgt)[0] if "joint" in protocols else None
         for name, g in variants.items():
-            w2c_t, s = feedforward_targets
-            if refine_steps > 0:
-                feedforward = self.render(g, w2c_t, tgt.K, hw, ctx.images).rgb
-                metrics.update(f"{name}_feedforward", feedforward.flatten(0, 1), gt)
-                w2c, A = self.refine_cameras(g, out["w2c"], out["K"], ctx.images, refine_steps)
-                g = transform_gaussians(g, A)
-                metrics.update_pose(w2c, ctx.w2c, name)
-                w2c_t, s = self.target_cameras(w2c, ctx, tgt)
-            r = self.render(g, w2c_t, tgt.K, hw, ctx.images)
-            if align_steps > 0:
-                metrics.update(f"{name}_unaligned", r.rgb.flatten(0, 1), gt)
-                r = self.render(g, self.align_targets(g, w2c_t, tgt, ctx.images, align_steps), tgt.K, hw, ctx.images)
-            metrics.update(name, r.rgb.flatten(0, 1), gt)
+            scene = P.Scene(g, out["w2c"], out["K"])
+            r, s = P.feedforward(self, scene, ctx, cams)
+            metrics.update(name, r.rgb.flatten(0, 1), gt, regions)
             if tgt.depth is not None:
                 d = depth_metrics(r.depth / s[:, None, None, None, None], tgt.depth, tgt.mask)
                 metrics.update_depth(name, d["abs_rel"], d["delta1"], d["valid"])
             preview[name] = r.rgb[0]
             preview[f"{name}_depth"] = r.depth[0]
+            if "camrefine" in protocols and hp.camera_refine_steps > 0:
+                r_ref, _, scene = P.camrefine(self, scene, ctx, cams, hp.camera_refine_steps)
+                metrics.update(f"{name}_camrefine", r_ref.rgb.flatten(0, 1), gt, regions)
+                metrics.update_pose(scene.w2c, ctx.w2c, f"{name}_camrefine")
+            if "targetalign" in protocols and hp.eval_pose_align_steps > 0:
+                r_al, _ = P.targetalign(self, scene, ctx, tgt, hp.eval_pose_align_steps)
+                metrics.update(f"{name}_targetalign", r_al.rgb.flatten(0, 1), gt, regions)
+            if joint is not None:
+                metrics.update(f"{name}_joint", joint[name].rgb.flatten(0, 1), gt, regions)
         if not want_preview:
             return None
-        from anycity.callbacks.previews import depth_to_rgb
+        from anycity.callbacks.previews import depth_to_rgb, region_colours
 
         last = list(variants)[-1]
         preview[f"{last}_depth"] = depth_to_rgb(preview[f"{last}_depth"])
         for name in variants:
             if name != last:
                 preview.pop(f"{name}_depth")
+        if regions is not None:
+            preview["regions"] = region_colours(regions[0][0], regions[1][0])
         return {"preview": {k: v.detach().float().cpu() for k, v in preview.items()}}
+
+    def region_masks(self, context: Views, target: Views) -> tuple[Tensor, Tensor] | None:
+        """Observation-supported and weak target pixels ``[B, T, 1, H, W]`` from the ground-truth depth and cameras
+        (:func:`anycity.metrics.regions.region_masks`), or None when the targets or the context have no depth."""
+        if target.depth is None or context.depth is None:
+            return None
+        from anycity.metrics.regions import region_masks
+
+        return region_masks(target.depth, target.w2c, target.K, context.depth, context.w2c, context.K,
+                            target_valid=target.mask, context_valid=context.mask)
 
     def _camera_renderer(self, K: Tensor, hw: tuple[int, int], context: Tensor):
         """``f(scenes [B*N], w2c [B*N, 1, 4, 4]) -> rgb [B*N, 1, 3, H, W]`` rendering scene ``b*N + i`` into camera
@@ -263,11 +288,21 @@ class AnyCityModule(pl.LightningModule):
         self._log_metrics(self.val_metrics, "val", batch.batch_size)
         return res
 
+    def on_test_start(self) -> None:
+        if self.trainer.is_global_zero:
+            print(self.lpips_status, flush=True)
+
     def test_step(self, batch: ViewBatch, batch_idx: int) -> dict[str, Any] | None:
-        res = self.evaluate(batch, self.test_metrics, batch_idx == 0, self.hparams.eval_pose_align_steps,
-                            self.hparams.camera_refine_steps)
+        res = self.evaluate(batch, self.test_metrics, batch_idx == 0, self.test_protocols())
         self._log_metrics(self.test_metrics, "test", batch.batch_size)
         return res
+
+    def test_protocols(self) -> tuple[str, ...]:
+        """The protocols ``anycity test`` scores: feed-forward always, then those switched on in the hparams."""
+        hp = self.hparams
+        on = {"camrefine": hp.camera_refine_steps > 0, "targetalign": hp.eval_pose_align_steps > 0,
+              "joint": hp.eval_joint}
+        return ("feedforward", *(p for p, enabled in on.items() if enabled))
 
     # ----------------------------------------------------------------------------------------- prediction
     @torch.no_grad()

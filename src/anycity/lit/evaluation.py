@@ -210,51 +210,100 @@ def refine_context_cameras(render_rgb, gaussians: Gaussians, w2c: Tensor, images
     return out.to(w2c.dtype), A.to(w2c.dtype)
 
 
-class EvalMetrics(nn.Module):
-    """Per-image PSNR / SSIM (torchmetrics) and per-image AbsRel / delta1 means, for named variants (plus PSNR of
-    the ``baseline`` and ``nearest`` view references, of ``<variant>_unaligned`` before test-time target pose
-    alignment and of ``<variant>_feedforward`` with no test-time optimisation at all), and the context cameras'
-    mean relative rotation / translation-direction errors in degrees (``rre``, ``rte``) and pose AUC@30
-    (``pose_auc30``, in [0, 1]) over all view pairs: of the network's cameras, and as ``rre_<variant>`` etc. of a
-    variant's cameras after test-time camera refinement.
+def _update_finite(metric: MeanMetric, values: Tensor) -> None:
+    """Average the finite per-image values (NaN marks an image whose region is empty)."""
+    values = values[torch.isfinite(values)]
+    if values.numel():
+        metric.update(values)
 
-    ``update(variant, pred, target)`` takes ``[M, 3, H, W]`` images; ``update_depth(variant, abs_rel, delta1)``
-    takes per-image values. ``items()`` yields ``(name, metric)`` pairs ready for ``LightningModule.log``.
+
+PROTOCOL_SUFFIXES = ("", "_camrefine", "_targetalign", "_joint")  # feedforward first, unsuffixed
+REGIONS = ("obs", "weak")
+
+
+class EvalMetrics(nn.Module):
+    """Per-image PSNR / SSIM (torchmetrics), their region-masked versions and depth / pose errors, for named variants
+    under each evaluation protocol (:mod:`anycity.lit.protocols`).
+
+    Names (``<v>`` a variant, ``<p>`` a protocol suffix: none for ``feedforward``, ``_camrefine``,
+    ``_targetalign``, ``_joint``):
+    ``psnr_<v><p>``, ``ssim_<v><p>``; ``psnr_obs_<v><p>``, ``psnr_weak_<v><p>``, ``ssim_obs_<v><p>``,
+    ``ssim_weak_<v><p>`` (mean over images of the PSNR / SSIM inside the observation-supported / weak pixels of
+    :func:`anycity.metrics.regions.region_masks`; images where a region is empty are skipped), ``lpips_obs_*`` and
+    ``lpips_weak_*`` when an offline LPIPS is given (:func:`anycity.metrics.regions.masked_lpips`); ``region_obs``,
+    ``region_weak`` (the regions' share of target pixels); ``psnr_baseline`` and ``psnr_nearest`` (+ ``_obs`` /
+    ``_weak``) of the reference renders; ``abs_rel_<v>``, ``delta1_<v>`` (feed-forward depth); ``rre``, ``rte``,
+    ``pose_auc30`` of the network's context cameras over all view pairs (degrees; AUC@30 in [0, 1]) and
+    ``rre_<v>_camrefine`` etc. after the context-camera refinement.
+
+    ``update(name, pred, target, regions)`` takes ``[M, 3, H, W]`` images (``name`` = ``<v><p>``, ``baseline`` or
+    ``nearest``) and optionally the ``(observed, weak)`` masks ``[B, T, 1, H, W]``. ``items()`` yields the metrics
+    that were updated, ready for ``LightningModule.log``.
     """
 
-    def __init__(self, variants: tuple[str, ...]) -> None:
+    def __init__(self, variants: tuple[str, ...], lpips=None) -> None:
         super().__init__()
         self.variants = variants
+        # torchmetrics LPIPS or None (:func:`anycity.metrics.regions.lpips_or_none`); not registered as a submodule, so
+        # its backbone never enters checkpoints (which then load the same with or without LPIPS on the machine)
+        object.__setattr__(self, "lpips", lpips)
+        names = [f"{v}{p}" for v in variants for p in PROTOCOL_SUFFIXES] + ["baseline", "nearest"]
         m: dict[str, nn.Module] = {}
-        for v in (*variants, *(f"{v}_{k}" for v in variants for k in ("unaligned", "feedforward")), "baseline",
-                  "nearest"):
-            m[f"psnr_{v}"] = PeakSignalNoiseRatio(data_range=1.0, dim=(1, 2, 3), reduction="elementwise_mean")
+        for n in names:
+            m[f"psnr_{n}"] = PeakSignalNoiseRatio(data_range=1.0, dim=(1, 2, 3), reduction="elementwise_mean")
+            for r in REGIONS:
+                m[f"psnr_{r}_{n}"] = MeanMetric()
+            if n not in ("baseline", "nearest"):
+                m[f"ssim_{n}"] = StructuralSimilarityIndexMeasure(data_range=1.0)
+                for r in REGIONS:
+                    m[f"ssim_{r}_{n}"] = MeanMetric()
+                    if lpips is not None:
+                        m[f"lpips_{r}_{n}"] = MeanMetric()
+        for r in REGIONS:
+            m[f"region_{r}"] = MeanMetric()
         for v in variants:
-            m[f"ssim_{v}"] = StructuralSimilarityIndexMeasure(data_range=1.0)
             m[f"abs_rel_{v}"] = MeanMetric()
             m[f"delta1_{v}"] = MeanMetric()
-        for suffix in ("", *(f"_{v}" for v in variants)):
+        for suffix in ("", *(f"_{v}_camrefine" for v in variants)):
             for name in ("rre", "rte", "pose_auc30"):
                 m[f"{name}{suffix}"] = MeanMetric()
         self.metrics = nn.ModuleDict(m)
 
-    def update(self, variant: str, pred: Tensor, target: Tensor) -> None:
+    def update(self, name: str, pred: Tensor, target: Tensor, regions: tuple[Tensor, Tensor] | None = None) -> None:
         p, t = pred.float().clamp(0, 1), target.float()
-        self.metrics[f"psnr_{variant}"].update(p, t)
-        if f"ssim_{variant}" in self.metrics:
-            self.metrics[f"ssim_{variant}"].update(p, t)
+        self.metrics[f"psnr_{name}"].update(p, t)
+        has_ssim = f"ssim_{name}" in self.metrics
+        if has_ssim:
+            self.metrics[f"ssim_{name}"].update(p, t)
+        if regions is None:
+            return
+        from anycity.metrics.regions import masked_lpips, masked_psnr, masked_ssim
+
+        for r, mask in zip(REGIONS, regions):
+            mk = mask.flatten(0, 1)
+            _update_finite(self.metrics[f"psnr_{r}_{name}"], masked_psnr(p, t, mk))
+            if has_ssim:
+                _update_finite(self.metrics[f"ssim_{r}_{name}"], masked_ssim(p, t, mk))
+            if has_ssim and self.lpips is not None:
+                _update_finite(self.metrics[f"lpips_{r}_{name}"], masked_lpips(self.lpips.to(p.device), p, t, mk))
+
+    def update_regions(self, regions: tuple[Tensor, Tensor] | None) -> None:
+        """The share of target pixels in each region, per image."""
+        if regions is not None:
+            for r, mask in zip(REGIONS, regions):
+                self.metrics[f"region_{r}"].update(mask.flatten(0, 1).float().mean(dim=(1, 2, 3)))
 
     def update_depth(self, variant: str, abs_rel: Tensor, delta1: Tensor, valid: Tensor) -> None:
         if bool(valid.any()):
             self.metrics[f"abs_rel_{variant}"].update(abs_rel[valid])
             self.metrics[f"delta1_{variant}"].update(delta1[valid])
 
-    def update_pose(self, pred_w2c: Tensor, gt_w2c: Tensor, variant: str | None = None) -> None:
+    def update_pose(self, pred_w2c: Tensor, gt_w2c: Tensor, name: str | None = None) -> None:
         """Relative pose errors of every context view pair, ``[B, V, 4, 4]`` predicted and ground truth; under
-        ``rre_<variant>`` etc. when ``variant`` is given (its refined cameras)."""
+        ``rre_<name>`` etc. when ``name`` is given (e.g. ``refined_camrefine``)."""
         if pred_w2c.shape[1] < 2:
             return
-        suffix = f"_{variant}" if variant else ""
+        suffix = f"_{name}" if name else ""
         rre, rte = relative_pose_errors(pred_w2c, gt_w2c)
         self.metrics[f"rre{suffix}"].update(rre)
         self.metrics[f"rte{suffix}"].update(rte)

@@ -7,14 +7,36 @@ cameras, each mapped into its own predicted frame, and depths are compared in gr
 
 from __future__ import annotations
 
+from dataclasses import fields
 from pathlib import Path
 
 import torch
 from torch import Tensor
 
+from anycity.geometry import camera_centers
 from anycity.lit.base import AnyCityModule
+from anycity.models.anycity import SCAFFOLD_PREFIXES
 from anycity.losses import d2s_loss, preservation_loss, regularizer_loss, rgb_loss
-from anycity.structures import RenderOutput, ViewBatch
+from anycity.structures import RenderOutput, ViewBatch, Views
+
+
+def far_views(views: Views, context: Views, k: int | None) -> Views:
+    """The ``k`` views of ``views`` whose camera centres are farthest from their nearest context camera (per scene,
+    ground-truth cameras), in their original order; all of them when ``k`` is None or not smaller."""
+    if k is None or k >= views.num_views:
+        return views
+    if k <= 0:
+        raise ValueError(f"model.d2s_views: expected a positive number of dense views or None, got {k}")
+    c, cc = camera_centers(views.w2c.float()), camera_centers(context.w2c.float())
+    dist = torch.cdist(c, cc).amin(-1)  # [B, D]
+    idx = dist.topk(k, dim=1).indices.sort(dim=1).values  # [B, k]
+
+    def take(x: Tensor | None) -> Tensor | None:
+        if x is None:
+            return None
+        return torch.gather(x, 1, idx.view(*idx.shape, *([1] * (x.dim() - 2))).expand(-1, -1, *x.shape[2:]))
+
+    return Views(*(take(getattr(views, f.name)) for f in fields(Views)))
 
 
 def _scaled(r: RenderOutput, s: Tensor) -> RenderOutput:
@@ -35,6 +57,8 @@ class RefinementModule(AnyCityModule):
         ssim_weight: weight of ``1 - SSIM`` inside ``L_rgb``.
         context_rgb_weight: weight of the context-view photometric term.
         gate_mode: gate regulariser, "entropy" or "mean".
+        d2s_views: beyond the paper (which renders all 12): how many of the dense cameras ``L_d2s`` renders, those
+            farthest from every context camera (weak content lives in views far from the context); None = all.
         freeze_scaffold: freeze ``net.scaffold_parameters()`` (Stage II default).
         **base: see :class:`anycity.lit.base.AnyCityModule`.
     """
@@ -51,6 +75,7 @@ class RefinementModule(AnyCityModule):
         ssim_weight: float = 0.0,
         context_rgb_weight: float = 1.0,
         gate_mode: str = "entropy",
+        d2s_views: int | None = None,
         freeze_scaffold: bool = True,
         **base,
     ) -> None:
@@ -70,14 +95,16 @@ class RefinementModule(AnyCityModule):
             self.load_stage1(self.hparams.init_from)
 
     def load_stage1(self, path: str) -> None:
-        """Copy the ``net.*`` weights of a Stage I checkpoint; layers wrapped by LoRA map ``x.weight`` to
-        ``x.base_layer.weight``. Keys of the checkpoint the network lacks are an error."""
+        """Copy the scaffold weights (``net.{aggregator,camera_head,depth_head,gaussian_head}.*``) of a Stage I
+        checkpoint; layers wrapped by LoRA map ``x.weight`` to ``x.base_layer.weight``. Scaffold keys the network
+        lacks are an error; the untrained completion branch a Stage I checkpoint may hold is not copied (so Stage II
+        may use another video prior, or none)."""
         state = torch.load(path, map_location="cpu", weights_only=False)
         state = state.get("state_dict", state)
         own = self.net.state_dict()
         loaded, unexpected = {}, []
         for k, v in state.items():
-            if not k.startswith("net."):
+            if not k.startswith("net.") or not k[len("net."):].startswith(SCAFFOLD_PREFIXES):
                 continue
             k = k[len("net."):]
             if k not in own:
@@ -117,6 +144,7 @@ class RefinementModule(AnyCityModule):
                 terms["pres"] = preservation_loss(r_ctx, r_scaf)["total"]
                 loss = loss + hp.pres_weight * terms["pres"]
         if hp.d2s_weight > 0 and dense is not None:
+            dense = far_views(dense, ctx, hp.d2s_views)
             with torch.no_grad():
                 t_out = self.net(dense.images, refine=False)
                 t_g = t_out.get("scaffold_gaussians") or t_out["gaussians"]

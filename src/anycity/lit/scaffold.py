@@ -31,7 +31,8 @@ class ScaffoldModule(AnyCityModule):
         depth_grad_weight: weight of the gradient-matching part of ``L_z``.
         depth_abs_weight: weight of an extra unaligned log-depth L1 inside ``L_depth`` (pins the absolute scale of
             the normalised frame, which the affine-invariant ``L_z`` leaves free; 0 = paper).
-        ray_weight: weight of the ray-anchoring term ``L_xy`` inside ``L_depth``.
+        ray_weight: weight of the ray-anchoring term ``L_xy`` (mean reprojection L1 of the centres, pixels) inside
+            ``L_depth``.
         depth_conf_threshold: ignore depth pixels whose predicted confidence is below this (None = keep all).
         flat_weight: weight of the flatness prior (smallest Gaussian scale) inside ``L_normal``.
         **base: see :class:`anycity.lit.base.AnyCityModule` (preset, lr, schedule, renderer, ...).
@@ -83,7 +84,7 @@ class ScaffoldModule(AnyCityModule):
             if hp.depth_abs_weight > 0:
                 dz = dz + hp.depth_abs_weight * depth_z_loss(out["depth"], ctx.depth, ctx.mask, grad_weight=0.0,
                                                              align=False)["total"]
-            dxy = ray_anchor_loss(out["pixel_means"], out["w2c"], out["K"])
+            dxy = ray_anchor_loss(out["pixel_means"], out["w2c"], out["K"], ctx.mask)
             terms["depth"] = dz + hp.ray_weight * dxy
             loss = loss + hp.depth_weight * terms["depth"]
         if geo_on and hp.normal_weight > 0:

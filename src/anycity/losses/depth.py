@@ -1,14 +1,14 @@
 """Depth losses ``L_depth = L_z + L_xy``.
 
 ``L_z``: scale-and-shift aligned log-inverse depth L1 plus multi-scale gradient matching (MiDaS style) on
-valid pixels. ``L_xy``: ray anchoring, every pixel-aligned Gaussian centre reprojected into its source view
-must stay on its pixel's ray (measured as the error in normalised image coordinates, i.e. scale free).
+valid pixels. ``L_xy``: ray anchoring (the paper's appendix), the masked mean L1, in pixels, between each
+Gaussian centre's reprojection in its supervision camera and its source pixel. Centres leave their rays only
+through the Gaussian head's centre offsets, which this term keeps from drifting sideways.
 """
 
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from anycity.geometry import pixel_grid, transform_points
@@ -101,27 +101,31 @@ def depth_z_loss(
 
 def ray_anchor_loss(pixel_means: Tensor, w2c: Tensor, K: Tensor, mask: Tensor | None = None,
                     eps: float = 1e-6) -> Tensor:
-    """Ray anchoring ``L_xy`` of pixel-aligned Gaussian centres.
+    """Ray anchoring ``L_xy`` of pixel-aligned Gaussian centres (the paper's definition).
 
-    Each centre is moved into its source camera; its normalised image coordinates ``(x/z, y/z)`` are
-    compared with those of its pixel centre, ``K^-1 (u + 0.5, v + 0.5, 1)``. Centres behind the camera
-    are penalised by ``eps - z``.
+    Each centre is projected into its supervision camera (the source view it was decoded from) and compared with
+    its source pixel centre ``(u + 0.5, v + 0.5)``: L1 over the two pixel coordinates, averaged over the masked
+    pixels. Centres behind the camera (``z <= eps``) cost their depth deficit ``eps - z`` times the focal length
+    instead of a reprojection error (which would be meaningless there).
 
     Args:
         pixel_means: ``[B, V, H, W, 3]`` world centres, one per source pixel.
-        w2c: ``[B, V, 4, 4]`` and K ``[B, V, 3, 3]`` of the source views (those used to place the centres).
-        mask: ``[B, V, 1, H, W]`` pixels to include, or None.
+        w2c: ``[B, V, 4, 4]`` and K ``[B, V, 3, 3]`` of the supervision (source) views.
+        mask: ``[B, V, 1, H, W]`` pixels to include (e.g. valid ground-truth depth), or None.
     Returns:
-        Scalar mean Euclidean error in normalised coordinates.
+        Scalar: mean L1 reprojection error in pixels.
     """
     b, v, h, w, _ = pixel_means.shape
     cam = transform_points(w2c.float(), pixel_means.float().reshape(b, v, h * w, 3))  # [B, V, HW, 3]
     z = cam[..., 2]
-    xy = cam[..., :2] / z.clamp_min(eps)[..., None]
-    uv = pixel_grid(h, w, device=cam.device).reshape(1, 1, h * w, 2)
+    front = z > eps
     Kf = K.float()
-    ref = (uv - Kf[..., None, :2, 2]) / torch.stack([Kf[..., 0, 0], Kf[..., 1, 1]], -1)[..., None, :]
-    err = (xy - ref).norm(dim=-1) + F.relu(eps - z)
+    focal = torch.stack([Kf[..., 0, 0], Kf[..., 1, 1]], -1)[..., None, :]  # [B, V, 1, 2]
+    uv = cam[..., :2] / z.clamp_min(eps)[..., None] * focal + Kf[..., None, :2, 2]
+    ref = pixel_grid(h, w, device=cam.device).reshape(1, 1, h * w, 2)
+    reproj = (uv - ref).abs().sum(-1)
+    behind = (eps - z) * focal.mean(-1)
+    err = torch.where(front, reproj, behind)
     if mask is None:
         return err.mean()
     m = mask.reshape(b, v, h * w).to(err.dtype)

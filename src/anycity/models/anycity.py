@@ -25,10 +25,14 @@ class AnyCityNet(nn.Module):
     Output keys (world frame = first camera, OpenCV, normalised scene units):
         ``pose_enc [B, V, 9]`` (t, quat xyzw, fov_h, fov_w) and ``pose_enc_list`` (one per camera iteration);
         ``w2c [B, V, 4, 4]``, ``K [B, V, 3, 3]`` (pixels of the input images);
-        ``depth [B, V, 1, H, W]`` (z-depth), ``depth_conf [B, V, 1, H, W]`` (>= 1);
-        ``pixel_means [B, V, H, W, 3]``: pixel-aligned Gaussian centres before any voxel merge;
+        ``depth [B, V, 1, H, W]`` (z-depth), ``depth_conf [B, V, 1, H, W]`` (>= 1): decoded from Z_final when
+        ``refine_depth`` and refining, else the scaffold's; ``scaffold_depth``: the scaffold's depth;
+        ``offset [B, V, 3, H, W]``: the final centre offsets (depth units, camera frame);
+        ``pixel_means [B, V, H, W, 3]``: final pixel-aligned Gaussian centres (depth unprojected + offset) before
+        any voxel merge; ``scaffold_pixel_means``: the scaffold's;
         ``scaffold_gaussians``: :class:`Gaussians` decoded from the geometry tokens alone;
-        ``gaussians``: final Gaussians (decoded from Z_geo + ΔZ; the same object as ``scaffold_gaussians`` when
+        ``gaussians``: final Gaussians (Z_geo + ΔZ through the Gaussian head, centre offsets included, and with
+        ``cfg.refine_depth`` the depth head; the same object as ``scaffold_gaussians`` when
         ``refine=False`` or the net has no completion branch). N = V*H*W unless ``voxel_size`` merges, in which
         case ``valid [B, N]`` masks padding;
         ``raw_gaussians [B, V, C_raw, H, W]``: the final head output before activation;
@@ -47,7 +51,7 @@ class AnyCityNet(nn.Module):
                    layers=self.head_layers)
         self.camera_head = CameraHead(dim2, cfg.camera_trunk_depth, cfg.camera_num_heads)
         self.depth_head = DepthHead(dim2, **dpt)
-        self.gaussian_head = GaussianHead(dim2, sh_degree=cfg.sh_degree, **dpt)
+        self.gaussian_head = GaussianHead(dim2, sh_degree=cfg.sh_degree, hidden_slope=cfg.gaussian_head_slope, **dpt)
         if cfg.camera_init_fov is not None:
             self.camera_head.init_pose_bias(cfg.camera_init_fov, cfg.camera_iterations)
         if cfg.color_mode == "pixel":
@@ -117,17 +121,30 @@ class AnyCityNet(nn.Module):
             pose_enc_list = self.camera_head(tokens, self.cfg.camera_iterations)
             w2c, K = pose_encoding_to_extri_intri(pose_enc_list[-1], (h, w))
             depth, depth_conf = self.depth_head(tokens, images, psi)
-            means = pixel_centres(depth, K, w2c)
-            raw = self.gaussian_head(tokens, images, psi)
-            aux = {"rgb": images if self.cfg.color_mode == "pixel" else None,
-                   "footprint": pixel_footprint(depth, K) if self.cfg.scale_mode == "pixel" else None}
-            scaffold = raw_to_gaussians(raw, means, self.cfg.sh_degree, self.cfg.voxel_size, **aux)
-            gaussians, delta, gates = scaffold, None, None
+            raw, offset = self.gaussian_head(tokens, images, psi)
+            means = pixel_centres(depth, K, w2c, offset)
+            scaffold = self._gaussians(raw, means, depth, K, images)
+            final = dict(gaussians=scaffold, delta=None, gates=None, depth=depth, depth_conf=depth_conf, raw=raw,
+                         offset=offset, pixel_means=means)
             if refine:
+                # Z_final = Z_geo + dZ goes through the whole decoder: the Gaussian head (attributes and centre
+                # offsets) and, with cfg.refine_depth, the depth head, so Stage II can move geometry
                 vid = self.video_prior(images) if self.video_prior is not None else None
                 delta, gates = self.completion(tokens, psi, vid)
-                raw = self.gaussian_head(tokens, images, psi, delta=delta)
-                gaussians = raw_to_gaussians(raw, means, self.cfg.sh_degree, self.cfg.voxel_size, **aux)
-        return {"pose_enc": pose_enc_list[-1], "pose_enc_list": pose_enc_list, "w2c": w2c, "K": K, "depth": depth,
-                "depth_conf": depth_conf, "pixel_means": means, "gaussians": gaussians,
-                "scaffold_gaussians": scaffold, "raw_gaussians": raw, "delta": delta, "gates": gates}
+                d, dc = depth, depth_conf
+                if self.cfg.refine_depth:
+                    d, dc = self.depth_head(tokens, images, psi, delta=delta)
+                r, o = self.gaussian_head(tokens, images, psi, delta=delta)
+                m = pixel_centres(d, K, w2c, o)
+                final = dict(gaussians=self._gaussians(r, m, d, K, images), delta=delta, gates=gates, depth=d,
+                             depth_conf=dc, raw=r, offset=o, pixel_means=m)
+        return {"pose_enc": pose_enc_list[-1], "pose_enc_list": pose_enc_list, "w2c": w2c, "K": K,
+                "depth": final["depth"], "depth_conf": final["depth_conf"], "scaffold_depth": depth,
+                "offset": final["offset"], "pixel_means": final["pixel_means"], "scaffold_pixel_means": means,
+                "gaussians": final["gaussians"], "scaffold_gaussians": scaffold, "raw_gaussians": final["raw"],
+                "delta": final["delta"], "gates": final["gates"]}
+
+    def _gaussians(self, raw: Tensor, means: Tensor, depth: Tensor, K: Tensor, images: Tensor):
+        aux = {"rgb": images if self.cfg.color_mode == "pixel" else None,
+               "footprint": pixel_footprint(depth, K) if self.cfg.scale_mode == "pixel" else None}
+        return raw_to_gaussians(raw, means, self.cfg.sh_degree, self.cfg.voxel_size, **aux)

@@ -65,9 +65,19 @@ def activate_raw(raw: Tensor, sh_degree: int, rgb: Tensor | None = None,
     return {"opacities": torch.sigmoid(opacity[..., 0]), "scales": scales, "quats": xyzw_to_wxyz(quat), "sh": sh}
 
 
-def pixel_centres(depth: Tensor, K: Tensor, w2c: Tensor) -> Tensor:
-    """``depth [B, V, 1, H, W]`` -> world centres ``[B, V, H, W, 3]`` (float32)."""
-    return unproject_depth(depth.float(), K.float(), w2c.float())
+def pixel_centres(depth: Tensor, K: Tensor, w2c: Tensor, offset: Tensor | None = None) -> Tensor:
+    """``depth [B, V, 1, H, W]`` -> world centres ``[B, V, H, W, 3]`` (float32).
+
+    ``offset [B, V, 3, H, W]`` (optional) moves each centre off its pixel's ray: ``depth * offset`` in the source
+    camera's frame (x right, y down, z forward), so an offset of 0.1 is a tenth of the pixel's depth whatever the
+    scene's scale. Zero offsets give exactly the unprojected depth.
+    """
+    means = unproject_depth(depth.float(), K.float(), w2c.float())
+    if offset is None:
+        return means
+    d_cam = (depth.float() * offset.float()).permute(0, 1, 3, 4, 2)  # [B, V, H, W, 3]
+    R_c2w = w2c.float()[..., :3, :3].transpose(-1, -2)
+    return means + torch.einsum("bvij,bvhwj->bvhwi", R_c2w, d_cam)
 
 
 def voxel_merge(means: Tensor, feats: Tensor, conf: Tensor, voxel_size: float) -> tuple[Tensor, Tensor]:

@@ -36,6 +36,9 @@ class NetConfig:
     dpt_features: int = 256
     dpt_out_channels: tuple[int, ...] = (256, 512, 1024, 1024)
     sh_degree: int = 4
+    # slope of the Gaussian head's last hidden activation: 0 = ReLU (AnySplat, for its weights); > 0 a leaky ReLU for
+    # models trained from scratch, whose ReLU layer dies (constant opacity/scale/colour that Stage II cannot change)
+    gaussian_head_slope: float = 0.0
     voxel_size: float | None = None  # None: pixel-aligned Gaussians, no merge
     # "head": the Gaussian head predicts the full SH (AnySplat); "pixel": SH DC = the input pixel's colour plus the
     # head's residual (the head's SH outputs start near zero at random init)
@@ -60,6 +63,9 @@ class NetConfig:
     wan_block: int = 0
     wan_t_feat: float = 0.0
     wan_lora_rank: int = 16
+    # Stage II: the depth head also decodes Z_final = Z_geo + dZ (else only the Gaussian head does, centre offsets
+    # included); measured on the quickstart, see README "Stage II"
+    refine_depth: bool = True
 
     def resolved_head_layers(self) -> tuple[int, ...]:
         return tuple(self.head_layers) if self.head_layers else scale_layers(VGGT_HEAD_LAYERS, self.depth)
@@ -72,15 +78,15 @@ PRESETS: dict[str, NetConfig] = {
     "tiny": NetConfig(embed_dim=64, depth=4, num_heads=4, patch_size=8, patch_embed="conv", camera_trunk_depth=1,
                       camera_num_heads=4, dpt_features=32, dpt_out_channels=(16, 32, 64, 64), sh_degree=1,
                       completion_dim=64, completion_tokens=16, completion_heads=4, prior_dim=64, prior_depth=1,
-                      color_mode="pixel", scale_mode="pixel", camera_init_fov=1.0),
+                      color_mode="pixel", scale_mode="pixel", camera_init_fov=1.0, gaussian_head_slope=0.1),
     "small": NetConfig(embed_dim=256, depth=8, num_heads=8, patch_size=14, patch_embed="conv", camera_trunk_depth=2,
                        camera_num_heads=8, dpt_features=128, dpt_out_channels=(64, 128, 256, 256), sh_degree=2,
                        completion_dim=256, completion_tokens=64, completion_heads=8, prior_dim=128,
-                       camera_init_fov=1.0),
+                       camera_init_fov=1.0, gaussian_head_slope=0.1),
     "base": NetConfig(embed_dim=768, depth=12, num_heads=12, patch_embed="dinov2_vitb14_reg", camera_trunk_depth=2,
                       camera_num_heads=12, dpt_features=256, dpt_out_channels=(128, 256, 512, 512), sh_degree=3,
                       completion_dim=512, completion_tokens=128, completion_heads=8, prior_dim=256,
-                      camera_init_fov=1.0),
+                      camera_init_fov=1.0, gaussian_head_slope=0.1),
     "vggt-1b": NetConfig(),
 }
 

@@ -90,14 +90,15 @@ def test_test_step_aligns_target_poses_when_asked(batch):
     torch.manual_seed(0)
     m = _no_log(ScaffoldModule(eval_pose_align_steps=20, eval_align="none", render_backend="torch")).eval()
     m.validation_step(batch, 1)
-    assert not m.val_metrics.metrics["psnr_scaffold_unaligned"].update_called  # validation never aligns
+    assert not m.val_metrics.metrics["psnr_scaffold_targetalign"].update_called  # validation never aligns
     with torch.inference_mode():  # as in Lightning's test loop: the batch itself holds inference tensors
         m.test_step(ViewBatch(context=_views(2, 0, [1, 3]), target=_views(1, 1, [2])), 1)
     res = {k: v.compute().item() for k, v in m.test_metrics.items() if v.update_called}
-    assert {"psnr_scaffold", "psnr_scaffold_unaligned", "ssim_scaffold", "rre", "rte", "pose_auc30"} <= set(res)
+    assert {"psnr_scaffold", "psnr_scaffold_targetalign", "ssim_scaffold", "rre", "rte", "pose_auc30"} <= set(res)
+    assert "psnr_scaffold_camrefine" not in res  # no camera refinement asked
     assert 0 <= res["rre"] <= 180 and 0 <= res["rte"] <= 90 and 0 <= res["pose_auc30"] <= 1
-    # photometric alignment against the target image does not make the render worse
-    assert res["psnr_scaffold"] >= res["psnr_scaffold_unaligned"] - 0.05
+    # photometric alignment against the target image does not make the render worse than feed-forward
+    assert res["psnr_scaffold_targetalign"] >= res["psnr_scaffold"] - 0.05
 
 
 def test_test_and_predict_refine_the_context_cameras_when_asked(batch):
@@ -105,17 +106,53 @@ def test_test_and_predict_refine_the_context_cameras_when_asked(batch):
     m = _no_log(ScaffoldModule(camera_refine_steps=5, camera_refine_lr=0.05, eval_align="none",
                                render_backend="torch")).eval()
     m.validation_step(batch, 1)
-    assert not m.val_metrics.metrics["rre_scaffold"].update_called  # validation scores the feed-forward output
+    assert not m.val_metrics.metrics["rre_scaffold_camrefine"].update_called  # validation scores feed-forward only
     with torch.inference_mode():
         m.test_step(ViewBatch(context=_views(2, 0, [1, 3]), target=_views(1, 1, [2])), 1)
         pred = m.predict_step(batch.context.images, 0)
     res = {k: v.compute().item() for k, v in m.test_metrics.items() if v.update_called}
-    assert {"psnr_scaffold", "psnr_scaffold_feedforward", "rre", "rre_scaffold", "rte_scaffold"} <= set(res)
-    assert "psnr_scaffold_unaligned" not in res  # no target alignment asked
+    assert {"psnr_scaffold", "psnr_scaffold_camrefine", "rre", "rre_scaffold_camrefine",
+            "rte_scaffold_camrefine"} <= set(res)
+    assert "psnr_scaffold_targetalign" not in res  # no target alignment asked
     raw = m.net(batch.context.images)["w2c"]
     moved = (pred["w2c"] - raw).abs().amax(dim=(-1, -2))
     assert moved[0, 0] < 1e-5 and moved[0, 1] > 1e-4  # the reference view stays, the other one was refined
     assert pred["gaussians"].means.shape == (1, 2 * H * W, 3)
+
+
+def test_protocols_that_must_not_read_target_images_cannot(batch):
+    """feedforward and camrefine get target cameras only: they run with target images that hold no data at all
+    (meta tensors) and give the same renders; targetalign, which reads them, cannot run on such targets."""
+    from anycity.lit import protocols as P
+
+    torch.manual_seed(0)
+    m = ScaffoldModule(camera_refine_steps=3, eval_pose_align_steps=3, eval_align="none",
+                       render_backend="torch").eval()
+    ctx, tgt = batch.context, batch.target
+    sealed = Views(images=torch.empty(tgt.images.shape, device="meta"), w2c=tgt.w2c, K=tgt.K)
+    with torch.no_grad():
+        out, variants = m.predict_variants(ctx.images)
+        scene = P.Scene(variants["scaffold"], out["w2c"], out["K"])
+        r_sealed, _ = P.feedforward(m, scene, ctx, P.TargetCameras.of(sealed))
+        r_open, _ = P.feedforward(m, scene, ctx, P.TargetCameras.of(tgt))
+        torch.testing.assert_close(r_sealed.rgb, r_open.rgb)
+        r_ref, _, refined = P.camrefine(m, scene, ctx, P.TargetCameras.of(sealed), steps=3)
+        assert torch.isfinite(r_ref.rgb).all() and r_ref.rgb.device.type == "cpu"
+        with pytest.raises((NotImplementedError, RuntimeError)):
+            P.targetalign(m, refined, ctx, sealed, steps=3)
+
+
+def test_joint_protocol_scores_and_region_metrics_are_logged(batch):
+    torch.manual_seed(0)
+    m = _no_log(RefinementModule(eval_joint=True, eval_align="none", render_backend="torch")).eval()
+    with torch.inference_mode():
+        m.test_step(ViewBatch(context=_views(2, 0, [1, 3]), target=_views(1, 1, [2])), 1)
+    res = {k: v.compute().item() for k, v in m.test_metrics.items() if v.update_called}
+    assert {"psnr_scaffold_joint", "psnr_refined_joint", "region_obs", "region_weak"} <= set(res)
+    assert res["region_obs"] + res["region_weak"] == pytest.approx(1.0, abs=1e-6)  # no sky in these targets
+    for name in ("scaffold", "refined", "baseline"):
+        present = [k for k in (f"psnr_obs_{name}", f"psnr_weak_{name}") if k in res]
+        assert present, name  # at least one region is non-empty
 
 
 def test_hparams_hold_the_subclass_and_base_arguments():
@@ -126,3 +163,18 @@ def test_hparams_hold_the_subclass_and_base_arguments():
     assert r.hparams.lr == 1e-4 and r.hparams.d2s_weight == 1.0 and r.hparams.eval_pose_align_steps == 0
     with pytest.raises(TypeError, match="depht_weight"):
         ScaffoldModule(depht_weight=0.1)
+
+
+def test_far_views_keeps_the_dense_cameras_farthest_from_the_context():
+    from anycity.lit.refinement import far_views
+
+    ctx, dense = _views(2, 0, [0, 1]), _views(5, 2, [0, 1, 2, 3, 4])
+    dense.w2c[..., 0, 3] = torch.tensor([0.0, 0.9, 0.1, 0.5, 0.3])  # camera centres at x = -t
+    ctx.w2c[..., 0, 3] = torch.tensor([0.0, 0.1])
+    far = far_views(dense, ctx, 2)
+    assert far.index.tolist() == [[1, 3]]  # 0.9 and 0.5 away; order kept
+    torch.testing.assert_close(far.images, dense.images[:, [1, 3]])
+    torch.testing.assert_close(far.depth, dense.depth[:, [1, 3]])
+    assert far_views(dense, ctx, None) is dense and far_views(dense, ctx, 9) is dense
+    with pytest.raises(ValueError, match="d2s_views"):
+        far_views(dense, ctx, 0)

@@ -74,10 +74,33 @@ def test_ray_anchor_zero_on_ray_and_known_offset():
     w2c = torch.eye(4).expand(1, 1, 4, 4)
     depth = torch.rand(1, 1, 1, 8, 8) + 1.0
     means = unproject_depth(depth, K, w2c)  # [1, 1, 8, 8, 3] on the rays
-    assert ray_anchor_loss(means, w2c, K).item() < 1e-6
+    assert ray_anchor_loss(means, w2c, K).item() < 1e-5
     shifted = means.clone()
-    shifted[..., 0] = shifted[..., 0] + 0.1 * shifted[..., 2]  # x/z off by exactly 0.1
-    assert ray_anchor_loss(shifted, w2c, K).item() == pytest.approx(0.1, rel=1e-4)
+    shifted[..., 0] = shifted[..., 0] + 0.1 * shifted[..., 2]  # x/z off by 0.1 -> 0.1 * fx = 1 pixel in u
+    assert ray_anchor_loss(shifted, w2c, K).item() == pytest.approx(1.0, rel=1e-4)
+    mask = torch.zeros(1, 1, 1, 8, 8, dtype=torch.bool)
+    mask[..., :2, :] = True
+    shifted[..., 2:, :, :] = means[..., 2:, :, :]  # only the masked rows moved: the masked mean stays 1 pixel
+    assert ray_anchor_loss(shifted, w2c, K, mask).item() == pytest.approx(1.0, rel=1e-4)
+
+
+def test_ray_anchor_nonzero_with_network_offsets_and_gradient_reaches_offset_conv():
+    from anycity.models import build_network
+
+    torch.manual_seed(0)
+    net = build_network("tiny", completion=False)
+    out = net(torch.rand(1, 2, 3, 32, 32), refine=False)
+    assert ray_anchor_loss(out["pixel_means"], out["w2c"], out["K"]).item() < 1e-3  # zero offsets: on the rays
+    with torch.no_grad():
+        net.gaussian_head.offset_conv.bias.copy_(torch.tensor([0.05, -0.02, 0.0]))
+    out = net(torch.rand(1, 2, 3, 32, 32), refine=False)
+    loss = ray_anchor_loss(out["pixel_means"], out["w2c"], out["K"])
+    fx, fy = out["K"][0, :, 0, 0], out["K"][0, :, 1, 1]
+    # a lateral camera-frame offset (0.05, -0.02, 0) * z reprojects (0.05 fx, 0.02 fy) pixels away in every view
+    assert loss.item() == pytest.approx((0.05 * fx + 0.02 * fy).mean().item(), rel=1e-4)
+    loss.backward()
+    assert net.gaussian_head.offset_conv.weight.grad.abs().sum() > 0
+    assert net.gaussian_head.offset_conv.bias.grad.abs().sum() > 0
 
 
 def _plane_render(h=12, w=12, tilt=0.0):

@@ -169,3 +169,60 @@ def test_mode_options_validated_and_camera_init():
         enc = net(torch.rand(1, 2, 3, 32, 32), refine=False)["pose_enc"]
     assert (enc[..., 7:] > 0.5).all() and (enc[..., 7:] < 1.5).all()  # FoV near 1 rad: finite focal
     assert (enc[..., 6] > 0.5).all()  # quaternion w near 1: identity rotation
+
+
+def test_zero_offsets_keep_centres_on_their_rays_and_refinement_starts_at_the_scaffold():
+    """The centre-offset output is zero-initialised: centres are exactly the unprojected depth (Stage I starts where
+    it did without offsets), and Stage II's final Gaussians, depth and centres equal the scaffold's before training."""
+    from anycity.models.gaussians import pixel_centres
+
+    torch.manual_seed(0)
+    net = build_network("tiny")
+    out = net(torch.rand(1, 3, 3, 32, 32), refine=True)
+    assert not out["offset"].any()
+    assert torch.equal(out["scaffold_pixel_means"], pixel_centres(out["scaffold_depth"], out["K"], out["w2c"]))
+    assert torch.equal(out["pixel_means"], out["scaffold_pixel_means"])
+    assert torch.equal(out["depth"], out["scaffold_depth"])
+    assert torch.equal(out["gaussians"].means, out["scaffold_gaussians"].means)
+    assert torch.equal(out["gaussians"].sh, out["scaffold_gaussians"].sh)
+
+
+def test_completion_residual_reaches_centres_and_depth():
+    """Z_final goes through the whole decoder: a non-zero residual moves centres (offsets) and depth."""
+    torch.manual_seed(0)
+    net = build_network("tiny")
+    with torch.no_grad():
+        for lin in net.completion.delta_proj:
+            lin.bias.normal_(0, 0.5)
+    out = net(torch.rand(1, 2, 3, 32, 32), refine=True)
+    assert not torch.equal(out["depth"], out["scaffold_depth"])
+    assert not torch.equal(out["gaussians"].opacities, out["scaffold_gaussians"].opacities)
+    with torch.no_grad():
+        net.gaussian_head.offset_conv.weight.normal_(0, 0.1)
+    out = net(torch.rand(1, 2, 3, 32, 32), refine=True)
+    assert not torch.equal(out["gaussians"].means, out["scaffold_gaussians"].means)
+    (out["gaussians"].means.sum() + out["depth"].sum()).backward()
+    assert net.completion.delta_proj[0].bias.grad.abs().sum() > 0
+
+
+def test_offsets_respond_to_the_residual_even_when_the_hidden_relu_layer_is_dead():
+    """The offset conv reads the pre-activation input of the head's last block: a Stage I head whose ReLU layer died
+    (every unit negative everywhere, seen in the tiny quickstart model) still lets Stage II move the centres."""
+    torch.manual_seed(0)
+    net = build_network("tiny", gaussian_head_slope=0.0)
+    assert isinstance(net.gaussian_head.scratch.output_conv2[1], torch.nn.ReLU)
+    with torch.no_grad():
+        net.gaussian_head.scratch.output_conv2[0].bias.fill_(-1e4)  # dead: the hidden layer is 0 on every pixel
+        net.gaussian_head.offset_conv.weight.normal_(0, 0.1)
+        for lin in net.completion.delta_proj:
+            lin.bias.normal_(0, 0.5)
+    out = net(torch.rand(1, 2, 3, 32, 32), refine=True)
+    torch.testing.assert_close(out["gaussians"].opacities, out["scaffold_gaussians"].opacities)  # dead: constant
+    assert (out["pixel_means"] - out["scaffold_pixel_means"]).abs().amax() > 1e-4
+
+
+def test_presets_trained_from_scratch_use_a_leaky_head_and_vggt_1b_keeps_relu():
+    assert isinstance(build_network("tiny").gaussian_head.scratch.output_conv2[1], torch.nn.LeakyReLU)
+    with torch.device("meta"):
+        assert isinstance(build_network("vggt-1b", completion=False).gaussian_head.scratch.output_conv2[1],
+                          torch.nn.ReLU)
