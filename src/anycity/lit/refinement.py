@@ -15,8 +15,8 @@ from torch import Tensor
 
 from anycity.geometry import camera_centers
 from anycity.lit.base import AnyCityModule
-from anycity.models.anycity import SCAFFOLD_PREFIXES
 from anycity.losses import d2s_loss, preservation_loss, regularizer_loss, rgb_loss
+from anycity.models.anycity import SCAFFOLD_PREFIXES
 from anycity.structures import RenderOutput, ViewBatch, Views
 
 

@@ -150,7 +150,6 @@ def lpips_or_none(net_type: str = "alex") -> tuple[object | None, str]:
     os.environ["HF_HUB_OFFLINE"] = "1"
     try:
         import torch.hub
-
         from torchmetrics.image.lpip import LearnedPerceptualImagePatchSimilarity
 
         hub = os.path.join(torch.hub.get_dir(), "checkpoints")
