@@ -251,22 +251,24 @@ class AnyCityModule(pl.LightningModule):
         return refine_context_cameras(self._camera_renderer(K, hw, images), g, w2c, images, steps,
                                       self.hparams.camera_refine_lr)
 
-    def _log_metrics(self, metrics: EvalMetrics, split: str, batch_size: int) -> None:
-        for name, m in metrics.items():
-            if not m.update_called:  # e.g. no valid ground-truth depth in this split
-                continue
-            self.log(f"{split}/{name}", m, on_step=False, on_epoch=True, batch_size=batch_size,
-                     prog_bar=name.startswith("psnr") and split == "val")
+    def _log_metrics(self, metrics: EvalMetrics, split: str) -> None:
+        # at epoch end on every rank: a rank without samples must still join the metric syncs (lit/distributed.py)
+        from anycity.lit.distributed import log_eval_metrics
+
+        log_eval_metrics(self, metrics, split)
+
+    def on_validation_epoch_end(self) -> None:
+        self._log_metrics(self.val_metrics, "val")
+
+    def on_test_epoch_end(self) -> None:
+        self._log_metrics(self.test_metrics, "test")
 
     def validation_step(self, batch: ViewBatch, batch_idx: int) -> dict[str, Any] | None:
-        res = self.evaluate(batch, self.val_metrics, batch_idx == 0)
-        self._log_metrics(self.val_metrics, "val", batch.batch_size)
-        return res
+        return self.evaluate(batch, self.val_metrics, batch_idx == 0)
 
     def test_step(self, batch: ViewBatch, batch_idx: int) -> dict[str, Any] | None:
         res = self.evaluate(batch, self.test_metrics, batch_idx == 0, self.hparams.eval_pose_align_steps,
                             self.hparams.camera_refine_steps)
-        self._log_metrics(self.test_metrics, "test", batch.batch_size)
         return res
 
     # ----------------------------------------------------------------------------------------- prediction

@@ -55,6 +55,11 @@ class ScaffoldModule(AnyCityModule):
         flat_weight: float = 0.0,
         **base,
     ) -> None:
+        # Stage I builds no completion branch: nothing unused in the DDP graph, nothing untrained in the checkpoint
+        if (base.get("net") or {}).get("completion"):
+            raise ValueError("model.net.completion: Stage I (ScaffoldModule) trains the scaffold only, got "
+                             "completion=true; drop it (Stage II, RefinementModule, builds the completion branch)")
+        base["net"] = {**(base.get("net") or {}), "completion": False}
         super().__init__(**base)  # also records every argument, these and the base's, as hparams
 
     def training_step(self, batch: ViewBatch, batch_idx: int) -> Tensor:
