@@ -17,6 +17,10 @@ from torch import nn
 from torchmetrics.image import PeakSignalNoiseRatio
 
 
+# the values logged here are already reduced over ranks (torchmetrics syncs inside compute())
+warnings.filterwarnings("ignore", message=".*when logging on epoch level in distributed setting.*")
+
+
 def updated_anywhere(module, metrics: nn.ModuleDict | dict) -> list[str]:
     """Names of the metrics that at least one rank updated (one all-gather; local flags without DDP)."""
     names = list(metrics.keys())

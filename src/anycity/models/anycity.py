@@ -58,7 +58,8 @@ class AnyCityNet(nn.Module):
             self.video_prior = build_video_prior(
                 cfg.video_prior, cfg.prior_dim, cfg.prior_depth, max(1, cfg.prior_dim // 64), cfg.prior_stride,
                 wan_dir=cfg.wan_dir, **({"block": cfg.wan_block, "t_feat": cfg.wan_t_feat}
-                                        if cfg.video_prior.startswith("wan") else {}))
+                                        if cfg.video_prior.startswith("wan") else {}),
+                **({"empty_prompt_path": cfg.wan_empty_prompt} if cfg.video_prior == "wan" else {}))
             if isinstance(self.video_prior, WanVideoPrior) and cfg.wan_lora_rank > 0:
                 self.video_prior.add_lora(cfg.wan_lora_rank)
             self.completion = CompletionBranch(

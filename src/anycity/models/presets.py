@@ -57,9 +57,14 @@ class NetConfig:
     prior_depth: int = 2
     prior_stride: int = 16
     wan_dir: str | None = None
-    wan_block: int = 0
+    # Wan block whose output feeds the completion branch; None = the middle one (14 of TI2V-5B's 30): block 0 is
+    # little more than the patchified VAE latent, and diffusion-feature studies find mid-depth features carry the
+    # most correspondence/semantic signal; later blocks cost more (all kept blocks run, LoRA backprops through them)
+    wan_block: int | None = None
     wan_t_feat: float = 0.0
-    wan_lora_rank: int = 16
+    wan_lora_rank: int = 16  # LoRA (float32) on attn1 q/k/v/out of the kept blocks; 0 = frozen prior
+    # umT5 embedding of "" as a [1, L, 4096] tensor (torch.save); None: <wan_dir>/empty_prompt.pt if present, else zeros
+    wan_empty_prompt: str | None = None
 
     def resolved_head_layers(self) -> tuple[int, ...]:
         return tuple(self.head_layers) if self.head_layers else scale_layers(VGGT_HEAD_LAYERS, self.depth)
