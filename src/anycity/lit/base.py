@@ -124,6 +124,8 @@ class AnyCityModule(pl.LightningModule):
         # Called here, Lightning collects the arguments of every __init__ on the stack: the subclass's own and
         # those it passes on in **base, so checkpoints and LightningCLI see one flat set of hyperparameters.
         self.save_hyperparameters()
+        if self.net.cfg.focal_decode != (net or {}).get("focal_decode", "vggt"):  # set by an AnySplat checkpoint
+            self.hparams.net = {**(net or {}), "focal_decode": self.net.cfg.focal_decode}
 
     # ----------------------------------------------------------------------------------------- rendering
     def render(self, gaussians: Gaussians, w2c: Tensor, K: Tensor, hw: tuple[int, int], context: Tensor,

@@ -7,6 +7,7 @@ cameras, each mapped into its own predicted frame, and depths are compared in gr
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -76,7 +77,11 @@ class RefinementModule(AnyCityModule):
         # memory-mapped, tensors only: the weights are read on use and the optimiser state (2x the weights) never is
         ckpt = torch.load(path, map_location="cpu", mmap=True, weights_only=True)
         state = ckpt.get("state_dict", ckpt)
+        decode = ((ckpt.get("hyper_parameters") or {}).get("net") or {}).get("focal_decode", "vggt")
         del ckpt
+        if decode != self.net.cfg.focal_decode:  # e.g. Stage I started from AnySplat: keep its camera decode
+            self.net.cfg = replace(self.net.cfg, focal_decode=decode)
+            self.hparams.net = {**(self.hparams.net or {}), "focal_decode": decode}
         own = self.net.state_dict()
         loaded, unexpected = {}, []
         for k, v in state.items():

@@ -79,7 +79,7 @@ class ScaffoldModule(AnyCityModule):
             terms["rgb_ctx"] = rgb_loss(r_ctx.rgb, ctx.images, ssim_weight=hp.ssim_weight)["total"]
             loss = loss + hp.context_rgb_weight * terms["rgb_ctx"]
         if hp.camera_weight > 0:
-            gt_enc = extri_intri_to_pose_encoding(ctx.w2c, ctx.K, ctx.hw)
+            gt_enc = extri_intri_to_pose_encoding(ctx.w2c, ctx.K, ctx.hw, self.net.cfg.focal_decode)
             terms["cam"] = camera_loss(out["pose_enc_list"], gt_enc, loss_type=hp.camera_loss_type)["total"]
             loss = loss + hp.camera_weight * terms["cam"]
         if geo_on and hp.depth_weight > 0 and ctx.depth is not None:

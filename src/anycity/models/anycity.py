@@ -116,7 +116,7 @@ class AnyCityNet(nn.Module):
             tokens = [None if t is None else t.float() for t in tokens]
             images = images.float()
             pose_enc_list = self.camera_head(tokens, self.cfg.camera_iterations)
-            w2c, K = pose_encoding_to_extri_intri(pose_enc_list[-1], (h, w))
+            w2c, K = pose_encoding_to_extri_intri(pose_enc_list[-1], (h, w), self.cfg.focal_decode)
             depth, depth_conf = self.depth_head(tokens, images, psi)
             means = pixel_centres(depth, K, w2c)
             raw = self.gaussian_head(tokens, images, psi)

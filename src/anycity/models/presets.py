@@ -46,6 +46,9 @@ class NetConfig:
     # random init only: bias the camera head to an identity rotation and this field of view (radians); None keeps
     # VGGT's init (whose ReLU FoV starts at 0: infinite focal length, no gradient). Pretrained weights override it.
     camera_init_fov: float | None = None
+    # focal length from the predicted FoV: "vggt" or "anysplat" (AnySplat's +1e-3; load_pretrained(kind="anysplat")
+    # sets it, and it travels in the hyperparameters and the Stage I -> Stage II hand-over)
+    focal_decode: str = "vggt"
     # completion branch + video prior
     completion: bool = True
     completion_dim: int = 1024
