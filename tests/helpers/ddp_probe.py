@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from pathlib import Path
 
 import torch
@@ -51,3 +52,33 @@ class DDPProbe(Callback):
         self.out.mkdir(parents=True, exist_ok=True)
         torch.save({n: p.detach().cpu() for n, p in pl_module.named_parameters()},
                    self.out / f"params_rank{trainer.global_rank}.pt")
+
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def subprocess_env() -> dict:
+    """This environment for a CLI subprocess: our src/ and tests/ importable, no leftover rank/SLURM variables (a
+    child that sees them believes it is already a worker or a SLURM task)."""
+    env = {k: v for k, v in os.environ.items()
+           if not k.startswith("SLURM_") and k not in ("LOCAL_RANK", "RANK", "WORLD_SIZE", "NODE_RANK",
+                                                       "MASTER_ADDR", "MASTER_PORT", "PL_TRAINER_GPUS")}
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT / "src"), str(ROOT / "tests"), env.get("PYTHONPATH", "")])
+    return env
+
+
+def make_shards(out: Path) -> Path:
+    """30 cities x 8 views at 32x32: 24 train, 3 val and 3 test scenes (one sample each)."""
+    from anycity.data.cli import data_main
+
+    data_main(["synth", "--out", str(out), "--scenes", "30", "--views", "8", "--size", "32x32", "--workers", "1"])
+    return out
+
+
+def assert_params_equal(probe: Path) -> None:
+    """The two ranks' final parameters (written by :class:`DDPProbe`) are finite and bit-identical."""
+    p0, p1 = (torch.load(probe / f"params_rank{r}.pt") for r in (0, 1))
+    assert p0.keys() == p1.keys() and p0
+    for k in p0:
+        assert torch.isfinite(p0[k]).all(), k
+        torch.testing.assert_close(p0[k], p1[k], rtol=0, atol=0, msg=k)

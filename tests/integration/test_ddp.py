@@ -6,30 +6,21 @@ scored and its final parameters, and poisons one rank: an inf gradient in Stage 
 """
 
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
-import torch
+from helpers.ddp_probe import assert_params_equal, make_shards, subprocess_env
 
 ROOT = Path(__file__).resolve().parents[2]
 CFG = ROOT / "configs"
 TIMEOUT = 180  # per command; a collective mismatch aborts (gloo) or hangs, and then this fails the test
 
 
-def _env() -> dict:
-    env = {k: v for k, v in os.environ.items()
-           if not k.startswith("SLURM_") and k not in ("LOCAL_RANK", "RANK", "WORLD_SIZE", "NODE_RANK",
-                                                       "MASTER_ADDR", "MASTER_PORT", "PL_TRAINER_GPUS")}
-    env["PYTHONPATH"] = os.pathsep.join([str(ROOT / "src"), str(ROOT / "tests"), env.get("PYTHONPATH", "")])
-    return env
-
-
 def _run(args: list[str], cwd: Path) -> str:
-    proc = subprocess.run([sys.executable, "-m", "anycity.cli", *args], cwd=cwd, env=_env(), capture_output=True,
-                          text=True, timeout=TIMEOUT)
+    proc = subprocess.run([sys.executable, "-m", "anycity.cli", *args], cwd=cwd, env=subprocess_env(),
+                          capture_output=True, text=True, timeout=TIMEOUT)
     log = proc.stdout + proc.stderr
     assert proc.returncode == 0, log[-4000:]
     return log
@@ -55,12 +46,7 @@ def _overlay(tmp: Path, name: str, probe: Path, **poison) -> Path:
 
 @pytest.fixture(scope="module")
 def shards(tmp_path_factory):
-    """30 cities x 8 views at 32x32: 24 train, 3 val and 3 test scenes (one sample each)."""
-    from anycity.data.cli import data_main
-
-    out = tmp_path_factory.mktemp("ddp_shards")
-    data_main(["synth", "--out", str(out), "--scenes", "30", "--views", "8", "--size", "32x32", "--workers", "1"])
-    return out
+    return make_shards(tmp_path_factory.mktemp("ddp_shards"))
 
 
 def _scored(probe: Path, split: str) -> list[list[tuple[str, int]]]:
@@ -82,14 +68,6 @@ def _held_out(shards: Path, split: str) -> list[tuple[str, int]]:
     return [(s, int(i)) for b in loader for s, idx in zip(b.scene, b.target.index) for i in idx.tolist()]
 
 
-def _params_equal(probe: Path) -> None:
-    p0, p1 = (torch.load(probe / f"params_rank{r}.pt") for r in (0, 1))
-    assert p0.keys() == p1.keys() and p0
-    for k in p0:
-        assert torch.isfinite(p0[k]).all(), k
-        torch.testing.assert_close(p0[k], p1[k], rtol=0, atol=0, msg=k)
-
-
 def _skips(run: Path) -> float:
     import csv
 
@@ -105,7 +83,7 @@ def test_two_process_chain_stage1_stage2_test_predict(shards, tmp_path):
     log = _run(["fit", "-c", str(CFG / "stage1.yaml"), *base,
                 "-c", str(_overlay(tmp_path, "s1", p1, poison_rank=1, poison_step=1, poison="grad"))], tmp_path)
     assert "skipped optimiser step 1" in log and _skips(tmp_path / "s1") == 1.0
-    _params_equal(p1)
+    assert_params_equal(p1)
     val = _scored(p1, "val")  # 2 validations x limit_val_batches 2 per rank, 3 val scenes
     expected = _held_out(shards, "val")
     assert sorted(val[0] + val[1]) == sorted(expected * 2)  # every val view exactly once per validation
@@ -117,7 +95,7 @@ def test_two_process_chain_stage1_stage2_test_predict(shards, tmp_path):
     log = _run(["fit", "-c", str(CFG / "stage2.yaml"), *base, "--model.init_args.init_from", str(ckpt1),
                 "-c", str(_overlay(tmp_path, "s2", p2, poison_rank=0, poison_step=2, poison="loss"))], tmp_path)
     assert "skipped optimiser step 2" in log and _skips(tmp_path / "s2") == 1.0
-    _params_equal(p2)
+    assert_params_equal(p2)
     ckpt2 = tmp_path / "s2" / "checkpoints" / "last.ckpt"
 
     # test: init_from points nowhere (stage2.yaml's default runs/stage1/... does not exist under tmp_path), 2 loader

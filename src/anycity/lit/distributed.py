@@ -16,7 +16,6 @@ import torch
 from torch import nn
 from torchmetrics.image import PeakSignalNoiseRatio
 
-
 # the values logged here are already reduced over ranks (torchmetrics syncs inside compute())
 warnings.filterwarnings("ignore", message=".*when logging on epoch level in distributed setting.*")
 

@@ -1,7 +1,6 @@
 """Freeze-by-glob on small modules (LoRA lives in the network: models/video_prior.py, NetConfig.wan_lora_rank)."""
 
 import pytest
-import torch
 from torch import nn
 
 from anycity.callbacks import FreezeModules, freeze_by_patterns

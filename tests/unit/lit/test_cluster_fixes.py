@@ -40,7 +40,8 @@ def test_wan_loads_in_the_asked_dtype_with_float32_lora_and_middle_block(wan_dir
     prior = WanVideoPrior.from_pretrained(wan_dir, dtype=torch.bfloat16)
     assert prior.block == 1 and len(prior.transformer.blocks) == 2  # None: the middle of 4 blocks
     assert prior.empty_prompt.shape == (1, 3, 32)  # picked up from <wan_dir>/empty_prompt.pt
-    dtypes = [p.dtype for n, p in prior.transformer.named_parameters() if n.endswith(("to_q.weight", "ffn.net.2.weight"))]
+    dtypes = [p.dtype for n, p in prior.transformer.named_parameters()
+              if n.endswith(("to_q.weight", "ffn.net.2.weight"))]
     assert dtypes and set(dtypes) == {torch.bfloat16}  # (diffusers keeps some norm/time modules in float32)
     assert {p.dtype for p in prior.vae.parameters()} == {torch.float32}
     assert len(prior.source["sha256"]) == 64
