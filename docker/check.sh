@@ -46,7 +46,7 @@ mounts=(-v "$WORK/pip.conf:/etc/pip.conf:ro" -v /etc/ssl/certs/ca-certificates.c
 for d in /opt/wheels /opt/pypi /opt/pypi-more; do [[ -d $d ]] && mounts+=(-v "$d:$d:ro"); done
 
 echo "docker-check: podman build (CPU variant of docker/Dockerfile)"
-podman build --network host "${mounts[@]}" -f docker/Dockerfile -t "$TAG" \
+podman build --format docker --network host "${mounts[@]}" -f docker/Dockerfile -t "$TAG" \
     --build-arg BASE="$BASE_TAG" --build-arg WITH_GSPLAT=0 --build-arg EXTRAS=wan,cpu,dev \
     --build-arg TORCH_INDEX_URL=file:///opt/pypi/simple .
 
