@@ -28,7 +28,7 @@ def drop_frozen_prior(net: nn.Module, checkpoint: dict) -> None:
     sd = checkpoint["state_dict"]
     for k in [k for k in sd if _is_frozen_prior_key(k)]:
         del sd[k]
-    checkpoint["video_prior"] = {**source, "block": int(prior.block)}
+    checkpoint["video_prior"] = {"dir": source["dir"], "sha256": prior.content_hash(), "block": int(prior.block)}
 
 
 def restore_frozen_prior(net: nn.Module, checkpoint: dict) -> None:
@@ -40,9 +40,10 @@ def restore_frozen_prior(net: nn.Module, checkpoint: dict) -> None:
     if source is None:
         raise ValueError(f"checkpoint: its video prior is Wan from {ref['dir']} (sha256 {ref['sha256'][:12]}), not "
                          "saved in the file; build the module with net.video_prior=wan and net.wan_dir=<that folder>")
-    if source["sha256"] != ref["sha256"]:
+    sha = prior.content_hash()
+    if sha != ref["sha256"]:
         raise ValueError(f"checkpoint: Wan prior mismatch: trained with {ref['dir']} (sha256 {ref['sha256'][:12]}), "
-                         f"got {source['dir']} (sha256 {source['sha256'][:12]}); point net.wan_dir at the same weights")
+                         f"got {source['dir']} (sha256 {sha[:12]}); point net.wan_dir at the same weights")
     if int(prior.block) != int(ref.get("block", prior.block)):
         raise ValueError(f"checkpoint: trained on Wan block {ref['block']}, this module cuts at block {prior.block}; "
                          f"set net.wan_block={ref['block']}")

@@ -34,17 +34,36 @@ EMPTY_PROMPT_FILE = "empty_prompt.pt"
 
 def folder_hash(root: str | Path, subfolders: tuple[str, ...] = ("transformer", "vae")) -> str:
     """SHA-256 over the files of ``root/<subfolder>`` (relative names and bytes, sorted): identifies a frozen prior
-    that checkpoints reference instead of copying. Reads every byte once (about 10 GB for Wan 2.2 TI2V-5B)."""
+    that checkpoints reference instead of copying. Reading every byte takes a while (about 10 GB for Wan 2.2
+    TI2V-5B), so the result is cached in ``$XDG_CACHE_HOME/anycity/folder_hash.json`` under the folder's path,
+    keyed by every file's name, size and modification time."""
     import hashlib
+    import json
 
+    root = Path(root).resolve()
+    files = sorted(p for sub in subfolders for p in (root / sub).rglob("*") if p.is_file())
+    key = [[str(f.relative_to(root)), f.stat().st_size, f.stat().st_mtime_ns] for f in files]
+    cache = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "anycity" / "folder_hash.json"
+    try:
+        table = json.loads(cache.read_text())
+    except (OSError, ValueError):
+        table = {}
+    hit = table.get(str(root))
+    if hit and hit.get("key") == key:
+        return hit["sha256"]
     h = hashlib.sha256()
-    for sub in subfolders:
-        for f in sorted(p for p in (Path(root) / sub).rglob("*") if p.is_file()):
-            h.update(str(f.relative_to(root)).encode() + b"\0")
-            with open(f, "rb") as fh:
-                while chunk := fh.read(1 << 24):
-                    h.update(chunk)
-    return h.hexdigest()
+    for f in files:
+        h.update(str(f.relative_to(root)).encode() + b"\0")
+        with open(f, "rb") as fh:
+            while chunk := fh.read(1 << 24):
+                h.update(chunk)
+    table[str(root)] = {"key": key, "sha256": h.hexdigest()}
+    try:  # a read-only home is fine: the hash is just recomputed next time
+        cache.parent.mkdir(parents=True, exist_ok=True)
+        cache.write_text(json.dumps(table))
+    except OSError:
+        pass
+    return table[str(root)]["sha256"]
 
 
 @runtime_checkable
@@ -127,7 +146,8 @@ class WanVideoPrior(nn.Module):
         self._feat: Tensor | None = None
         self.block = block
         self.transformer.blocks[block].register_forward_hook(self._grab)
-        self.source: dict[str, str] | None = None  # {"dir", "sha256"} when loaded from a folder
+        self.source: dict | None = None  # {"dir", "subfolders"} when loaded from a folder
+        self._sha256: str | None = None
 
     def _grab(self, module, args, output) -> None:
         self._feat = output
@@ -162,8 +182,17 @@ class WanVideoPrior(nn.Module):
                                         "embedding of '' as a [1, L, text_dim] tensor or pass None for zeros")
             prompt = torch.load(empty_prompt_path, map_location="cpu", weights_only=True)
         prior = cls(vae, tr, empty_prompt=prompt, **kwargs)
-        prior.source = {"dir": str(root), "sha256": folder_hash(root, (subfolder, vae_subfolder))}
+        prior.source = {"dir": str(root), "subfolders": (subfolder, vae_subfolder)}
         return prior
+
+    def content_hash(self) -> str | None:
+        """SHA-256 of the weights folder this prior was loaded from (None for a prior built in memory); computed
+        on first use, i.e. when a checkpoint is saved or loaded, not at construction."""
+        if self.source is None:
+            return None
+        if self._sha256 is None:
+            self._sha256 = folder_hash(self.source["dir"], tuple(self.source["subfolders"]))
+        return self._sha256
 
     @classmethod
     def tiny_random(cls, z_dim: int = 16, block: int = 1, **kwargs) -> WanVideoPrior:

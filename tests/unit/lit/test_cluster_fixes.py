@@ -19,6 +19,11 @@ needs_diffusers = pytest.mark.skipif(importlib.util.find_spec("diffusers") is No
                                      reason="the 'wan' extra (diffusers) is not installed")
 
 
+@pytest.fixture(autouse=True)
+def _hash_cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))  # folder_hash's cache, not the user's
+
+
 @pytest.fixture(scope="module")
 def wan_dir(tmp_path_factory):
     """A tiny random Wan 2.2-style prior saved in the Diffusers layout (transformer/, vae/) + empty_prompt.pt."""
@@ -44,7 +49,7 @@ def test_wan_loads_in_the_asked_dtype_with_float32_lora_and_middle_block(wan_dir
               if n.endswith(("to_q.weight", "ffn.net.2.weight"))]
     assert dtypes and set(dtypes) == {torch.bfloat16}  # (diffusers keeps some norm/time modules in float32)
     assert {p.dtype for p in prior.vae.parameters()} == {torch.float32}
-    assert len(prior.source["sha256"]) == 64
+    assert len(prior.content_hash()) == 64
     prior.add_lora(rank=2)
     lora = {n: p for n, p in prior.transformer.named_parameters() if "lora_" in n}
     assert lora and all(p.dtype == torch.float32 and p.requires_grad for p in lora.values())
@@ -74,7 +79,7 @@ def test_checkpoint_references_frozen_prior_by_hash_and_keeps_lora(wan_dir, tmp_
     assert not any(k.startswith(("net.video_prior.vae.", "net.video_prior.transformer.")) and "lora_" not in k
                    for k in keys)
     assert any("lora_A" in k for k in keys) and any(k.startswith("net.completion.") for k in keys)
-    assert len(keys) < full and ckpt["video_prior"]["sha256"] == m.net.video_prior.source["sha256"]
+    assert len(keys) < full and ckpt["video_prior"]["sha256"] == m.net.video_prior.content_hash()
 
     fresh = RefinementModule(preset="tiny", net=net)
     fresh.on_load_checkpoint(ckpt)
