@@ -16,7 +16,8 @@ class DDPProbe(Callback):
     """Args:
         out_dir: where ``<split>_rank<r>.jsonl`` (one line per scored target view) and ``params_rank<r>.pt`` go.
         poison_rank, poison_step: the rank and optimiser step to poison (-1: never).
-        poison: "loss" (the loss becomes NaN after backward) or "grad" (one gradient becomes inf).
+        poison: "loss" (the loss becomes NaN after backward), "grad" (one gradient becomes inf) or "input" (the
+            context images become NaN, so the whole forward is NaN).
     """
 
     def __init__(self, out_dir: str, poison_rank: int = -1, poison_step: int = -1, poison: str = "grad") -> None:
@@ -25,6 +26,10 @@ class DDPProbe(Callback):
 
     def _hit(self, trainer) -> bool:
         return trainer.global_rank == self.poison_rank and trainer.global_step == self.poison_step
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
+        if self._hit(trainer) and self.poison == "input":
+            batch.context.images.fill_(math.nan)
 
     def on_before_backward(self, trainer, pl_module, loss) -> None:
         if self._hit(trainer) and self.poison == "loss":

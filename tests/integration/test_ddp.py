@@ -115,3 +115,14 @@ def test_two_process_chain_stage1_stage2_test_predict(shards, tmp_path):
           "--ckpt_path", str(ckpt2), "--export.out_dir", str(out)], tmp_path)
     assert sorted(d.name for d in out.iterdir()) == sorted({s for s, _ in expected})
     assert all((d / "scene.ply").stat().st_size > 1000 for d in out.iterdir())
+
+
+@pytest.mark.slow
+def test_a_nan_batch_on_one_rank_is_skipped_by_every_rank(shards, tmp_path):
+    """A NaN input batch makes the whole forward NaN on rank 1 (rendering it would raise there alone)."""
+    probe = tmp_path / "probe"
+    log = _run(["fit", "-c", str(CFG / "stage1.yaml"), "-c", str(CFG / "debug" / "cpu_ddp.yaml"), "--data.root",
+                str(shards), "-c", str(_overlay(tmp_path, "s1", probe, poison_rank=1, poison_step=1,
+                                                poison="input"))], tmp_path)
+    assert "skipped optimiser step 1" in log and _skips(tmp_path / "s1") == 1.0
+    assert_params_equal(probe)

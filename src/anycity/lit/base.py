@@ -168,6 +168,16 @@ class AnyCityModule(pl.LightningModule):
             opt, lambda s: warmup_cosine(s, hp.warmup_steps, total, hp.min_lr_ratio))
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
 
+    def nonfinite_forward(self, out: dict) -> Tensor | None:
+        """None when the network's Gaussians and cameras are finite; else a NaN loss wired to every trainable
+        parameter. Rendering a NaN scene raises (on this rank alone, while the other DDP ranks wait in backward);
+        this loss lets backward run on every rank and the ``nonfinite`` callback skip the step everywhere."""
+        g = out["gaussians"]
+        parts = [g.means, g.quats, g.scales, g.opacities, g.sh, out["w2c"], out["K"]]
+        if bool(torch.stack([torch.isfinite(x).all() for x in parts]).all()):
+            return None
+        return sum(p.sum() for p in self.parameters() if p.requires_grad) * float("nan")
+
     # ----------------------------------------------------------------------------------------- logging
     def log_terms(self, terms: dict[str, Tensor], batch_size: int, prog_bar: tuple[str, ...] = ()) -> None:
         for k, v in terms.items():

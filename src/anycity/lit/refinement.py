@@ -118,6 +118,8 @@ class RefinementModule(AnyCityModule):
         hp = self.hparams
         ctx, tgt, dense = batch.context, batch.target, batch.dense
         out = self.net(ctx.images, refine=True)
+        if (bad := self.nonfinite_forward(out)) is not None:  # every DDP rank then skips the step (callbacks/nonfinite)
+            return bad
         final, scaffold = out["gaussians"], out["scaffold_gaussians"]
         terms: dict[str, Tensor] = {}
 

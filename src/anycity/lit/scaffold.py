@@ -66,6 +66,8 @@ class ScaffoldModule(AnyCityModule):
         hp = self.hparams
         ctx, tgt = batch.context, batch.target
         out = self.net(ctx.images, refine=False)
+        if (bad := self.nonfinite_forward(out)) is not None:  # every DDP rank then skips the step (callbacks/nonfinite)
+            return bad
         g = out.get("scaffold_gaussians") or out["gaussians"]
         geo_on = self.global_step >= hp.depth_warmup_steps
         terms: dict[str, Tensor] = {}

@@ -163,3 +163,33 @@ def test_auto_backend_on_cuda_without_gsplat_warns_once(monkeypatch):
         assert api.resolve_backend("auto", torch.device("cuda")) == "torch"
     msgs = [str(x.message) for x in w if "FALLING BACK" in str(x.message)]
     assert len(msgs) == 1
+
+
+def test_sim3_fit_of_non_finite_cameras_falls_back_to_identity_instead_of_raising():
+    from anycity.lit.evaluation import fit_gt_to_pred
+
+    gt = torch.eye(4).repeat(2, 3, 1, 1)
+    gt[:, :, 0, 3] = torch.tensor([0.0, 0.5, 1.0])
+    pred = gt.clone()
+    pred[1] = float("nan")  # one scene's predicted cameras are NaN (a NaN batch on one DDP rank)
+    s, R, t = fit_gt_to_pred(pred, gt, "sim3")
+    assert s[1] == 1 and torch.equal(R[1], torch.eye(3)) and torch.equal(t[1], torch.zeros(3))
+    assert torch.isfinite(s).all() and abs(s[0].item() - 1) < 1e-4
+
+
+def test_a_nan_batch_gives_a_nan_loss_reaching_every_trainable_parameter_instead_of_raising():
+    from anycity.geometry import make_intrinsics
+    from anycity.structures import ViewBatch, Views
+
+    def views(n):
+        w2c = torch.eye(4).repeat(1, n, 1, 1)
+        w2c[..., 0, 3] = torch.linspace(0, 0.3, n)
+        K = make_intrinsics(30.0, 30.0, 16.0, 16.0).expand(1, n, 3, 3).clone()
+        return Views(images=torch.full((1, n, 3, 32, 32), float("nan")), w2c=w2c, K=K)
+
+    m = ScaffoldModule(preset="tiny", render_backend="torch")
+    m.log = lambda *a, **k: None
+    loss = m.training_step(ViewBatch(context=views(2), target=views(1)), 0)  # the renderer would raise on NaN
+    assert torch.isnan(loss)
+    loss.backward()
+    assert all(p.grad is not None for p in m.parameters() if p.requires_grad)  # DDP's reducer sees every param
