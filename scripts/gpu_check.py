@@ -108,8 +108,14 @@ def _random_wan(dev: torch.device):
 
     from anycity.models.video_prior import WanVideoPrior
 
+    default = torch.get_default_dtype()
+    try:  # built directly in bf16 on the GPU: a float32 detour would hold 20 GB for a moment
+        torch.set_default_dtype(torch.bfloat16)
+        with torch.device(dev):
+            tr = diffusers.WanTransformer3DModel(**WAN22_5B_TRANSFORMER)
+    finally:
+        torch.set_default_dtype(default)
     with torch.device(dev):
-        tr = diffusers.WanTransformer3DModel(**WAN22_5B_TRANSFORMER).to(torch.bfloat16)
         vae = diffusers.AutoencoderKLWan(**WAN22_VAE, latents_mean=[0.0] * 48, latents_std=[1.0] * 48)
     return lambda *a, **k: WanVideoPrior(vae, tr, block=k.get("block"), t_feat=k.get("t_feat", 0.0))
 
