@@ -62,6 +62,13 @@ class ScaffoldModule(AnyCityModule):
         base["net"] = {**(base.get("net") or {}), "completion": False}
         super().__init__(**base)  # also records every argument, these and the base's, as hparams
 
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        # Stage I checkpoints written before Stage I stopped building the completion branch carry its (untrained)
+        # weights; this module has no place for them
+        sd = checkpoint.get("state_dict", {})
+        for k in [k for k in sd if k.startswith(("net.completion.", "net.video_prior."))]:
+            del sd[k]
+
     def training_step(self, batch: ViewBatch, batch_idx: int) -> Tensor:
         hp = self.hparams
         ctx, tgt = batch.context, batch.target

@@ -193,3 +193,12 @@ def test_a_nan_batch_gives_a_nan_loss_reaching_every_trainable_parameter_instead
     assert torch.isnan(loss)
     loss.backward()
     assert all(p.grad is not None for p in m.parameters() if p.requires_grad)  # DDP's reducer sees every param
+
+
+def test_stage1_loads_an_older_checkpoint_that_still_has_a_completion_branch():
+    old = build_network("tiny")  # completion branch built, as Stage I did before
+    ckpt = {"state_dict": {f"net.{k}": v for k, v in old.state_dict().items()}}
+    m = ScaffoldModule(preset="tiny")
+    m.on_load_checkpoint(ckpt)
+    m.load_state_dict(ckpt["state_dict"], strict=True)
+    torch.testing.assert_close(m.net.aggregator.camera_token, old.aggregator.camera_token)
