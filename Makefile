@@ -26,6 +26,7 @@ bench:
 
 lint:
 	$(VENV)/bin/ruff check src tests benchmarks
+	$(VENV)/bin/hadolint docker/Dockerfile
 
 clean:
 	rm -rf runs .pytest_cache
