@@ -3,7 +3,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 PIP := $(PY) -m pip
 
-.PHONY: setup test test-all bench lint quickstart clean
+.PHONY: setup test test-all bench lint quickstart clean docker docker-cpu docker-check gpu-check
 
 setup:
 	@test -x $(PY) || python3 -m venv $(VENV)
@@ -26,6 +26,22 @@ bench:
 
 lint:
 	$(VENV)/bin/ruff check src tests benchmarks
+	$(VENV)/bin/hadolint docker/Dockerfile
 
 clean:
 	rm -rf runs .pytest_cache
+
+# Cluster (docs/cluster.md): the CUDA image, its CPU variant, a real CPU build + run here, the first-GPU check.
+IMAGE ?= anycity
+docker:
+	docker build -f docker/Dockerfile -t $(IMAGE):cuda .
+
+docker-cpu:
+	docker build -f docker/Dockerfile -t $(IMAGE):cpu --build-arg BASE=python:3.11-slim \
+		--build-arg WITH_GSPLAT=0 --build-arg EXTRAS=wan,cpu .
+
+docker-check:
+	bash docker/check.sh
+
+gpu-check:
+	$(PY) scripts/gpu_check.py

@@ -17,19 +17,19 @@ TEST_TIME_KEYS = ("eval_align", "eval_pose_align_steps", "eval_pose_align_lr", "
 def _cli_class():
     from lightning.pytorch.cli import LightningCLI
 
-    from anycity.callbacks import FreezeModules, ImagePreviews, LoRAInjection, LossProgressBar, PredictionExport
+    from anycity.callbacks import FreezeModules, ImagePreviews, LossProgressBar, NonFiniteGuard, PredictionExport
 
     class AnyCityCLI(LightningCLI):
         """LightningCLI with the always-present ("forced") callbacks as top-level config groups:
-        ``freeze``, ``lora``, ``previews``, ``progress``, ``export``. They merge key by key across ``--config``
+        ``freeze``, ``previews``, ``progress``, ``export``, ``nonfinite``. They merge key by key across ``--config``
         files, unlike the ``trainer.callbacks`` list."""
 
         def add_arguments_to_parser(self, parser) -> None:
             parser.add_lightning_class_args(FreezeModules, "freeze")
-            parser.add_lightning_class_args(LoRAInjection, "lora")
             parser.add_lightning_class_args(ImagePreviews, "previews")
             parser.add_lightning_class_args(LossProgressBar, "progress")
             parser.add_lightning_class_args(PredictionExport, "export")
+            parser.add_lightning_class_args(NonFiniteGuard, "nonfinite")
 
         def _parse_ckpt_path(self) -> None:
             sub = self.config.get("subcommand")

@@ -38,11 +38,12 @@ def test_fit_test_predict_stage1_then_stage2(tiny_shards, tmp_path):
     ckpt1 = s1 / "checkpoints" / "last.ckpt"
     assert ckpt1.is_file() and list((s1 / "previews").glob("val_*.png"))
 
-    # Stage II from the Stage I checkpoint, with LoRA on the small video prior's attention
+    # Stage II from the Stage I checkpoint, with LoRA on a (tiny, random) Wan prior's attention
     s2 = tmp_path / "s2"
     stage2 = dict(configs=["-c", "configs/quickstart_stage2.yaml"],
                   extra=["--model.init_args.init_from", str(ckpt1),
-                         "--lora.patterns", '["video_prior.blocks.*.attn.qkv"]', "--lora.rank", "2"])
+                         "--model.init_args.net",  # LoRA on a tiny random Wan prior
+                         '{"camera_trunk_depth": 2, "video_prior": "wan-tiny", "wan_lora_rank": 2}'])
     cli = build_cli(["fit", *_tiny_args(tiny_shards, s2, **stage2)])
     ckpt2 = s2 / "checkpoints" / "last.ckpt"
     state = torch.load(ckpt2, map_location="cpu", weights_only=False)["state_dict"]

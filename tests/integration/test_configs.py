@@ -32,4 +32,4 @@ def test_config_prints(rel, capsys, monkeypatch):
         build_cli([*args, "--print_config"], run=False)
     assert exc.value.code in (0, None)
     out = capsys.readouterr().out
-    assert "model:" in out and "trainer:" in out and "freeze:" in out and "lora:" in out
+    assert "model:" in out and "trainer:" in out and "freeze:" in out and "lora:" not in out

@@ -1,10 +1,10 @@
-"""Lightning callbacks: freezing, LoRA injection, previews, loss-term progress, prediction export."""
+"""Lightning callbacks: freezing, previews, loss-term progress, prediction export, non-finite step skipping."""
 
 from anycity.callbacks.export import PredictionExport
 from anycity.callbacks.freeze import FreezeModules, freeze_by_patterns
-from anycity.callbacks.lora import LoRAInjection, inject_lora
+from anycity.callbacks.nonfinite import NonFiniteGuard
 from anycity.callbacks.previews import ImagePreviews, depth_to_rgb, preview_grid
 from anycity.callbacks.progress import LossProgressBar
 
-__all__ = ["PredictionExport", "FreezeModules", "freeze_by_patterns", "LoRAInjection", "inject_lora", "ImagePreviews",
+__all__ = ["PredictionExport", "FreezeModules", "freeze_by_patterns", "NonFiniteGuard", "ImagePreviews",
            "depth_to_rgb", "preview_grid", "LossProgressBar"]

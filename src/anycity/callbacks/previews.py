@@ -63,7 +63,8 @@ class ImagePreviews(Callback):
         cols = [v[: self.max_rows] for v in outputs["preview"].values()]
         rows = min(c.shape[0] for c in cols)
         grid = preview_grid([c[:rows] for c in cols])
-        root = Path(trainer.log_dir or trainer.default_root_dir)
+        # not trainer.log_dir: that is a broadcast, and under DDP only rank 0 (maybe alone) gets here
+        root = Path(getattr(trainer.logger, "log_dir", None) or trainer.default_root_dir)
         path = root / "previews" / f"{tag}_step{trainer.global_step:06d}.png"
         path.parent.mkdir(parents=True, exist_ok=True)
         Image.fromarray(grid).save(path)

@@ -15,6 +15,27 @@ from anycity.geometry.cameras import focal_to_fov, fov_to_focal, to_homogeneous
 from anycity.geometry.rotations import quat_to_rotmat, rotmat_to_quat, wxyz_to_xyzw, xyzw_to_wxyz
 
 POSE_ENCODING_DIM = 9
+# "vggt": f = size / (2 tan(fov/2)) (upstream VGGT, ours); "anysplat": AnySplat's copy of VGGT decodes
+# f = (size/2) / (tan(fov/2) + 1e-3), about 2e-3 relative in K; an AnySplat checkpoint reproduces its cameras only
+# with its own decode (NetConfig.focal_decode, set by load_pretrained(kind="anysplat")).
+FOCAL_DECODES = ("vggt", "anysplat")
+ANYSPLAT_TAN_EPS = 1e-3
+
+
+def _fov_to_focal(fov: Tensor, size: float, mode: str) -> Tensor:
+    if mode == "anysplat":
+        return (size / 2) / (torch.tan(fov / 2) + ANYSPLAT_TAN_EPS)
+    if mode != "vggt":
+        raise ValueError(f"focal_decode: expected one of {FOCAL_DECODES}, got {mode!r}")
+    return fov_to_focal(fov, size)
+
+
+def _focal_to_fov(focal: Tensor, size: float, mode: str) -> Tensor:
+    if mode == "anysplat":  # the exact inverse of the decode above
+        return 2 * torch.atan(size / (2 * focal) - ANYSPLAT_TAN_EPS)
+    if mode != "vggt":
+        raise ValueError(f"focal_decode: expected one of {FOCAL_DECODES}, got {mode!r}")
+    return focal_to_fov(focal, size)
 
 
 def _check_hw(image_size_hw) -> tuple[int, int]:
@@ -23,32 +44,36 @@ def _check_hw(image_size_hw) -> tuple[int, int]:
     return int(image_size_hw[0]), int(image_size_hw[1])
 
 
-def extri_intri_to_pose_encoding(w2c: Tensor, K: Tensor, image_size_hw: tuple[int, int]) -> Tensor:
+def extri_intri_to_pose_encoding(w2c: Tensor, K: Tensor, image_size_hw: tuple[int, int],
+                                 focal_decode: str = "vggt") -> Tensor:
     """``w2c [..., 4, 4]`` (or ``[..., 3, 4]``) and pixel ``K [..., 3, 3]`` -> ``[..., 9]`` encoding.
 
-    Only fx, fy of ``K`` are used; a principal point off the centre is not representable.
+    Only fx, fy of ``K`` are used; a principal point off the centre is not representable. ``focal_decode``: the
+    inverse of which decode (see ``FOCAL_DECODES``).
     """
     h, w = _check_hw(image_size_hw)
     if w2c.shape[-1] != 4 or w2c.shape[-2] not in (3, 4):
         raise ValueError(f"w2c: expected [..., 4, 4] or [..., 3, 4], got {tuple(w2c.shape)}")
     quat = wxyz_to_xyzw(rotmat_to_quat(w2c[..., :3, :3]))
-    fov_h = focal_to_fov(K[..., 1, 1], h)
-    fov_w = focal_to_fov(K[..., 0, 0], w)
+    fov_h = _focal_to_fov(K[..., 1, 1], h, focal_decode)
+    fov_w = _focal_to_fov(K[..., 0, 0], w, focal_decode)
     return torch.cat([w2c[..., :3, 3], quat, fov_h[..., None], fov_w[..., None]], dim=-1).float()
 
 
-def pose_encoding_to_extri_intri(enc: Tensor, image_size_hw: tuple[int, int]) -> tuple[Tensor, Tensor]:
+def pose_encoding_to_extri_intri(enc: Tensor, image_size_hw: tuple[int, int],
+                                 focal_decode: str = "vggt") -> tuple[Tensor, Tensor]:
     """``[..., 9]`` encoding -> ``w2c [..., 4, 4]`` and ``K [..., 3, 3]`` in pixels of an ``(H, W)`` image.
 
-    The quaternion need not be unit norm (the camera head does not normalise it).
+    The quaternion need not be unit norm (the camera head does not normalise it). ``focal_decode``: "vggt" or
+    "anysplat" (see ``FOCAL_DECODES``).
     """
     h, w = _check_hw(image_size_hw)
     if enc.shape[-1] != POSE_ENCODING_DIM:
         raise ValueError(f"pose encoding: expected last dim 9 (t, quat xyzw, fov_h, fov_w), got {tuple(enc.shape)}")
     R = quat_to_rotmat(xyzw_to_wxyz(enc[..., 3:7]))
     w2c = to_homogeneous(torch.cat([R, enc[..., :3, None]], dim=-1))
-    fy = fov_to_focal(enc[..., 7], h)
-    fx = fov_to_focal(enc[..., 8], w)
+    fy = _fov_to_focal(enc[..., 7], h, focal_decode)
+    fx = _fov_to_focal(enc[..., 8], w, focal_decode)
     zero, one = torch.zeros_like(fx), torch.ones_like(fx)
     K = torch.stack([fx, zero, zero + w / 2, zero, fy, zero + h / 2, zero, zero, one], dim=-1)
     return w2c, K.unflatten(-1, (3, 3))

@@ -129,6 +129,8 @@ class AnyCityModule(pl.LightningModule):
         # Called here, Lightning collects the arguments of every __init__ on the stack: the subclass's own and
         # those it passes on in **base, so checkpoints and LightningCLI see one flat set of hyperparameters.
         self.save_hyperparameters()
+        if self.net.cfg.focal_decode != (net or {}).get("focal_decode", "vggt"):  # set by an AnySplat checkpoint
+            self.hparams.net = {**(net or {}), "focal_decode": self.net.cfg.focal_decode}
 
     # ----------------------------------------------------------------------------------------- rendering
     def render(self, gaussians: Gaussians, w2c: Tensor, K: Tensor, hw: tuple[int, int], context: Tensor,
@@ -170,6 +172,16 @@ class AnyCityModule(pl.LightningModule):
         sched = torch.optim.lr_scheduler.LambdaLR(
             opt, lambda s: warmup_cosine(s, hp.warmup_steps, total, hp.min_lr_ratio))
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
+
+    def nonfinite_forward(self, out: dict) -> Tensor | None:
+        """None when the network's Gaussians and cameras are finite; else a NaN loss wired to every trainable
+        parameter. Rendering a NaN scene raises (on this rank alone, while the other DDP ranks wait in backward);
+        this loss lets backward run on every rank and the ``nonfinite`` callback skip the step everywhere."""
+        g = out["gaussians"]
+        parts = [g.means, g.quats, g.scales, g.opacities, g.sh, out["w2c"], out["K"]]
+        if bool(torch.stack([torch.isfinite(x).all() for x in parts]).all()):
+            return None
+        return sum(p.sum() for p in self.parameters() if p.requires_grad) * float("nan")
 
     # ----------------------------------------------------------------------------------------- logging
     def log_terms(self, terms: dict[str, Tensor], batch_size: int, prog_bar: tuple[str, ...] = ()) -> None:
@@ -276,17 +288,20 @@ class AnyCityModule(pl.LightningModule):
         return refine_context_cameras(self._camera_renderer(K, hw, images), g, w2c, images, steps,
                                       self.hparams.camera_refine_lr)
 
-    def _log_metrics(self, metrics: EvalMetrics, split: str, batch_size: int) -> None:
-        for name, m in metrics.items():
-            if not m.update_called:  # e.g. no valid ground-truth depth in this split
-                continue
-            self.log(f"{split}/{name}", m, on_step=False, on_epoch=True, batch_size=batch_size,
-                     prog_bar=name.startswith("psnr") and split == "val")
+    def _log_metrics(self, metrics: EvalMetrics, split: str) -> None:
+        # at epoch end on every rank: a rank without samples must still join the metric syncs (lit/distributed.py)
+        from anycity.lit.distributed import log_eval_metrics
+
+        log_eval_metrics(self, metrics, split)
+
+    def on_validation_epoch_end(self) -> None:
+        self._log_metrics(self.val_metrics, "val")
+
+    def on_test_epoch_end(self) -> None:
+        self._log_metrics(self.test_metrics, "test")
 
     def validation_step(self, batch: ViewBatch, batch_idx: int) -> dict[str, Any] | None:
-        res = self.evaluate(batch, self.val_metrics, batch_idx == 0)
-        self._log_metrics(self.val_metrics, "val", batch.batch_size)
-        return res
+        return self.evaluate(batch, self.val_metrics, batch_idx == 0)
 
     def on_test_start(self) -> None:
         if self.trainer.is_global_zero:
@@ -294,7 +309,6 @@ class AnyCityModule(pl.LightningModule):
 
     def test_step(self, batch: ViewBatch, batch_idx: int) -> dict[str, Any] | None:
         res = self.evaluate(batch, self.test_metrics, batch_idx == 0, self.test_protocols())
-        self._log_metrics(self.test_metrics, "test", batch.batch_size)
         return res
 
     def test_protocols(self) -> tuple[str, ...]:

@@ -48,9 +48,11 @@ def fit_gt_to_pred(pred_w2c: Tensor, gt_w2c: Tensor, mode: AlignMode = "sim3") -
         return ident
     if mode != "sim3":
         raise ValueError(f"eval_align: expected 'sim3' or 'none', got {mode!r}")
-    with torch.no_grad(), torch.autocast(pred_w2c.device.type, enabled=False):
-        s, R, t = umeyama(_frame_points(gt_w2c.float()), _frame_points(pred_w2c.float()))
-    ok = torch.isfinite(s) & (s > 0) & torch.isfinite(R).flatten(1).all(1) & torch.isfinite(t).all(1)
+    finite = torch.isfinite(pred_w2c).flatten(1).all(1) & torch.isfinite(gt_w2c).flatten(1).all(1)
+    with torch.no_grad(), torch.autocast(pred_w2c.device.type, enabled=False):  # SVD raises on NaN: one rank would
+        s, R, t = umeyama(_frame_points(gt_w2c.float().nan_to_num()),  # die while the others wait (DDP)
+                          _frame_points(pred_w2c.float().nan_to_num()))
+    ok = finite & torch.isfinite(s) & (s > 0) & torch.isfinite(R).flatten(1).all(1) & torch.isfinite(t).all(1)
     s = torch.where(ok, s, ident[0])
     R = torch.where(ok[:, None, None], R, ident[1])
     t = torch.where(ok[:, None], t, ident[2])

@@ -7,7 +7,7 @@ cameras, each mapped into its own predicted frame, and depths are compared in gr
 
 from __future__ import annotations
 
-from dataclasses import fields
+from dataclasses import fields, replace
 from pathlib import Path
 
 import torch
@@ -82,25 +82,32 @@ class RefinementModule(AnyCityModule):
         super().__init__(lr=lr, **base)  # also records every argument, these and the base's, as hparams
         if gate_mode not in ("entropy", "mean"):
             raise ValueError(f"model.gate_mode: expected 'entropy' or 'mean', got {gate_mode!r}")
-        if init_from is not None and not Path(init_from).is_file():
-            raise FileNotFoundError(f"model.init_from: {init_from} not found; pass the Stage I checkpoint "
-                                    "(e.g. runs/stage1/checkpoints/last.ckpt)")
         if freeze_scaffold:
             for p in self.net.scaffold_parameters():
                 p.requires_grad_(False)
 
     # ----------------------------------------------------------------------------------------- init
     def setup(self, stage: str) -> None:
+        # checked here, not in __init__: test/predict from a Stage II checkpoint never need the Stage I file
         if stage == "fit" and self.hparams.init_from and self.trainer.ckpt_path is None:
+            if not Path(self.hparams.init_from).is_file():
+                raise FileNotFoundError(f"model.init_from: {self.hparams.init_from} not found; pass the Stage I "
+                                        "checkpoint (e.g. runs/stage1/checkpoints/last.ckpt)")
             self.load_stage1(self.hparams.init_from)
 
     def load_stage1(self, path: str) -> None:
         """Copy the scaffold weights (``net.{aggregator,camera_head,depth_head,gaussian_head}.*``) of a Stage I
         checkpoint; layers wrapped by LoRA map ``x.weight`` to ``x.base_layer.weight``. Scaffold keys the network
-        lacks are an error; the untrained completion branch a Stage I checkpoint may hold is not copied (so Stage II
-        may use another video prior, or none)."""
-        state = torch.load(path, map_location="cpu", weights_only=False)
-        state = state.get("state_dict", state)
+        lacks are an error; a completion branch an older Stage I checkpoint may hold (untrained) is not copied, so
+        Stage II may use another video prior, or none."""
+        # memory-mapped, tensors only: the weights are read on use and the optimiser state (2x the weights) never is
+        ckpt = torch.load(path, map_location="cpu", mmap=True, weights_only=True)
+        state = ckpt.get("state_dict", ckpt)
+        decode = ((ckpt.get("hyper_parameters") or {}).get("net") or {}).get("focal_decode", "vggt")
+        del ckpt
+        if decode != self.net.cfg.focal_decode:  # e.g. Stage I started from AnySplat: keep its camera decode
+            self.net.cfg = replace(self.net.cfg, focal_decode=decode)
+            self.hparams.net = {**(self.hparams.net or {}), "focal_decode": decode}
         own = self.net.state_dict()
         loaded, unexpected = {}, []
         for k, v in state.items():
@@ -121,11 +128,24 @@ class RefinementModule(AnyCityModule):
             raise ValueError(f"model.init_from: {path} holds no 'net.*' weights; pass a ScaffoldModule checkpoint")
         self.net.load_state_dict(loaded, strict=False)
 
+    # ----------------------------------------------------------------------------------------- checkpoints
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        from anycity.lit.prior_ckpt import drop_frozen_prior
+
+        drop_frozen_prior(self.net, checkpoint)
+
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        from anycity.lit.prior_ckpt import restore_frozen_prior
+
+        restore_frozen_prior(self.net, checkpoint)
+
     # ----------------------------------------------------------------------------------------- training
     def training_step(self, batch: ViewBatch, batch_idx: int) -> Tensor:
         hp = self.hparams
         ctx, tgt, dense = batch.context, batch.target, batch.dense
         out = self.net(ctx.images, refine=True)
+        if (bad := self.nonfinite_forward(out)) is not None:  # every DDP rank then skips the step (callbacks/nonfinite)
+            return bad
         final, scaffold = out["gaussians"], out["scaffold_gaussians"]
         terms: dict[str, Tensor] = {}
 

@@ -56,12 +56,26 @@ class ScaffoldModule(AnyCityModule):
         flat_weight: float = 0.0,
         **base,
     ) -> None:
+        # Stage I builds no completion branch: nothing unused in the DDP graph, nothing untrained in the checkpoint
+        if (base.get("net") or {}).get("completion"):
+            raise ValueError("model.net.completion: Stage I (ScaffoldModule) trains the scaffold only, got "
+                             "completion=true; drop it (Stage II, RefinementModule, builds the completion branch)")
+        base["net"] = {**(base.get("net") or {}), "completion": False}
         super().__init__(**base)  # also records every argument, these and the base's, as hparams
+
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        # Stage I checkpoints written before Stage I stopped building the completion branch carry its (untrained)
+        # weights; this module has no place for them
+        sd = checkpoint.get("state_dict", {})
+        for k in [k for k in sd if k.startswith(("net.completion.", "net.video_prior."))]:
+            del sd[k]
 
     def training_step(self, batch: ViewBatch, batch_idx: int) -> Tensor:
         hp = self.hparams
         ctx, tgt = batch.context, batch.target
         out = self.net(ctx.images, refine=False)
+        if (bad := self.nonfinite_forward(out)) is not None:  # every DDP rank then skips the step (callbacks/nonfinite)
+            return bad
         g = out.get("scaffold_gaussians") or out["gaussians"]
         geo_on = self.global_step >= hp.depth_warmup_steps
         terms: dict[str, Tensor] = {}
@@ -75,7 +89,7 @@ class ScaffoldModule(AnyCityModule):
             terms["rgb_ctx"] = rgb_loss(r_ctx.rgb, ctx.images, ssim_weight=hp.ssim_weight)["total"]
             loss = loss + hp.context_rgb_weight * terms["rgb_ctx"]
         if hp.camera_weight > 0:
-            gt_enc = extri_intri_to_pose_encoding(ctx.w2c, ctx.K, ctx.hw)
+            gt_enc = extri_intri_to_pose_encoding(ctx.w2c, ctx.K, ctx.hw, self.net.cfg.focal_decode)
             terms["cam"] = camera_loss(out["pose_enc_list"], gt_enc, loss_type=hp.camera_loss_type)["total"]
             loss = loss + hp.camera_weight * terms["cam"]
         if geo_on and hp.depth_weight > 0 and ctx.depth is not None:

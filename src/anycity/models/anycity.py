@@ -62,7 +62,8 @@ class AnyCityNet(nn.Module):
             self.video_prior = build_video_prior(
                 cfg.video_prior, cfg.prior_dim, cfg.prior_depth, max(1, cfg.prior_dim // 64), cfg.prior_stride,
                 wan_dir=cfg.wan_dir, **({"block": cfg.wan_block, "t_feat": cfg.wan_t_feat}
-                                        if cfg.video_prior.startswith("wan") else {}))
+                                        if cfg.video_prior.startswith("wan") else {}),
+                **({"empty_prompt_path": cfg.wan_empty_prompt} if cfg.video_prior == "wan" else {}))
             if isinstance(self.video_prior, WanVideoPrior) and cfg.wan_lora_rank > 0:
                 self.video_prior.add_lora(cfg.wan_lora_rank)
             self.completion = CompletionBranch(
@@ -119,7 +120,7 @@ class AnyCityNet(nn.Module):
             tokens = [None if t is None else t.float() for t in tokens]
             images = images.float()
             pose_enc_list = self.camera_head(tokens, self.cfg.camera_iterations)
-            w2c, K = pose_encoding_to_extri_intri(pose_enc_list[-1], (h, w))
+            w2c, K = pose_encoding_to_extri_intri(pose_enc_list[-1], (h, w), self.cfg.focal_decode)
             depth, depth_conf = self.depth_head(tokens, images, psi)
             raw, offset = self.gaussian_head(tokens, images, psi)
             means = pixel_centres(depth, K, w2c, offset)

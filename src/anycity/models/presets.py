@@ -49,6 +49,9 @@ class NetConfig:
     # random init only: bias the camera head to an identity rotation and this field of view (radians); None keeps
     # VGGT's init (whose ReLU FoV starts at 0: infinite focal length, no gradient). Pretrained weights override it.
     camera_init_fov: float | None = None
+    # focal length from the predicted FoV: "vggt" or "anysplat" (AnySplat's +1e-3; load_pretrained(kind="anysplat")
+    # sets it, and it travels in the hyperparameters and the Stage I -> Stage II hand-over)
+    focal_decode: str = "vggt"
     # completion branch + video prior
     completion: bool = True
     completion_dim: int = 1024
@@ -60,9 +63,14 @@ class NetConfig:
     prior_depth: int = 2
     prior_stride: int = 16
     wan_dir: str | None = None
-    wan_block: int = 0
+    # Wan block whose output feeds the completion branch; None = the middle one (14 of TI2V-5B's 30): block 0 is
+    # little more than the patchified VAE latent, and diffusion-feature studies find mid-depth features carry the
+    # most correspondence/semantic signal; later blocks cost more (all kept blocks run, LoRA backprops through them)
+    wan_block: int | None = None
     wan_t_feat: float = 0.0
-    wan_lora_rank: int = 16
+    wan_lora_rank: int = 16  # LoRA (float32) on attn1 q/k/v/out of the kept blocks; 0 = frozen prior
+    # umT5 embedding of "" as a [1, L, 4096] tensor (torch.save); None: <wan_dir>/empty_prompt.pt if present, else zeros
+    wan_empty_prompt: str | None = None
     # Stage II: the depth head also decodes Z_final = Z_geo + dZ (else only the Gaussian head does, centre offsets
     # included); measured on the quickstart, see README "Stage II"
     refine_depth: bool = True

@@ -14,7 +14,7 @@ Tensors whose shape differs from the network's are skipped and listed (a mismatc
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import torch
@@ -101,6 +101,8 @@ def load_pretrained(net: nn.Module, path: str | Path | dict, kind: str = "vggt")
         else:
             usable[k] = v
     net.load_state_dict(usable, strict=False)
+    if kind == "anysplat" and hasattr(net, "cfg"):  # decode the cameras the way the checkpoint was trained
+        net.cfg = replace(net.cfg, focal_decode="anysplat")
     report.loaded = sorted(usable)
     report.missing = sorted(k for k in own if k not in usable)
     return report

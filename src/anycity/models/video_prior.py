@@ -29,6 +29,41 @@ from torch import Tensor, nn
 from anycity.models.layers import Block
 
 LORA_TARGETS = ("attn1.to_q", "attn1.to_k", "attn1.to_v", "attn1.to_out.0")
+EMPTY_PROMPT_FILE = "empty_prompt.pt"
+
+
+def folder_hash(root: str | Path, subfolders: tuple[str, ...] = ("transformer", "vae")) -> str:
+    """SHA-256 over the files of ``root/<subfolder>`` (relative names and bytes, sorted): identifies a frozen prior
+    that checkpoints reference instead of copying. Reading every byte takes a while (about 10 GB for Wan 2.2
+    TI2V-5B), so the result is cached in ``$XDG_CACHE_HOME/anycity/folder_hash.json`` under the folder's path,
+    keyed by every file's name, size and modification time."""
+    import hashlib
+    import json
+
+    root = Path(root).resolve()
+    files = sorted(p for sub in subfolders for p in (root / sub).rglob("*") if p.is_file())
+    key = [[str(f.relative_to(root)), f.stat().st_size, f.stat().st_mtime_ns] for f in files]
+    cache = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "anycity" / "folder_hash.json"
+    try:
+        table = json.loads(cache.read_text())
+    except (OSError, ValueError):
+        table = {}
+    hit = table.get(str(root))
+    if hit and hit.get("key") == key:
+        return hit["sha256"]
+    h = hashlib.sha256()
+    for f in files:
+        h.update(str(f.relative_to(root)).encode() + b"\0")
+        with open(f, "rb") as fh:
+            while chunk := fh.read(1 << 24):
+                h.update(chunk)
+    table[str(root)] = {"key": key, "sha256": h.hexdigest()}
+    try:  # a read-only home is fine: the hash is just recomputed next time
+        cache.parent.mkdir(parents=True, exist_ok=True)
+        cache.write_text(json.dumps(table))
+    except OSError:
+        pass
+    return table[str(root)]["sha256"]
 
 
 @runtime_checkable
@@ -85,15 +120,17 @@ class WanVideoPrior(nn.Module):
 
     Args:
         vae: an ``AutoencoderKLWan``; transformer: a ``WanTransformer3DModel`` (both frozen here).
-        block: index of the transformer block whose output is returned; later blocks are dropped.
+        block: index of the transformer block whose output is returned; later blocks are dropped. None: the middle
+            block, ``(n - 1) // 2`` of n (14 of Wan 2.2 TI2V-5B's 30).
         t_feat: noise level s in [0, 1]; latents become ``(1-s) z + s eps`` and the timestep ``1000 s``.
         empty_prompt: ``[1, L, text_dim]`` text embedding of "" (zeros ``[1, 1, text_dim]`` if None).
     """
 
-    def __init__(self, vae: nn.Module, transformer: nn.Module, block: int = 0, t_feat: float = 0.0,
+    def __init__(self, vae: nn.Module, transformer: nn.Module, block: int | None = None, t_feat: float = 0.0,
                  empty_prompt: Tensor | None = None):
         super().__init__()
         n = len(transformer.blocks)
+        block = (n - 1) // 2 if block is None else block
         if not 0 <= block < n:
             raise ValueError(f"WanVideoPrior: block must be in [0, {n - 1}] for this transformer, got {block}")
         if not 0.0 <= t_feat <= 1.0:
@@ -107,7 +144,10 @@ class WanVideoPrior(nn.Module):
         text = empty_prompt if empty_prompt is not None else torch.zeros(1, 1, cfg.text_dim)
         self.register_buffer("empty_prompt", text.float(), persistent=False)
         self._feat: Tensor | None = None
+        self.block = block
         self.transformer.blocks[block].register_forward_hook(self._grab)
+        self.source: dict | None = None  # {"dir", "subfolders"} when loaded from a folder
+        self._sha256: str | None = None
 
     def _grab(self, module, args, output) -> None:
         self._feat = output
@@ -123,16 +163,36 @@ class WanVideoPrior(nn.Module):
                 raise FileNotFoundError(f"Wan weights: {root / sub / 'config.json'} not found; point wan_dir at a "
                                         "local Diffusers-format Wan folder (with transformer/ and vae/)")
         d = _diffusers()
-        tr = d.WanTransformer3DModel.from_pretrained(root, subfolder=subfolder, dtype=dtype, local_files_only=True)
-        vae = d.AutoencoderKLWan.from_pretrained(root, subfolder=vae_subfolder, dtype=torch.float32,
+        # `torch_dtype`: the name every diffusers we allow (>= 0.35, the first with the Wan 2.2 VAE) reads; `dtype=`
+        # only arrived later, and an older diffusers would ignore it and load 5B parameters in float32 (20 GB)
+        tr = d.WanTransformer3DModel.from_pretrained(root, subfolder=subfolder, torch_dtype=dtype,
+                                                     local_files_only=True)
+        vae = d.AutoencoderKLWan.from_pretrained(root, subfolder=vae_subfolder, torch_dtype=torch.float32,
                                                  local_files_only=True)
+        got = tr.blocks[0].attn1.to_q.weight.dtype  # (diffusers keeps a few norm/time modules in float32 on purpose)
+        if got != dtype:
+            raise RuntimeError(f"Wan weights: transformer loaded as {got}, asked for {dtype}; upgrade diffusers "
+                               "(pip install -e '.[wan]')")
         prompt = None
+        if empty_prompt_path is None and (root / EMPTY_PROMPT_FILE).is_file():
+            empty_prompt_path = root / EMPTY_PROMPT_FILE
         if empty_prompt_path is not None:
             if not Path(empty_prompt_path).is_file():
                 raise FileNotFoundError(f"empty_prompt_path: {empty_prompt_path} not found; precompute the umT5 "
                                         "embedding of '' as a [1, L, text_dim] tensor or pass None for zeros")
             prompt = torch.load(empty_prompt_path, map_location="cpu", weights_only=True)
-        return cls(vae, tr, empty_prompt=prompt, **kwargs)
+        prior = cls(vae, tr, empty_prompt=prompt, **kwargs)
+        prior.source = {"dir": str(root), "subfolders": (subfolder, vae_subfolder)}
+        return prior
+
+    def content_hash(self) -> str | None:
+        """SHA-256 of the weights folder this prior was loaded from (None for a prior built in memory); computed
+        on first use, i.e. when a checkpoint is saved or loaded, not at construction."""
+        if self.source is None:
+            return None
+        if self._sha256 is None:
+            self._sha256 = folder_hash(self.source["dir"], tuple(self.source["subfolders"]))
+        return self._sha256
 
     @classmethod
     def tiny_random(cls, z_dim: int = 16, block: int = 1, **kwargs) -> WanVideoPrior:
@@ -156,7 +216,7 @@ class WanVideoPrior(nn.Module):
         self.transformer.add_adapter(LoraConfig(r=rank, lora_alpha=alpha or rank, target_modules=list(targets)))
         for name, p in self.transformer.named_parameters():
             p.requires_grad_("lora_" in name)
-            if "lora_" in name:
+            if "lora_" in name:  # float32 whatever the prior's dtype: a bf16 lora_A would round its small updates away
                 p.data = p.data.float()
 
     def lora_state_dict(self) -> dict[str, Tensor]:

@@ -44,11 +44,22 @@ def resolve_backend(backend: str, device: torch.device, dtype: torch.dtype = tor
         raise ValueError(f"backend: expected one of {['auto', *_BACKENDS]}, got {backend!r}")
     if backend != "auto":
         return backend
-    if device.type == "cuda" and _module_available("gsplat"):
-        return "gsplat"
+    if device.type == "cuda":
+        if _module_available("gsplat"):
+            return "gsplat"
+        _warn_no_gsplat()
     if device.type == "cpu" and dtype == torch.float32 and _cpu_backend_available():
         return "cpu"
     return "torch"
+
+
+@functools.cache  # once per process
+def _warn_no_gsplat() -> None:
+    import warnings
+
+    warnings.warn("render_backend='auto' on CUDA without gsplat: FALLING BACK TO THE PURE-PYTORCH RENDERER, which is "
+                  "many times slower and uses far more memory; install it (pip install 'anycity[gsplat]', see "
+                  "docker/Dockerfile) or set render_backend: torch to silence this", RuntimeWarning, stacklevel=3)
 
 
 @functools.cache

@@ -51,3 +51,35 @@ def test_cameras_json(tmp_path):
     data = json.loads((tmp_path / "cameras.json").read_text())
     assert data["convention"] == "opencv_w2c" and len(data["views"]) == 2
     assert data["views"][1]["width"] == 64 and data["views"][0]["w2c"][3] == [0, 0, 0, 1]
+
+
+def test_previews_go_to_the_logger_image_api_and_skip_the_log_dir_broadcast(tmp_path):
+    from types import SimpleNamespace
+
+    from anycity.callbacks import ImagePreviews
+
+    calls = []
+
+    class TB:  # TensorBoard-like: experiment.add_image
+        log_dir = str(tmp_path / "tb")
+        experiment = SimpleNamespace(add_image=lambda tag, img, step, dataformats: calls.append(("tb", tag, img.shape)))
+
+    class WB:  # W&B-like: log_image
+        experiment = None
+
+        def log_image(self, key, images, step):
+            calls.append(("wb", key, images[0].shape))
+
+    class Trainer:
+        is_global_zero, global_step, sanity_checking, default_root_dir = True, 7, False, str(tmp_path)
+        logger, loggers = TB(), [TB(), WB()]
+
+        @property
+        def log_dir(self):  # a collective under DDP: the callback must not touch it
+            raise AssertionError("trainer.log_dir broadcasts; only rank 0 gets here")
+
+    out = {"preview": {"context": torch.rand(2, 3, 8, 8), "target": torch.rand(2, 3, 8, 8)}}
+    ImagePreviews().on_validation_batch_end(Trainer(), None, out, None, 0)
+    assert ("tb", "val/preview", (16, 16, 3)) in calls  # 2 rows x 2 columns of 8 px
+    assert any(c[0] == "wb" and c[1] == "val/preview" for c in calls)
+    assert (tmp_path / "tb" / "previews" / "val_step000007.png").is_file()

@@ -66,8 +66,12 @@ def test_refinement_freezes_scaffold_starts_at_scaffold_and_loads_stage1(batch, 
 
 
 def test_refinement_rejects_missing_init_and_bad_gate_mode(tmp_path):
+    from types import SimpleNamespace
+
+    m = RefinementModule(init_from=str(tmp_path / "nope.ckpt"))  # checked when fitting starts (test/predict: unused)
+    m._trainer = SimpleNamespace(ckpt_path=None)
     with pytest.raises(FileNotFoundError, match="init_from"):
-        RefinementModule(init_from=str(tmp_path / "nope.ckpt"))
+        m.setup("fit")
     with pytest.raises(ValueError, match="gate_mode"):
         RefinementModule(gate_mode="max")
 

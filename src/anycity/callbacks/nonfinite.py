@@ -1,0 +1,65 @@
+"""Skip an optimiser step on every rank when any rank's loss or gradient is not finite.
+
+Under DDP one bad batch (a NaN loss, an inf gradient) must not let one rank diverge or raise while the
+others wait in a collective. Before each optimiser step every rank reduces one flag (how many ranks saw a
+non-finite loss or gradient); if any did, every rank drops its gradients (``zero_grad(set_to_none=True)``:
+AdamW then leaves those parameters and their moments untouched) and counts the skip. The count is logged as
+``train/nonfinite_skipped`` and each skip prints one line on rank 0. The LR schedule still advances.
+"""
+
+from __future__ import annotations
+
+import lightning.pytorch as pl
+import torch
+from lightning.pytorch.callbacks import Callback
+from lightning.pytorch.utilities import rank_zero_warn
+from torch import Tensor
+
+
+class NonFiniteGuard(Callback):
+    """Agree across ranks to skip steps with a non-finite loss or gradient.
+
+    Args:
+        enabled: turn the check off (it reads every gradient once per step: cheap next to a backward pass).
+        max_skips: raise after this many skipped steps in a run (None: never); a run that keeps producing
+            NaNs is broken, not unlucky.
+    """
+
+    def __init__(self, enabled: bool = True, max_skips: int | None = 100) -> None:
+        self.enabled, self.max_skips = enabled, max_skips
+        self.skipped = 0
+        self._loss: Tensor | None = None
+
+    def on_before_backward(self, trainer: pl.Trainer, pl_module: pl.LightningModule, loss: Tensor) -> None:
+        self._loss = loss  # read after backward, in on_before_optimizer_step
+
+    def _bad_ranks(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> int:
+        bad = self._loss is not None and not bool(torch.isfinite(self._loss.detach()).all())
+        if not bad:
+            grads = [p.grad for p in pl_module.parameters() if p.grad is not None]
+            bad = bool(grads) and not bool(torch.stack([torch.isfinite(g).all() for g in grads]).all())
+        flag = torch.tensor(float(bad), device=pl_module.device)
+        if trainer.world_size > 1 and torch.distributed.is_available() and torch.distributed.is_initialized():
+            torch.distributed.all_reduce(flag, op=torch.distributed.ReduceOp.SUM)
+        return int(flag.item())
+
+    def on_before_optimizer_step(self, trainer: pl.Trainer, pl_module: pl.LightningModule, optimizer) -> None:
+        if not self.enabled:
+            return
+        bad = self._bad_ranks(trainer, pl_module)
+        self._loss = None
+        if bad:
+            optimizer.zero_grad(set_to_none=True)
+            self.skipped += 1
+            rank_zero_warn(f"NonFiniteGuard: skipped optimiser step {trainer.global_step}: non-finite loss or gradient "
+                           f"on {bad} of {trainer.world_size} rank(s); {self.skipped} step(s) skipped so far")
+            if self.max_skips is not None and self.skipped > self.max_skips:
+                raise RuntimeError(f"NonFiniteGuard: {self.skipped} steps skipped for non-finite loss/gradients "
+                                   f"(> nonfinite.max_skips={self.max_skips}); lower the LR or check the data")
+        pl_module.log("train/nonfinite_skipped", float(self.skipped), on_step=True, on_epoch=False)
+
+    def state_dict(self) -> dict:
+        return {"skipped": self.skipped}
+
+    def load_state_dict(self, state_dict: dict) -> None:
+        self.skipped = int(state_dict.get("skipped", 0))

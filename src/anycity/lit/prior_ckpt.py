@@ -1,0 +1,53 @@
+"""Checkpoints reference the frozen Wan prior instead of copying it (10 GB in bf16).
+
+Saving drops the prior's frozen weights (``net.video_prior.vae.*`` and every ``net.video_prior.transformer.*``
+that is not a LoRA adapter) and records ``checkpoint["video_prior"] = {"dir", "sha256", "block"}``. Loading
+checks that the prior this module was built from has the same content hash, then puts its frozen weights back
+into the state dict, so Lightning's strict loading still catches every other missing or unexpected key. The
+LoRA adapters, the completion branch and the scaffold stay in the checkpoint. Priors not loaded from a folder
+(the small built-in one, the random ``wan-tiny``) are saved as they are.
+"""
+
+from __future__ import annotations
+
+from torch import nn
+
+PREFIX = "net.video_prior."
+FROZEN = (PREFIX + "vae.", PREFIX + "transformer.")
+
+
+def _is_frozen_prior_key(key: str) -> bool:
+    return key.startswith(FROZEN) and "lora_" not in key
+
+
+def drop_frozen_prior(net: nn.Module, checkpoint: dict) -> None:
+    prior = getattr(net, "video_prior", None)
+    source = getattr(prior, "source", None)
+    if source is None:
+        return
+    sd = checkpoint["state_dict"]
+    for k in [k for k in sd if _is_frozen_prior_key(k)]:
+        del sd[k]
+    checkpoint["video_prior"] = {"dir": source["dir"], "sha256": prior.content_hash(), "block": int(prior.block)}
+
+
+def restore_frozen_prior(net: nn.Module, checkpoint: dict) -> None:
+    ref = checkpoint.get("video_prior")
+    if ref is None:
+        return
+    prior = getattr(net, "video_prior", None)
+    source = getattr(prior, "source", None)
+    if source is None:
+        raise ValueError(f"checkpoint: its video prior is Wan from {ref['dir']} (sha256 {ref['sha256'][:12]}), not "
+                         "saved in the file; build the module with net.video_prior=wan and net.wan_dir=<that folder>")
+    sha = prior.content_hash()
+    if sha != ref["sha256"]:
+        raise ValueError(f"checkpoint: Wan prior mismatch: trained with {ref['dir']} (sha256 {ref['sha256'][:12]}), "
+                         f"got {source['dir']} (sha256 {sha[:12]}); point net.wan_dir at the same weights")
+    if int(prior.block) != int(ref.get("block", prior.block)):
+        raise ValueError(f"checkpoint: trained on Wan block {ref['block']}, this module cuts at block {prior.block}; "
+                         f"set net.wan_block={ref['block']}")
+    sd = checkpoint["state_dict"]
+    for k, v in net.state_dict(prefix="net.", keep_vars=False).items():
+        if _is_frozen_prior_key(k) and k not in sd:
+            sd[k] = v

@@ -1,0 +1,204 @@
+"""What a cluster run would hit first (issue 13 item 4): float32 LoRA on a bf16 Wan prior, the dtype the Wan
+loader asks for, checkpoints that reference the frozen prior by content hash, init_from checked when fitting
+starts, the Stage I checkpoint read memory-mapped, no completion branch in Stage I, the AnySplat focal decode,
+the loud gsplat fallback warning."""
+
+import importlib.util
+import math
+import warnings
+from types import SimpleNamespace
+
+import pytest
+import torch
+
+from anycity.geometry.pose_encoding import extri_intri_to_pose_encoding, pose_encoding_to_extri_intri
+from anycity.lit import RefinementModule, ScaffoldModule
+from anycity.models import build_network
+
+needs_diffusers = pytest.mark.skipif(importlib.util.find_spec("diffusers") is None,
+                                     reason="the 'wan' extra (diffusers) is not installed")
+
+
+@pytest.fixture(autouse=True)
+def _hash_cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))  # folder_hash's cache, not the user's
+
+
+@pytest.fixture(scope="module")
+def wan_dir(tmp_path_factory):
+    """A tiny random Wan 2.2-style prior saved in the Diffusers layout (transformer/, vae/) + empty_prompt.pt."""
+    from anycity.models.video_prior import WanVideoPrior
+
+    torch.manual_seed(0)
+    prior = WanVideoPrior.tiny_random(block=3)  # keep all 4 blocks so the saved transformer is complete
+    root = tmp_path_factory.mktemp("wan")
+    prior.transformer.save_pretrained(root / "transformer")
+    prior.vae.save_pretrained(root / "vae")
+    torch.save(torch.randn(1, 3, 32), root / "empty_prompt.pt")
+    return root
+
+
+@needs_diffusers
+def test_wan_loads_in_the_asked_dtype_with_float32_lora_and_middle_block(wan_dir):
+    from anycity.models.video_prior import WanVideoPrior
+
+    prior = WanVideoPrior.from_pretrained(wan_dir, dtype=torch.bfloat16)
+    assert prior.block == 1 and len(prior.transformer.blocks) == 2  # None: the middle of 4 blocks
+    assert prior.empty_prompt.shape == (1, 3, 32)  # picked up from <wan_dir>/empty_prompt.pt
+    dtypes = [p.dtype for n, p in prior.transformer.named_parameters()
+              if n.endswith(("to_q.weight", "ffn.net.2.weight"))]
+    assert dtypes and set(dtypes) == {torch.bfloat16}  # (diffusers keeps some norm/time modules in float32)
+    assert {p.dtype for p in prior.vae.parameters()} == {torch.float32}
+    assert len(prior.content_hash()) == 64
+    prior.add_lora(rank=2)
+    lora = {n: p for n, p in prior.transformer.named_parameters() if "lora_" in n}
+    assert lora and all(p.dtype == torch.float32 and p.requires_grad for p in lora.values())
+    assert all(not p.requires_grad for n, p in prior.transformer.named_parameters() if "lora_" not in n)
+    # a small update survives in float32; the same update on a bf16 copy rounds away
+    a = next(p for n, p in lora.items() if "lora_A" in n)
+    before = a.detach().clone()
+    with torch.no_grad():
+        a.add_(1e-6 * before.abs().max())
+    assert not torch.equal(a, before)
+    bf = before.bfloat16()
+    assert torch.equal(bf + (1e-6 * before.abs().max()).bfloat16(), bf)
+    out = prior(torch.rand(1, 2, 3, 32, 32))
+    assert out.dtype == torch.float32 and torch.isfinite(out).all()
+
+
+@needs_diffusers
+def test_checkpoint_references_frozen_prior_by_hash_and_keeps_lora(wan_dir, tmp_path):
+    import shutil
+
+    net = {"video_prior": "wan", "wan_dir": str(wan_dir), "wan_lora_rank": 2}
+    m = RefinementModule(preset="tiny", net=net)
+    ckpt = {"state_dict": m.state_dict()}
+    full = len(ckpt["state_dict"])
+    m.on_save_checkpoint(ckpt)
+    keys = ckpt["state_dict"].keys()
+    assert not any(k.startswith(("net.video_prior.vae.", "net.video_prior.transformer.")) and "lora_" not in k
+                   for k in keys)
+    assert any("lora_A" in k for k in keys) and any(k.startswith("net.completion.") for k in keys)
+    assert len(keys) < full and ckpt["video_prior"]["sha256"] == m.net.video_prior.content_hash()
+
+    fresh = RefinementModule(preset="tiny", net=net)
+    fresh.on_load_checkpoint(ckpt)
+    fresh.load_state_dict(ckpt["state_dict"], strict=True)  # the frozen weights came from the folder
+    for k, v in m.state_dict().items():
+        torch.testing.assert_close(fresh.state_dict()[k], v, msg=k)
+
+    other = tmp_path / "wan_other"
+    shutil.copytree(wan_dir, other)
+    (other / "vae" / "config.json").write_text((other / "vae" / "config.json").read_text() + "\n")
+    moved = RefinementModule(preset="tiny", net={**net, "wan_dir": str(other)})
+    with pytest.raises(ValueError, match="Wan prior mismatch"):
+        moved.on_load_checkpoint({"state_dict": {}, "video_prior": dict(ckpt["video_prior"])})
+
+
+def test_init_from_is_checked_when_fitting_starts_not_at_construction(tmp_path):
+    m = RefinementModule(preset="tiny", init_from=str(tmp_path / "missing.ckpt"))  # test/predict: fine
+    m._trainer = SimpleNamespace(ckpt_path=None)
+    m.setup("test")
+    m.setup("predict")
+    with pytest.raises(FileNotFoundError, match="missing.ckpt"):
+        m.setup("fit")
+
+
+def test_stage1_checkpoint_is_read_memory_mapped_tensors_only(tmp_path, monkeypatch):
+    s1 = ScaffoldModule(preset="tiny", net={"focal_decode": "anysplat"})
+    path = tmp_path / "s1.ckpt"
+    torch.save({"state_dict": s1.state_dict(), "optimizer_states": [{"state": {0: torch.zeros(3)}}],
+                "hyper_parameters": dict(s1.hparams)}, path)
+    calls = []
+    real = torch.load
+    monkeypatch.setattr(torch, "load", lambda *a, **k: calls.append(k) or real(*a, **k))
+    s2 = RefinementModule(preset="tiny")
+    s2.load_stage1(str(path))
+    assert calls and calls[0].get("mmap") is True and calls[0].get("weights_only") is True
+    torch.testing.assert_close(s2.net.aggregator.camera_token, s1.net.aggregator.camera_token)
+    assert s2.net.cfg.focal_decode == "anysplat" and s2.hparams.net["focal_decode"] == "anysplat"
+
+
+def test_stage1_builds_no_completion_branch():
+    m = ScaffoldModule(preset="tiny")
+    assert m.net.completion is None and m.net.video_prior is None
+    assert not any(n.startswith(("net.completion.", "net.video_prior.")) for n, _ in m.named_parameters())
+    with pytest.raises(ValueError, match="completion"):
+        ScaffoldModule(preset="tiny", net={"completion": True})
+
+
+def test_anysplat_focal_decode_and_its_inverse():
+    enc = torch.tensor([0.1, 0.2, 0.3, 0.0, 0.0, 0.0, 1.0, 1.0, 1.2])
+    _, K_v = pose_encoding_to_extri_intri(enc, (448, 448))
+    _, K_a = pose_encoding_to_extri_intri(enc, (448, 448), "anysplat")
+    assert K_v[1, 1].item() == pytest.approx(448 / (2 * math.tan(0.5)), rel=1e-6)
+    assert K_a[1, 1].item() == pytest.approx(224 / (math.tan(0.5) + 1e-3), rel=1e-6)
+    assert 1e-3 < (K_v[1, 1] / K_a[1, 1] - 1).item() < 3e-3  # "about 2e-3 relative in K"
+    w2c = torch.eye(4)
+    back = extri_intri_to_pose_encoding(w2c, K_a, (448, 448), "anysplat")
+    torch.testing.assert_close(back[7:], enc[7:], atol=1e-5, rtol=0)
+
+
+def test_load_pretrained_anysplat_records_the_decode_in_net_and_hparams(tmp_path):
+    from anycity.models.pretrained import load_pretrained
+
+    src = build_network("tiny", completion=False)
+    net = build_network("tiny", completion=False)
+    load_pretrained(net, {f"encoder.{k}": v for k, v in src.state_dict().items()}, kind="anysplat")
+    assert net.cfg.focal_decode == "anysplat"
+    path = tmp_path / "anysplat.pt"
+    torch.save({f"encoder.{k}": v for k, v in src.state_dict().items()}, path)
+    m = ScaffoldModule(preset="tiny", pretrained=str(path), pretrained_kind="anysplat")
+    assert m.net.cfg.focal_decode == "anysplat" and m.hparams.net["focal_decode"] == "anysplat"
+
+
+def test_auto_backend_on_cuda_without_gsplat_warns_once(monkeypatch):
+    from anycity.render import api
+
+    monkeypatch.setattr(api, "_module_available", lambda name: False)
+    api._warn_no_gsplat.cache_clear()
+    with warnings.catch_warnings(record=True) as w:
+        warnings.simplefilter("always")
+        assert api.resolve_backend("auto", torch.device("cuda")) == "torch"
+        assert api.resolve_backend("auto", torch.device("cuda")) == "torch"
+    msgs = [str(x.message) for x in w if "FALLING BACK" in str(x.message)]
+    assert len(msgs) == 1
+
+
+def test_sim3_fit_of_non_finite_cameras_falls_back_to_identity_instead_of_raising():
+    from anycity.lit.evaluation import fit_gt_to_pred
+
+    gt = torch.eye(4).repeat(2, 3, 1, 1)
+    gt[:, :, 0, 3] = torch.tensor([0.0, 0.5, 1.0])
+    pred = gt.clone()
+    pred[1] = float("nan")  # one scene's predicted cameras are NaN (a NaN batch on one DDP rank)
+    s, R, t = fit_gt_to_pred(pred, gt, "sim3")
+    assert s[1] == 1 and torch.equal(R[1], torch.eye(3)) and torch.equal(t[1], torch.zeros(3))
+    assert torch.isfinite(s).all() and abs(s[0].item() - 1) < 1e-4
+
+
+def test_a_nan_batch_gives_a_nan_loss_reaching_every_trainable_parameter_instead_of_raising():
+    from anycity.geometry import make_intrinsics
+    from anycity.structures import ViewBatch, Views
+
+    def views(n):
+        w2c = torch.eye(4).repeat(1, n, 1, 1)
+        w2c[..., 0, 3] = torch.linspace(0, 0.3, n)
+        K = make_intrinsics(30.0, 30.0, 16.0, 16.0).expand(1, n, 3, 3).clone()
+        return Views(images=torch.full((1, n, 3, 32, 32), float("nan")), w2c=w2c, K=K)
+
+    m = ScaffoldModule(preset="tiny", render_backend="torch")
+    m.log = lambda *a, **k: None
+    loss = m.training_step(ViewBatch(context=views(2), target=views(1)), 0)  # the renderer would raise on NaN
+    assert torch.isnan(loss)
+    loss.backward()
+    assert all(p.grad is not None for p in m.parameters() if p.requires_grad)  # DDP's reducer sees every param
+
+
+def test_stage1_loads_an_older_checkpoint_that_still_has_a_completion_branch():
+    old = build_network("tiny")  # completion branch built, as Stage I did before
+    ckpt = {"state_dict": {f"net.{k}": v for k, v in old.state_dict().items()}}
+    m = ScaffoldModule(preset="tiny")
+    m.on_load_checkpoint(ckpt)
+    m.load_state_dict(ckpt["state_dict"], strict=True)
+    torch.testing.assert_close(m.net.aggregator.camera_token, old.aggregator.camera_token)
