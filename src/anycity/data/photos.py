@@ -45,7 +45,7 @@ def photo_size(path: Path) -> tuple[int, int]:
             if im.getexif().get(0x0112, 1) in (5, 6, 7, 8):  # rotated by 90 degrees when shown
                 w, h = h, w
     except Exception as e:  # noqa: BLE001 - any decoder error means the same thing to the user
-        raise ValueError(f"predict_images: cannot read {path} ({type(e).__name__}); re-save it as JPEG or PNG, or "
+        raise ValueError(f"predict_images: cannot decode {path} ({type(e).__name__}); re-save it as JPEG or PNG, or "
                          "remove it") from None
     return h, w
 
