@@ -75,6 +75,28 @@ def order_from_descriptors(desc: Tensor) -> list[int]:
     return order
 
 
+@torch.no_grad()
+def token_descriptors(net, load, num: int, batch: int = 16) -> Tensor:
+    """One descriptor per photo from the network's own global tokens: ``[num, D]``.
+
+    Args:
+        net: an :class:`anycity.models.anycity.AnyCityNet` (its ``aggregator``; duck-typed, no import).
+        load: ``load(indices) -> [v, 3, H, W]`` photos, at a low resolution (a cheap pass).
+        batch: photos per pass. Each photo goes through as its own one-view sample, so no photo sees another
+            and the descriptors do not depend on the batching.
+    Returns:
+        the mean of the last layer's patch tokens of each photo.
+    """
+    agg = net.aggregator
+    out = []
+    for i in range(0, num, batch):
+        images = load(list(range(i, min(num, i + batch))))[:, None]  # [v, 1, 3, H, W]
+        param = next(net.parameters())
+        tokens = agg(images.to(param.device, param.dtype), keep={agg.depth - 1})[-1]  # [v, 1, T, 2C]
+        out.append(tokens[:, 0, agg.patch_start_idx:].float().mean(1).cpu())
+    return torch.cat(out)
+
+
 def plan_chunks(num: int, size: int, overlap: int) -> list[list[int]]:
     """Cut positions ``0..num-1`` into chunks of ``size`` consecutive positions, each sharing ``overlap`` with the
     next; the last chunk is shifted back to stay full (it then shares more). One chunk when ``num <= size``."""

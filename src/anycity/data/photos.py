@@ -89,7 +89,8 @@ class PhotoFolder:
         size: ``(H, W)``: the pixel budget (``mode="keep"``) or the exact size (``"crop"``).
         mode: "keep" (predict's default: each aspect ratio kept, no crop) or "crop".
         patch: side multiple for "keep".
-        order: "auto" (capture time when every photo has one, else file name), "time" or "name".
+        order: "auto" (capture time when every photo has one, else file name), "time" or "name" (for "tokens",
+            load by name, then :meth:`reorder`).
     Attributes:
         files, names (in order), hw ``(H, W)``, ordered_by ("time"/"name").
     """
@@ -113,6 +114,14 @@ class PhotoFolder:
 
     def __len__(self) -> int:
         return len(self.files)
+
+    def reorder(self, order: list[int], ordered_by: str) -> None:
+        """Put the photos in ``order`` (indices into the current order)."""
+        if sorted(order) != list(range(len(self))):
+            raise ValueError(f"PhotoFolder.reorder: expected a permutation of {len(self)} indices")
+        self.files = [self.files[i] for i in order]
+        self.names = [f.name for f in self.files]
+        self.ordered_by = ordered_by
 
     def load(self, indices: list[int] | None = None) -> torch.Tensor:
         """``[V, 3, H, W]`` float32 of the photos at ``indices`` (all by default)."""

@@ -108,7 +108,8 @@ class AerialDataModule(pl.LightningDataModule):
         predict_chunk_size: photos per forward pass of ``predict_images`` (2..64).
         predict_chunk_overlap: photos shared by consecutive chunks (their alignment uses them).
         predict_order: photo order for chunking: "auto" (EXIF capture time when every photo has one, else file name),
-            "time" or "name".
+            "time", "name" or "tokens" (a neighbour graph of the network's own global tokens from one low-resolution
+            pass: for photos that form no sequence).
         predict_resize: "keep" (each photo's aspect ratio, about image_size's pixel count, sides multiples of
             patch_size, no crop; mixed aspect ratios go to the most common one, with a warning) or "crop".
     """
@@ -178,10 +179,28 @@ class AerialDataModule(pl.LightningDataModule):
         if not 2 <= self.hp.predict_chunk_size <= MAX_VIEWS:
             raise ValueError(f"predict_chunk_size: expected 2..{MAX_VIEWS} photos per forward pass, got "
                              f"{self.hp.predict_chunk_size}")
+        tokens = self.hp.predict_order == "tokens"
         photos = PhotoFolder(self.hp.predict_images, tuple(self.hp.image_size), self.hp.predict_resize,
-                             self.hp.patch_size, self.hp.predict_order)
+                             self.hp.patch_size, "name" if tokens else self.hp.predict_order)
+        if tokens and len(photos) > self.hp.predict_chunk_size:
+            self._order_by_tokens(photos)
         chunks = plan_chunks(len(photos), self.hp.predict_chunk_size, self.hp.predict_chunk_overlap)
         return DataLoader(_PhotoChunks(photos, chunks), batch_size=1, collate_fn=_collate_photos)
+
+    def _order_by_tokens(self, photos) -> None:
+        """Order ``photos`` along the neighbour graph of the network's own global tokens (one pass per photo at
+        half the resolution, no cross-view attention), for photos that do not form a sequence by name or time."""
+        from anycity.city.plan import order_from_descriptors, token_descriptors
+        from anycity.data.photos import PhotoFolder
+
+        module = self.trainer.lightning_module if self.trainer is not None else None
+        if module is None or not hasattr(module, "net"):
+            raise ValueError("predict_order 'tokens' needs the network: run it from `anycity predict`")
+        p = self.hp.patch_size
+        small = tuple(max(2 * p, s // 2) for s in self.hp.image_size)
+        low = PhotoFolder(photos.folder, small, self.hp.predict_resize, p, "name")
+        order = order_from_descriptors(token_descriptors(module.net, low.load, len(low)))
+        photos.reorder(order, "tokens")
 
     @property
     def num_skipped(self) -> int:

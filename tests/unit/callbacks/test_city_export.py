@@ -56,3 +56,19 @@ def test_photo_folder_chunks_merge_into_one_scene(tmp_path):
     rep = json.loads((out / "chunks.json").read_text())
     assert rep["num_chunks"] == 4 and rep["gaussians"] == n * h * w
     assert len(list((out / "renders").glob("*.png"))) == n
+
+
+def test_token_order_is_a_permutation_from_the_network(tmp_path):
+    from anycity.models import build_network
+
+    photos = tmp_path / "unordered"
+    photos.mkdir()
+    for i in range(6):
+        Image.fromarray(np.random.default_rng(i).integers(0, 255, (16, 16, 3), dtype=np.uint8)).save(
+            photos / f"{i}.png")
+    dm = AerialDataModule(predict_images=str(photos), image_size=(16, 16), patch_size=8, predict_chunk_size=4,
+                          predict_chunk_overlap=2, predict_order="tokens", num_workers=0)
+    dm.trainer = SimpleNamespace(lightning_module=SimpleNamespace(net=build_network("tiny", patch_size=8).eval()))
+    batches = list(dm.predict_dataloader())
+    names = batches[0]["chunk"]["names"]
+    assert sorted(names) == [f"{i}.png" for i in range(6)] and len(batches) == 2

@@ -179,3 +179,15 @@ def test_ply_stream_matches_save_ply(tmp_path):
     a, b = load_ply(tmp_path / "a.ply"), load_ply(tmp_path / "b.ply")
     assert torch.equal(a.means, b.means) and torch.equal(a.sh, b.sh)
     assert not list(tmp_path.glob("*.tmp"))
+
+
+def test_token_descriptors_are_per_photo():
+    from anycity.city.plan import token_descriptors
+    from anycity.models import build_network
+
+    torch.manual_seed(0)
+    net = build_network("tiny").eval()
+    imgs = torch.rand(5, 3, 28, 28)
+    imgs[3] = imgs[1]
+    d = token_descriptors(net, lambda idx: imgs[idx], 5, batch=2)
+    assert d.shape[0] == 5 and torch.allclose(d[1], d[3], atol=1e-5) and not torch.allclose(d[0], d[1])
