@@ -107,6 +107,9 @@ def robust_sim3(src: Tensor, dst: Tensor, rel_threshold: float = 0.05, trials: i
         if torch.equal(new, inl):
             break
         inl = new
+    if T is not None and int(inl.sum()) >= 3:  # the fit that goes with the final inlier set
+        s1, R1, t1 = umeyama(src[inl], dst[inl])
+        T = sim3_matrix(s1, R1, t1)
     if T is None or int(inl.sum()) < min_inliers:
         raise ValueError(f"robust_sim3: {int(inl.sum())} of {n} points agree within {thr:.3g} (need "
                          f"{min_inliers}); the two reconstructions disagree on their shared views")
@@ -240,23 +243,28 @@ def chain_init(num_chunks: int, edges: list[Edge]) -> Tensor:
 def pose_graph(num_chunks: int, edges: list[Edge], iters: int = 50) -> tuple[Tensor, dict]:
     """Global least squares over chunk transforms (chunk 0 fixed as the world frame).
 
-    Minimises, over every edge, the mean squared distance between its inlier points mapped to the world by both
-    chunks, ``|S_a dst - S_b src|^2`` (in units of the scene spread), so a loop or a view shared by three chunks
-    spreads the error instead of piling it up along the chain. Starts from :func:`chain_init` and runs
+    Minimises, over every edge, the mean squared distance between its inlier points and the same points carried
+    over from chunk b by the current relative transform, ``|dst - S_a^-1 S_b src|^2`` (in chunk a's frame, in units
+    of the edge's point spread), so a loop or a view shared by three chunks spreads the error instead of piling it
+    up along the chain; on a chain (a tree) it keeps the pairwise fits as they are. Starts from :func:`chain_init` and runs
     Gauss-Newton (Levenberg damped) on a left perturbation ``exp(sigma), exp(omega), tau`` of every other chunk.
 
     Returns:
-        ``S [C, 4, 4]`` chunk-to-world Sim(3)s and a report ``{"initial_rms", "final_rms"}`` (world units).
+        ``S [C, 4, 4]`` chunk-to-world Sim(3)s and a report ``{"initial_rms", "final_rms"}`` (the normalised
+        residual above times the scene spread in chunk 0's frame).
     """
     S0 = chain_init(num_chunks, edges)
     if num_chunks == 1 or not edges:
         return S0, {"initial_rms": 0.0, "final_rms": 0.0}
+    # Residuals in each edge's own frame (a), in units of its points' spread: measured in the world instead,
+    # shrinking the chunks far from chunk 0 would lower them (the scale drift of point-based pose graphs).
+    units = [max(_spread(e.dst), 1e-12) for e in edges]
     unit = max(_spread(torch.cat([apply_sim3(S0[e.a], e.dst) for e in edges])), 1e-12)
 
     def residuals(x: Tensor) -> Tensor:
         S = _deltas(x) @ S0
-        out = [(apply_sim3(S[e.a], e.dst) - apply_sim3(S[e.b], e.src)).flatten() / (unit * len(e.dst) ** 0.5)
-               for e in edges]
+        out = [(e.dst - apply_sim3(sim3_inverse(S[e.a]) @ S[e.b], e.src)).flatten() / (u * len(e.dst) ** 0.5)
+               for e, u in zip(edges, units)]
         return torch.cat(out)
 
     x = torch.zeros(7 * (num_chunks - 1), dtype=torch.float64)
