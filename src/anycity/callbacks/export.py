@@ -56,7 +56,8 @@ class PredictionExport(BasePredictionWriter):
         for i, name in enumerate(scenes):
             folder = self._root(trainer) / f"{name}".replace("/", "_")
             save_ply(g, folder / "scene.ply", index=i)
-            save_cameras(folder / "cameras.json", w2c[i], K[i], int(w), int(h))
+            names = batch.get("names") if isinstance(batch, dict) else None  # a photo folder's file names
+            save_cameras(folder / "cameras.json", w2c[i], K[i], int(w), int(h), names[i] if names else None)
             if self.save_renders:
                 for kind, imgs in (("renders", renders.rgb[i]), ("inputs", images[i])):
                     (folder / kind).mkdir(parents=True, exist_ok=True)
