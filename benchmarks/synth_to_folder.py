@@ -14,7 +14,6 @@ import tarfile
 from pathlib import Path
 
 
-
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if len(argv) != 2:

@@ -246,8 +246,9 @@ def pose_graph(num_chunks: int, edges: list[Edge], iters: int = 50) -> tuple[Ten
     Minimises, over every edge, the mean squared distance between its inlier points and the same points carried
     over from chunk b by the current relative transform, ``|dst - S_a^-1 S_b src|^2`` (in chunk a's frame, in units
     of the edge's point spread), so a loop or a view shared by three chunks spreads the error instead of piling it
-    up along the chain; on a chain (a tree) it keeps the pairwise fits as they are. Starts from :func:`chain_init` and runs
-    Gauss-Newton (Levenberg damped) on a left perturbation ``exp(sigma), exp(omega), tau`` of every other chunk.
+    up along the chain; on a chain (a tree) it keeps the pairwise fits as they are. Starts from
+    :func:`chain_init` and runs Gauss-Newton (Levenberg damped) on a left perturbation ``exp(sigma), exp(omega),
+    tau`` of every other chunk.
 
     Returns:
         ``S [C, 4, 4]`` chunk-to-world Sim(3)s and a report ``{"initial_rms", "final_rms"}`` (the normalised
