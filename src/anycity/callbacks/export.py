@@ -38,6 +38,7 @@ class PredictionExport(BasePredictionWriter):
         self.save_renders = save_renders
         self.written: list[Path] = []
         self._city = None
+        self._bar = None
         self.city_report: dict | None = None
 
     def _root(self, trainer: pl.Trainer) -> Path:
@@ -106,3 +107,5 @@ class PredictionExport(BasePredictionWriter):
         if self._city is not None:  # interrupted: drop the spill files, write nothing
             self._city.close()
             self._city = None
+        if self._bar is not None:
+            self._bar.close()
