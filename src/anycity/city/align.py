@@ -171,7 +171,7 @@ def pairwise_edges(chunks: list[ChunkGeometry], names: list[str] | None = None, 
     for a in range(len(chunks)):
         for b in range(a + 1, len(chunks)):
             shared = sorted(set(chunks[a].views) & set(chunks[b].views))
-            consecutive = b == a + 1
+            consecutive = b == a + 1 or (a == 0 and b == len(chunks) - 1 and _is_loop(chunks))
             if len(shared) < min_shared:
                 if consecutive:
                     raise ValueError(_chunk_error(a, b, shared, names, f"share {len(shared)} views, need "
@@ -186,6 +186,11 @@ def pairwise_edges(chunks: list[ChunkGeometry], names: list[str] | None = None, 
                 raise ValueError(_chunk_error(a, b, shared, names, str(e).removeprefix("robust_sim3: "))) from None
             edges.append(Edge(a, b, shared, fit, src[fit.inliers], dst[fit.inliers]))
     return edges
+
+
+def _is_loop(chunks: list[ChunkGeometry]) -> bool:
+    """The last chunk is a loop-closure chunk (it wraps around the photo order)."""
+    return len(chunks) > 2 and chunks[-1].views[0] > chunks[-1].views[-1]
 
 
 def _chunk_error(a: int, b: int, shared: list[int], names: list[str] | None, why: str) -> str:

@@ -33,12 +33,12 @@ def random_sim3(gen: torch.Generator) -> Tensor:
     return sim3_matrix(s, random_rotation(gen), torch.randn(3, generator=gen, dtype=torch.float64) * 20)
 
 
-def orbit_scene(n: int, points_per_view: int = 64, radius: float = 10.0, height: float = 6.0, seed: int = 0
-                ) -> tuple[Tensor, Tensor]:
+def orbit_scene(n: int, points_per_view: int = 64, radius: float = 10.0, height: float = 6.0, seed: int = 0,
+                arc: float = 0.9) -> tuple[Tensor, Tensor]:
     """Ground truth: ``w2c [n, 4, 4]`` on an orbit looking at the origin and ``points [n, P, 3]``, each view's
     points (what its depth map would back-project to) scattered around the ground it looks at."""
     g = torch.Generator().manual_seed(seed)
-    ang = torch.arange(n, dtype=torch.float64) * 2 * math.pi / n * 0.9  # not a closed loop
+    ang = torch.arange(n, dtype=torch.float64) * 2 * math.pi / n * arc  # arc = 1: a closed loop
     centres = torch.stack([radius * ang.cos(), radius * ang.sin(), torch.full_like(ang, height)], -1)
     fwd = torch.nn.functional.normalize(-centres, dim=-1)
     right = torch.nn.functional.normalize(torch.cross(fwd, torch.tensor([0, 0, 1.0], dtype=torch.float64)

@@ -97,9 +97,13 @@ def token_descriptors(net, load, num: int, batch: int = 16) -> Tensor:
     return torch.cat(out)
 
 
-def plan_chunks(num: int, size: int, overlap: int) -> list[list[int]]:
+def plan_chunks(num: int, size: int, overlap: int, loop: bool = False) -> list[list[int]]:
     """Cut positions ``0..num-1`` into chunks of ``size`` consecutive positions, each sharing ``overlap`` with the
-    next; the last chunk is shifted back to stay full (it then shares more). One chunk when ``num <= size``."""
+    next; the last chunk is shifted back to stay full (it then shares more). One chunk when ``num <= size``.
+
+    ``loop=True`` (the last photos see the first ones again, e.g. a closed orbit) appends a loop-closure chunk of
+    the last ``size // 2`` and the first ``size - size // 2`` positions: it shares photos with the first and the
+    last chunk, so the pose graph gets a cycle and spreads the drift around it."""
     if size < 2:
         raise ValueError(f"predict_chunk_size: expected >= 2 photos per chunk, got {size}")
     if not 0 <= overlap < size:
@@ -108,7 +112,10 @@ def plan_chunks(num: int, size: int, overlap: int) -> list[list[int]]:
         return [list(range(num))]
     step = size - overlap
     starts = list(range(0, num - size, step)) + [num - size]
-    return [list(range(s, s + size)) for s in starts]
+    chunks = [list(range(s, s + size)) for s in starts]
+    if loop and len(chunks) > 2:
+        chunks.append(list(range(num - size // 2, num)) + list(range(size - size // 2)))
+    return chunks
 
 
 def owners(chunks: list[list[int]]) -> dict[int, int]:
@@ -117,6 +124,8 @@ def owners(chunks: list[list[int]]) -> dict[int, int]:
     camera are taken from its owner only, so no region is doubled where chunks overlap."""
     best: dict[int, tuple[int, int]] = {}
     for c, views in enumerate(chunks):
+        if len(chunks) > 2 and c == len(chunks) - 1 and views[0] > views[-1]:
+            continue  # a loop-closure chunk (see plan_chunks) aligns, but owns no photo
         for pos, v in enumerate(views):
             score = min(pos, len(views) - 1 - pos)
             if v not in best or score > best[v][0]:

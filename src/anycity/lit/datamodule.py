@@ -111,6 +111,8 @@ class AerialDataModule(pl.LightningDataModule):
         predict_order: photo order for chunking: "auto" (EXIF capture time when every photo has one, else file name),
             "time", "name" or "tokens" (a neighbour graph of the network's own global tokens from one low-resolution
             pass: for photos that form no sequence).
+        predict_loop: the last photos see the first ones again (a closed orbit): add a loop-closure chunk of both
+            ends, so the alignment's pose graph has a cycle.
         predict_resize: "keep" (each photo's aspect ratio, about image_size's pixel count, sides multiples of
             patch_size, no crop; mixed aspect ratios go to the most common one, with a warning) or "crop".
     """
@@ -124,7 +126,8 @@ class AerialDataModule(pl.LightningDataModule):
                  window: int | None = None, llffhold: int = 8, with_depth: bool = True, with_normals: bool = True,
                  seed: int = 0, skip_corrupt: bool = False, pin_memory: bool = False,
                  compact_batches: bool = False, predict_images: str | None = None, predict_chunk_size: int = 16,
-                 predict_chunk_overlap: int = 4, predict_order: str = "auto", predict_resize: str = "keep") -> None:
+                 predict_chunk_overlap: int = 4, predict_order: str = "auto", predict_resize: str = "keep",
+                 predict_loop: bool = False) -> None:
         super().__init__()
         if not 1 <= num_context <= 64:
             raise ValueError(f"num_context: expected 1..64 views, got {num_context}")
@@ -185,7 +188,8 @@ class AerialDataModule(pl.LightningDataModule):
                              self.hp.patch_size, "name" if tokens else self.hp.predict_order)
         if tokens and len(photos) > self.hp.predict_chunk_size:
             self._order_by_tokens(photos)
-        chunks = plan_chunks(len(photos), self.hp.predict_chunk_size, self.hp.predict_chunk_overlap)
+        chunks = plan_chunks(len(photos), self.hp.predict_chunk_size, self.hp.predict_chunk_overlap,
+                             self.hp.predict_loop)
         return DataLoader(_PhotoChunks(photos, chunks), batch_size=1, collate_fn=_collate_photos)
 
     def _order_by_tokens(self, photos) -> None:

@@ -191,3 +191,17 @@ def test_token_descriptors_are_per_photo():
     imgs[3] = imgs[1]
     d = token_descriptors(net, lambda idx: imgs[idx], 5, batch=2)
     assert d.shape[0] == 5 and torch.allclose(d[1], d[3], atol=1e-5) and not torch.allclose(d[0], d[1])
+
+
+def test_loop_closure_chunk_adds_a_cycle_and_owns_nothing():
+    plan = plan_chunks(40, 10, 3, loop=True)
+    assert plan[-1] == list(range(35, 40)) + list(range(5))
+    assert all(k != len(plan) - 1 for k in owners(plan).values())
+    w2c, pts = orbit_scene(120, points_per_view=64, arc=1.0)
+    errs = []
+    for loop in (False, True):
+        p = plan_chunks(120, 16, 4, loop=loop)
+        chunks, _ = oracle_chunks(w2c, pts, p, seed=0, rot_deg=0.3, centre_noise=0.01, depth_noise=0.01)
+        S, edges, _ = align_chunks(chunks)
+        errs.append(camera_errors(_merged_cameras(chunks, S, p), w2c))
+    assert errs[1]["pos_rel_max"] < errs[0]["pos_rel_max"] and errs[1]["rot_deg_mean"] < errs[0]["rot_deg_mean"]
