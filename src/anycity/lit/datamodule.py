@@ -133,6 +133,10 @@ class AerialDataModule(pl.LightningDataModule):
             raise ValueError(f"num_context: expected 1..64 views, got {num_context}")
         if resize_mode not in ("crop", "keep"):
             raise ValueError(f"resize_mode: expected 'crop' or 'keep', got {resize_mode!r}")
+        if predict_resize not in ("crop", "keep"):
+            raise ValueError(f"predict_resize: expected 'keep' or 'crop', got {predict_resize!r}")
+        if predict_order not in ("auto", "time", "name", "tokens"):
+            raise ValueError(f"predict_order: expected 'auto', 'time', 'name' or 'tokens', got {predict_order!r}")
         if len(image_size) != 2 or min(image_size) < 8:
             raise ValueError(f"image_size: expected [H, W] with sides >= 8, got {image_size!r}")
         self.save_hyperparameters()
