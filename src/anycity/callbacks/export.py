@@ -20,6 +20,13 @@ class PredictionExport(BasePredictionWriter):
     ``renders/NNN.png`` (the Gaussians re-rendered at the predicted context cameras) and
     ``inputs/NNN.png`` (the context images, for side-by-side comparison).
 
+    A photo folder reconstructed in chunks (batches carrying ``"chunk"``, see
+    :class:`anycity.lit.datamodule.AerialDataModule` ``predict_chunk_size``) is merged into one scene by
+    :class:`anycity.city.ChunkedScene`: ``scene.ply`` and ``cameras.json`` for all photos plus ``chunks.json``
+    (per-chunk photos, pairwise alignment residuals and inlier counts). Renders and inputs are then written per
+    photo from the chunk that owns it (renders of that chunk's Gaussians). Chunk predictions are consumed here
+    (emptied in place), so ``trainer.predict`` does not keep every chunk's Gaussians in memory.
+
     Args:
         out_dir: output folder; None = ``<log_dir>/predictions``.
         save_renders: also write the PNG renders and inputs.
@@ -30,12 +37,19 @@ class PredictionExport(BasePredictionWriter):
         self.out_dir = out_dir
         self.save_renders = save_renders
         self.written: list[Path] = []
+        self._city = None
+        self._bar = None
+        self.city_report: dict | None = None
 
     def _root(self, trainer: pl.Trainer) -> Path:
         return Path(self.out_dir) if self.out_dir else Path(trainer.log_dir or trainer.default_root_dir) / "predictions"
 
     def write_on_batch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule, prediction: dict[str, Any],
                            batch_indices: Any, batch: Any, batch_idx: int, dataloader_idx: int = 0) -> None:
+        if isinstance(batch, dict) and batch.get("chunk") is not None:
+            self._write_chunk(trainer, prediction, batch)
+            prediction.clear()
+            return
         g, w2c, K = prediction["gaussians"], prediction["w2c"], prediction["K"]
         images, renders = prediction["images"], prediction["renders"]
         h, w = images.shape[-2:]
@@ -43,7 +57,8 @@ class PredictionExport(BasePredictionWriter):
         for i, name in enumerate(scenes):
             folder = self._root(trainer) / f"{name}".replace("/", "_")
             save_ply(g, folder / "scene.ply", index=i)
-            save_cameras(folder / "cameras.json", w2c[i], K[i], int(w), int(h))
+            names = batch.get("names") if isinstance(batch, dict) else None  # a photo folder's file names
+            save_cameras(folder / "cameras.json", w2c[i], K[i], int(w), int(h), names[i] if names else None)
             if self.save_renders:
                 for kind, imgs in (("renders", renders.rgb[i]), ("inputs", images[i])):
                     (folder / kind).mkdir(parents=True, exist_ok=True)
@@ -51,3 +66,46 @@ class PredictionExport(BasePredictionWriter):
                         arr = (img.float().clamp(0, 1).permute(1, 2, 0).cpu().numpy() * 255 + 0.5).astype(np.uint8)
                         Image.fromarray(arr).save(folder / kind / f"{v:03d}.png")
             self.written.append(folder)
+
+    def _write_chunk(self, trainer: pl.Trainer, prediction: dict[str, Any], batch: dict) -> None:
+        from anycity.city import ChunkedScene
+
+        info = batch["chunk"]
+        k, views = info["index"], info["views"]
+        folder = self._root(trainer) / f"{batch['scene'][0]}".replace("/", "_")
+        if k == 0:
+            if self._city is not None:
+                self._city.close()
+            self._city = ChunkedScene(info["plan"], info["names"], info["hw"])
+            from tqdm.auto import tqdm
+
+            self._bar = tqdm(total=info["count"], desc=f"city: chunks of {batch['scene'][0]}", unit="chunk")
+        city = self._city
+        if city is None:
+            raise RuntimeError("PredictionExport: a chunked prediction did not start at chunk 0")
+        city.add(k, prediction["gaussians"], prediction["w2c"][0], prediction["K"][0])
+        if self.save_renders:
+            own = [i for i, v in enumerate(views) if city.owner[v] == k]
+            for kind, imgs in (("renders", prediction["renders"].rgb[0]), ("inputs", prediction["images"][0])):
+                (folder / kind).mkdir(parents=True, exist_ok=True)
+                for i in own:
+                    arr = (imgs[i].float().clamp(0, 1).permute(1, 2, 0).cpu().numpy() * 255 + 0.5).astype(np.uint8)
+                    Image.fromarray(arr).save(folder / kind / f"{views[i]:03d}.png")
+        self._bar.update(1)
+        if k == info["count"] - 1:
+            self._bar.close()
+            self._city = None
+            self.city_report = city.finish(folder)
+            rep = self.city_report
+            worst = max((p["rms_residual"] for p in rep["pairs"]), default=0.0)
+            print(f"anycity predict: {rep['num_photos']} photos in {rep['num_chunks']} chunks -> {folder}/scene.ply "
+                  f"({rep['gaussians']} Gaussians); worst pairwise rms residual {worst:.4g}, pose graph rms "
+                  f"{rep['pose_graph'].get('final_rms', 0.0):.4g} (details: chunks.json)")
+            self.written.append(folder)
+
+    def on_predict_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        if self._city is not None:  # interrupted: drop the spill files, write nothing
+            self._city.close()
+            self._city = None
+        if self._bar is not None:
+            self._bar.close()

@@ -1,49 +1,140 @@
-"""A folder of one scene's own photos (no poses) -> the network's input, for ``anycity predict``."""
+"""A folder of one scene's own photos (no poses) -> the network's input, for ``anycity predict``.
+
+Predict keeps each photo's aspect ratio (``mode="keep"``: about H*W pixels, both sides multiples of the patch, no
+centre crop). A folder of mixed aspect ratios is resized to the most common one (the others are scaled to cover it
+and centre-cropped), with a warning naming them. Any number of photos loads lazily, chunk by chunk
+(:class:`PhotoFolder`); ``anycity.city`` plans the chunks.
+"""
 
 from __future__ import annotations
 
+import warnings
+from collections import Counter
 from pathlib import Path
 
 import cv2
 import numpy as np
 import torch
 
-from anycity.data.views import resize_view
+from anycity.data.views import resize_plan, resize_view
 
 PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png")
-MAX_VIEWS = 64
+MAX_VIEWS = 64  # views of one forward pass; more photos are reconstructed in chunks (anycity.city)
 
 
-def load_photo_folder(folder: str | Path, size: tuple[int, int], mode: str = "crop", patch: int = 14) -> dict:
-    """Read every ``.jpg``/``.jpeg``/``.png`` in ``folder`` (sorted by name, EXIF orientation applied) and resize it
-    like the training data.
-
-    Args:
-        folder: one scene's photos, 2..64 of them.
-        size: ``(H, W)`` of :func:`anycity.data.views.resize_view` (``mode="keep"`` keeps each aspect ratio at
-            about H*W pixels, so every photo of the folder must share it).
-        mode, patch: see :func:`anycity.data.views.resize_view`.
-    Returns:
-        ``{"images": [V, 3, H, W] float32 in [0, 1], "scene": folder name, "names": file names}``.
-    """
+def list_photos(folder: str | Path) -> list[Path]:
+    """The ``.jpg``/``.jpeg``/``.png`` files of ``folder`` (at least 2), sorted by name."""
     folder = Path(folder)
     if not folder.is_dir():
         raise FileNotFoundError(f"predict_images: {folder} is not a folder; pass a folder holding one scene's photos")
     files = sorted(p for p in folder.iterdir() if p.suffix.lower() in PHOTO_SUFFIXES)
-    if not 2 <= len(files) <= MAX_VIEWS:
-        raise ValueError(f"predict_images: {folder} holds {len(files)} photos ({'/'.join(PHOTO_SUFFIXES)}); the "
-                         f"network takes 2..{MAX_VIEWS} views of one scene, so add or remove photos")
-    images = []
-    for f in files:
-        bgr = cv2.imread(str(f), cv2.IMREAD_COLOR)
-        if bgr is None:
-            raise ValueError(f"predict_images: cannot decode {f}; re-save it as JPEG or PNG, or remove it")
-        h, w = bgr.shape[:2]
-        K = np.array([[max(h, w), 0, w / 2], [0, max(h, w), h / 2], [0, 0, 1]], np.float64)  # unused placeholder
-        rgb, *_ = resize_view(np.ascontiguousarray(bgr[..., ::-1]), K, tuple(size), mode, patch)
-        images.append(torch.from_numpy(np.ascontiguousarray(rgb)).permute(2, 0, 1).float() / 255)
-    shapes = {tuple(im.shape) for im in images}
-    if len(shapes) > 1:
-        raise ValueError(f"predict_images: the photos of {folder} resize to different sizes {sorted(shapes)} "
-                         "(resize_mode 'keep' with mixed aspect ratios); use resize_mode 'crop' or crop them alike")
-    return {"images": torch.stack(images), "scene": folder.name, "names": [f.name for f in files]}
+    if len(files) < 2:
+        only = f" (only {files[0].name})" if files else ""
+        raise ValueError(f"predict_images: {folder} holds {len(files)} photos{only} ({'/'.join(PHOTO_SUFFIXES)}); "
+                         "a scene needs at least 2 overlapping photos, so add more views of it")
+    return files
+
+
+def photo_size(path: Path) -> tuple[int, int]:
+    """``(h, w)`` as displayed (EXIF orientation applied), from the header only."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            w, h = im.size
+            if im.getexif().get(0x0112, 1) in (5, 6, 7, 8):  # rotated by 90 degrees when shown
+                w, h = h, w
+    except Exception as e:  # noqa: BLE001 - any decoder error means the same thing to the user
+        raise ValueError(f"predict_images: cannot decode {path} ({type(e).__name__}); re-save it as JPEG or PNG, or "
+                         "remove it") from None
+    return h, w
+
+
+def common_size(sizes: list[tuple[int, int]], size: tuple[int, int], mode: str = "keep", patch: int = 14
+                ) -> tuple[tuple[int, int], list[int]]:
+    """Output ``(H, W)`` for photos of ``sizes`` and the indices that do not share the most common aspect ratio.
+
+    ``mode="keep"``: the most common aspect ratio (rounded to 2 %) at about H*W pixels, sides multiples of
+    ``patch``; ``"crop"``: ``size`` itself (every photo centre-cropped to it, none are odd).
+    """
+    if mode == "crop":
+        return tuple(size), []
+    plans = [resize_plan(h, w, tuple(size), "keep", patch)[2:] for h, w in sizes]
+    target, _ = Counter(plans).most_common(1)[0]
+    aspect = lambda hw: round(np.log(hw[1] / hw[0]) / 0.02)  # noqa: E731
+    odd = [i for i, (p, hw) in enumerate(zip(plans, sizes)) if p != target and aspect(hw) != aspect(target)]
+    return target, odd
+
+
+def load_photo(path: Path, hw: tuple[int, int], mode: str = "keep", patch: int = 14) -> torch.Tensor:
+    """One photo -> ``[3, H, W]`` float32 RGB in [0, 1] at exactly ``hw`` (its aspect kept when it matches)."""
+    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)  # applies the EXIF orientation
+    if bgr is None:
+        raise ValueError(f"predict_images: cannot decode {path}; re-save it as JPEG or PNG, or remove it")
+    h, w = bgr.shape[:2]
+    K = np.array([[max(h, w), 0, w / 2], [0, max(h, w), h / 2], [0, 0, 1]], np.float64)  # unused placeholder
+    rgb = np.ascontiguousarray(bgr[..., ::-1])
+    if mode == "keep" and resize_plan(h, w, hw, "keep", patch)[2:] == tuple(hw):
+        rgb, *_ = resize_view(rgb, K, hw, "keep", patch)
+    else:  # another aspect ratio than the folder's (or mode "crop"): cover hw, centre-crop
+        rgb, *_ = resize_view(rgb, K, hw, "crop", patch)
+    return torch.from_numpy(np.ascontiguousarray(rgb)).permute(2, 0, 1).float() / 255
+
+
+class PhotoFolder:
+    """The photos of one folder, in capture order, loaded on demand at one common size.
+
+    Args:
+        folder: one scene's photos (2 or more).
+        size: ``(H, W)``: the pixel budget (``mode="keep"``) or the exact size (``"crop"``).
+        mode: "keep" (predict's default: each aspect ratio kept, no crop) or "crop".
+        patch: side multiple for "keep".
+        order: "auto" (capture time when every photo has one, else file name), "time" or "name" (for "tokens",
+            load by name, then :meth:`reorder`).
+    Attributes:
+        files, names (in order), hw ``(H, W)``, ordered_by ("time"/"name").
+    """
+
+    def __init__(self, folder: str | Path, size: tuple[int, int], mode: str = "keep", patch: int = 14,
+                 order: str = "auto") -> None:
+        from anycity.city.plan import order_photos
+
+        self.folder = Path(folder)
+        files = list_photos(self.folder)
+        idx, self.ordered_by = order_photos(files, order)
+        self.files = [files[i] for i in idx]
+        self.names = [f.name for f in self.files]
+        self.mode, self.patch = mode, patch
+        self.hw, odd = common_size([photo_size(f) for f in self.files], tuple(size), mode, patch)
+        if odd:
+            shown = ", ".join(self.names[i] for i in odd[:5]) + (" ..." if len(odd) > 5 else "")
+            warnings.warn(f"predict_images: {len(odd)} of {len(self.files)} photos in {self.folder} ({shown}) have "
+                          f"another aspect ratio than the most common one; they are scaled and centre-cropped to "
+                          f"{self.hw[0]}x{self.hw[1]} like the rest", stacklevel=2)
+
+    def __len__(self) -> int:
+        return len(self.files)
+
+    def reorder(self, order: list[int], ordered_by: str) -> None:
+        """Put the photos in ``order`` (indices into the current order)."""
+        if sorted(order) != list(range(len(self))):
+            raise ValueError(f"PhotoFolder.reorder: expected a permutation of {len(self)} indices")
+        self.files = [self.files[i] for i in order]
+        self.names = [f.name for f in self.files]
+        self.ordered_by = ordered_by
+
+    def load(self, indices: list[int] | None = None) -> torch.Tensor:
+        """``[V, 3, H, W]`` float32 of the photos at ``indices`` (all by default)."""
+        indices = range(len(self)) if indices is None else indices
+        return torch.stack([load_photo(self.files[i], self.hw, self.mode, self.patch) for i in indices])
+
+
+def load_photo_folder(folder: str | Path, size: tuple[int, int], mode: str = "keep", patch: int = 14,
+                      order: str = "auto") -> dict:
+    """Every photo of ``folder`` (see :class:`PhotoFolder`) at once.
+
+    Returns:
+        ``{"images": [V, 3, H, W] float32 in [0, 1], "scene": folder name, "names": file names}``.
+    """
+    photos = PhotoFolder(folder, size, mode, patch, order)
+    return {"images": photos.load(), "scene": photos.folder.name, "names": photos.names}

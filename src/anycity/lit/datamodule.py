@@ -38,8 +38,31 @@ def _expand(spec: str | list[str] | None, split: str) -> list[str]:
 def _collate_photos(items: list[dict]) -> dict:
     """Photo folders (see :func:`anycity.data.photos.load_photo_folder`) -> ``{"images": [B, V, 3, H, W], "scene":
     [B], "names": [B][V]}``."""
-    return {"images": torch.stack([it["images"] for it in items]), "scene": [it["scene"] for it in items],
-            "names": [it["names"] for it in items]}
+    out = {"images": torch.stack([it["images"] for it in items]), "scene": [it["scene"] for it in items],
+           "names": [it["names"] for it in items]}
+    if items[0].get("chunk") is not None:
+        out["chunk"] = items[0]["chunk"]
+    return out
+
+
+class _PhotoChunks(torch.utils.data.Dataset):
+    """The chunks of a photo folder, loaded one at a time. One chunk: the plain photo-folder sample; several: each
+    carries ``"chunk": {"index", "count", "views", "plan", "names", "hw"}`` for the exporter to align and merge."""
+
+    def __init__(self, photos, chunks: list[list[int]]) -> None:
+        self.photos, self.chunks = photos, chunks
+
+    def __len__(self) -> int:
+        return len(self.chunks)
+
+    def __getitem__(self, k: int) -> dict:
+        views = self.chunks[k]
+        item = {"images": self.photos.load(views), "scene": self.photos.folder.name,
+                "names": [self.photos.names[v] for v in views]}
+        if len(self.chunks) > 1:
+            item["chunk"] = {"index": k, "count": len(self.chunks), "views": views, "plan": self.chunks,
+                             "names": self.photos.names, "hw": tuple(self.photos.hw)}
+        return item
 
 
 class AerialDataModule(pl.LightningDataModule):
@@ -79,8 +102,19 @@ class AerialDataModule(pl.LightningDataModule):
             batch on the device after the transfer (``on_after_batch_transfer``). The LightningModule sees the
             same batch either way; code that iterates the DataLoader itself calls
             :func:`anycity.data.pipeline.to_float32`. Recommended for training at 448 px.
-        predict_images: a folder of one scene's own photos (2..64 ``.jpg``/``.png``, no poses) that ``anycity
-            predict`` reconstructs, resized like the training data; None: ``predict`` reconstructs the test scenes.
+        predict_images: a folder of one scene's own photos (2 or more ``.jpg``/``.png``, no poses) that ``anycity
+            predict`` reconstructs; None: ``predict`` reconstructs the test scenes. More photos than
+            ``predict_chunk_size`` are reconstructed in overlapping chunks, aligned and merged (:mod:`anycity.city`).
+        predict_chunk_size: photos per forward pass of ``predict_images`` (2..64; 16 measured better than one pass
+            of 32 with the quickstart model, and the camera refinement costs grow as its square).
+        predict_chunk_overlap: photos shared by consecutive chunks (their alignment uses them).
+        predict_order: photo order for chunking: "auto" (EXIF capture time when every photo has one, else file name),
+            "time", "name" or "tokens" (a neighbour graph of the network's own global tokens from one low-resolution
+            pass: for photos that form no sequence).
+        predict_loop: the last photos see the first ones again (a closed orbit): add a loop-closure chunk of both
+            ends, so the alignment's pose graph has a cycle.
+        predict_resize: "keep" (each photo's aspect ratio, about image_size's pixel count, sides multiples of
+            patch_size, no crop; mixed aspect ratios go to the most common one, with a warning) or "crop".
     """
 
     def __init__(self, root: str | None = None, train_shards: str | list[str] | None = None,
@@ -91,12 +125,18 @@ class AerialDataModule(pl.LightningDataModule):
                  epoch_samples: int = 1000, resampled: bool = True, shuffle_buffer: int = 16,
                  window: int | None = None, llffhold: int = 8, with_depth: bool = True, with_normals: bool = True,
                  seed: int = 0, skip_corrupt: bool = False, pin_memory: bool = False,
-                 compact_batches: bool = False, predict_images: str | None = None) -> None:
+                 compact_batches: bool = False, predict_images: str | None = None, predict_chunk_size: int = 16,
+                 predict_chunk_overlap: int = 4, predict_order: str = "auto", predict_resize: str = "keep",
+                 predict_loop: bool = False) -> None:
         super().__init__()
         if not 1 <= num_context <= 64:
             raise ValueError(f"num_context: expected 1..64 views, got {num_context}")
         if resize_mode not in ("crop", "keep"):
             raise ValueError(f"resize_mode: expected 'crop' or 'keep', got {resize_mode!r}")
+        if predict_resize not in ("crop", "keep"):
+            raise ValueError(f"predict_resize: expected 'keep' or 'crop', got {predict_resize!r}")
+        if predict_order not in ("auto", "time", "name", "tokens"):
+            raise ValueError(f"predict_order: expected 'auto', 'time', 'name' or 'tokens', got {predict_order!r}")
         if len(image_size) != 2 or min(image_size) < 8:
             raise ValueError(f"image_size: expected [H, W] with sides >= 8, got {image_size!r}")
         self.save_hyperparameters()
@@ -141,11 +181,35 @@ class AerialDataModule(pl.LightningDataModule):
     def predict_dataloader(self) -> DataLoader:
         if self.hp.predict_images is None:
             return self.test_dataloader()
-        from anycity.data.photos import load_photo_folder
+        from anycity.city.plan import plan_chunks
+        from anycity.data.photos import MAX_VIEWS, PhotoFolder
 
-        scene = load_photo_folder(self.hp.predict_images, tuple(self.hp.image_size), self.hp.resize_mode,
-                                  self.hp.patch_size)
-        return DataLoader([scene], batch_size=1, collate_fn=_collate_photos)
+        if not 2 <= self.hp.predict_chunk_size <= MAX_VIEWS:
+            raise ValueError(f"predict_chunk_size: expected 2..{MAX_VIEWS} photos per forward pass, got "
+                             f"{self.hp.predict_chunk_size}")
+        tokens = self.hp.predict_order == "tokens"
+        photos = PhotoFolder(self.hp.predict_images, tuple(self.hp.image_size), self.hp.predict_resize,
+                             self.hp.patch_size, "name" if tokens else self.hp.predict_order)
+        if tokens and len(photos) > self.hp.predict_chunk_size:
+            self._order_by_tokens(photos)
+        chunks = plan_chunks(len(photos), self.hp.predict_chunk_size, self.hp.predict_chunk_overlap,
+                             self.hp.predict_loop)
+        return DataLoader(_PhotoChunks(photos, chunks), batch_size=1, collate_fn=_collate_photos)
+
+    def _order_by_tokens(self, photos) -> None:
+        """Order ``photos`` along the neighbour graph of the network's own global tokens (one pass per photo at
+        half the resolution, no cross-view attention), for photos that do not form a sequence by name or time."""
+        from anycity.city.plan import order_from_descriptors, token_descriptors
+        from anycity.data.photos import PhotoFolder
+
+        module = self.trainer.lightning_module if self.trainer is not None else None
+        if module is None or not hasattr(module, "net"):
+            raise ValueError("predict_order 'tokens' needs the network: run it from `anycity predict`")
+        p = self.hp.patch_size
+        small = tuple(max(2 * p, s // 2) for s in self.hp.image_size)
+        low = PhotoFolder(photos.folder, small, self.hp.predict_resize, p, "name")
+        order = order_from_descriptors(token_descriptors(module.net, low.load, len(low)))
+        photos.reorder(order, "tokens")
 
     @property
     def num_skipped(self) -> int:

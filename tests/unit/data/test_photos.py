@@ -52,8 +52,37 @@ def test_folder_errors_name_the_problem(tmp_path):
     (bad / "b.jpg").write_bytes(b"not a jpeg")
     with pytest.raises(ValueError, match="cannot decode .*b.jpg"):
         load_photo_folder(bad, (32, 32))
-    mixed = tmp_path / "mixed"
-    _write(mixed, "a.png", 32, 32)
-    _write(mixed, "b.png", 32, 96)
-    with pytest.raises(ValueError, match="different sizes"):
-        load_photo_folder(mixed, (32, 32), mode="keep", patch=8)
+    (bad / "a.png").unlink()
+    with pytest.raises(ValueError, match="holds 1 photos .only b.jpg.*add more"):
+        load_photo_folder(bad, (32, 32))
+
+
+def test_keep_aspect_no_crop_and_mixed_sizes_go_to_the_most_common(tmp_path):
+    d = tmp_path / "flight"
+    for i in range(3):
+        _write(d, f"img{i}.png", 60, 80, i)  # 4:3
+    _write(d, "odd.png", 32, 96, 9)  # 3:1
+    with pytest.warns(UserWarning, match=r"1 of 4 photos .*odd.png.*most common"):
+        out = load_photo_folder(d, (32, 32), mode="keep", patch=8)
+    h, w = out["images"].shape[-2:]
+    assert (h, w) == (24, 40) and out["images"].shape[0] == 4  # ~32*32 px at 4:3, sides multiples of 8
+    assert out["names"] == ["img0.png", "img1.png", "img2.png", "odd.png"]
+
+
+def test_natural_order_and_capture_time(tmp_path):
+    from PIL import Image
+
+    from anycity.city.plan import order_photos
+
+    d = tmp_path / "t"
+    d.mkdir()
+    for name, t in (("img10.jpg", "2024:05:01 10:00:02"), ("img2.jpg", "2024:05:01 10:00:03"),
+                    ("img1.jpg", "2024:05:01 10:00:01")):
+        exif = Image.Exif()
+        exif[306] = t
+        Image.new("RGB", (16, 16)).save(d / name, exif=exif)
+    files = sorted(d.iterdir())
+    order, by = order_photos(files)
+    assert by == "time" and [files[i].name for i in order] == ["img1.jpg", "img10.jpg", "img2.jpg"]
+    order, by = order_photos(files, "name")
+    assert [files[i].name for i in order] == ["img1.jpg", "img2.jpg", "img10.jpg"]

@@ -1,0 +1,54 @@
+"""Compare the cameras of an ``anycity predict`` output folder with reference cameras after one global Sim(3).
+
+    python benchmarks/city_cameras.py PRED_FOLDER --colmap SCENE        # e.g. real_aerial/boruszyn_kap
+    python benchmarks/city_cameras.py PRED_FOLDER --cameras REF.json    # a cameras.json (e.g. ground truth)
+
+Prints rotation error (degrees, after the Sim(3) fit of camera centres) and position error relative to the scene
+extent (largest distance of a reference centre from their centroid), matched by photo name.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import torch
+
+from anycity.city.oracle import camera_errors
+
+
+def load_cameras_json(path: Path) -> dict[str, torch.Tensor]:
+    views = json.loads(Path(path).read_text())["views"]
+    return {v["name"]: torch.tensor(v["w2c"], dtype=torch.float64) for v in views}
+
+
+def load_colmap(scene: Path) -> dict[str, torch.Tensor]:
+    from anycity.data.parsers.colmap import read_model, w2c_of
+
+    model = read_model(scene)
+    return {im["name"]: torch.as_tensor(w2c_of(im), dtype=torch.float64) for im in model.images.values()}
+
+
+def compare(pred: dict[str, torch.Tensor], ref: dict[str, torch.Tensor]) -> dict:
+    names = sorted(set(pred) & set(ref))
+    if len(names) < 3:
+        raise ValueError(f"city_cameras: only {len(names)} photo names in common; compare the same photos")
+    err = camera_errors(torch.stack([pred[n] for n in names]), torch.stack([ref[n] for n in names]))
+    return {"photos": len(names), **{k: round(v, 5) for k, v in err.items()}}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("pred", type=Path, help="predict output folder (holding cameras.json)")
+    ap.add_argument("--colmap", type=Path, help="COLMAP scene folder of the reference cameras")
+    ap.add_argument("--cameras", type=Path, help="reference cameras.json")
+    a = ap.parse_args(argv)
+    ref = load_colmap(a.colmap) if a.colmap else load_cameras_json(a.cameras)
+    print(json.dumps(compare(load_cameras_json(a.pred / "cameras.json"), ref)))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,90 @@
+"""Moving chunk Gaussians into the world frame and writing them as one PLY, a piece at a time."""
+
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from anycity.city.align import sim3_parts
+from anycity.export.ply import gaussians_to_ply_arrays
+from anycity.geometry.rotations import quat_multiply, rotmat_to_quat
+from anycity.structures import Gaussians
+
+
+def sim3_gaussians(g: Gaussians, S: Tensor) -> Gaussians:
+    """Gaussians (any batch) moved by one Sim(3) ``S [4, 4]``: centres ``s R p + t``, rotations ``R q``, scales
+    ``s x``; the degree-1 SH band is rotated with the scene (higher bands are kept as they are: an approximation
+    that only the view-dependent colour of degree >= 2 feels)."""
+    S = S.to(g.means)
+    s, R, t = sim3_parts(S.double())
+    s, R, t = s.to(g.means), R.to(g.means), t.to(g.means)
+    means = g.means @ (s * R).T + t
+    quats = quat_multiply(rotmat_to_quat(R).expand_as(g.quats), g.quats)
+    sh = g.sh
+    if sh.shape[-2] >= 4:
+        # Degree-1 colour is C1 * (-y a1 + z a2 - x a3) = C1 * b . d with b = (-a3, -a1, a2) in xyz; a rotated
+        # scene must give the same colour for the rotated direction, so b -> R b.
+        a = sh[..., 1:4, :]
+        b = torch.stack([-a[..., 2, :], -a[..., 0, :], a[..., 1, :]], -2)  # [..., 3(xyz), 3(rgb)]
+        b = torch.einsum("ij,...jc->...ic", R, b)
+        a_new = torch.stack([-b[..., 1, :], b[..., 2, :], -b[..., 0, :]], -2)
+        sh = torch.cat([sh[..., :1, :], a_new, sh[..., 4:, :]], -2)
+    return Gaussians(means, quats, g.scales * s, g.opacities, sh, g.valid)
+
+
+class PlyStream:
+    """Write a standard 3DGS PLY (the layout of :func:`anycity.export.save_ply`) piece by piece, so the whole scene
+    never sits in memory: rows go to ``<path>.body.tmp``; :meth:`close` writes the header with the final count to
+    ``<path>.tmp``, appends the body and renames it to ``path`` (no partial ``scene.ply`` on failure)."""
+
+    def __init__(self, path: str | Path, max_degree: int = 3) -> None:
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.body_path = self.path.with_name(self.path.name + ".body.tmp")
+        self.body = open(self.body_path, "wb")  # noqa: SIM115 - closed in close()/abort()
+        self.max_degree = max_degree
+        self.columns: list[str] | None = None
+        self.count = 0
+        self.dropped = 0
+
+    def write(self, g: Gaussians) -> None:
+        """Append every scene of ``g`` (invalid / non-finite rows dropped, as in ``save_ply``)."""
+        for i in range(g.batch_size):
+            cols, dropped = gaussians_to_ply_arrays(g, i, self.max_degree)
+            if self.columns is None:
+                self.columns = list(cols)
+            elif list(cols) != self.columns:
+                raise ValueError(f"PlyStream: piece has columns {list(cols)[:6]}..., expected {self.columns[:6]}...")
+            n = len(cols["x"])
+            data = np.empty(n, dtype=[(k, "<f4") for k in self.columns])
+            for k, v in cols.items():
+                data[k] = v
+            self.body.write(data.tobytes())
+            self.count += n
+            self.dropped += dropped
+
+    def close(self) -> Path:
+        self.body.close()
+        if self.columns is None:
+            self.abort()
+            raise ValueError(f"PlyStream: nothing was written to {self.path}")
+        header = ["ply", "format binary_little_endian 1.0", f"element vertex {self.count}"]
+        header += [f"property float {k}" for k in self.columns] + ["end_header"]
+        tmp = self.path.with_name(self.path.name + ".tmp")
+        with open(tmp, "wb") as out, open(self.body_path, "rb") as body:
+            out.write(("\n".join(header) + "\n").encode("ascii"))
+            shutil.copyfileobj(body, out, 1 << 22)
+        os.replace(tmp, self.path)
+        self.body_path.unlink(missing_ok=True)
+        return self.path
+
+    def abort(self) -> None:
+        if not self.body.closed:
+            self.body.close()
+        self.body_path.unlink(missing_ok=True)
+        self.path.with_name(self.path.name + ".tmp").unlink(missing_ok=True)

@@ -1,0 +1,137 @@
+"""``ChunkedScene``: collect chunk reconstructions one at a time, then align, merge and write one scene.
+
+Memory stays bounded by the chunk size: of each chunk only its cameras and a sparse grid of depth points per view
+stay in memory; the Gaussians of the views it owns (:func:`anycity.city.plan.owners`) go to a spill file, and
+:meth:`ChunkedScene.finish` streams them through their chunk's Sim(3) into the PLY.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from anycity.city.align import ChunkGeometry, align_chunks, sim3_parts, w2c_to_world
+from anycity.city.merge import PlyStream, sim3_gaussians
+from anycity.city.plan import owners
+from anycity.export.cameras import save_cameras
+from anycity.structures import Gaussians
+
+
+def grid_pixels(h: int, w: int, per_side: int = 8) -> Tensor:
+    """Flat indices ``[P]`` of a ``per_side`` x ``per_side`` grid of pixel centres of an ``h`` x ``w`` view."""
+    ys = torch.linspace(0, h - 1, min(per_side, h)).round().long()
+    xs = torch.linspace(0, w - 1, min(per_side, w)).round().long()
+    return (ys[:, None] * w + xs[None, :]).flatten()
+
+
+class ChunkedScene:
+    """Accumulate the chunks of one scene; :meth:`finish` aligns them and writes ``scene.ply``, ``cameras.json``
+    and ``chunks.json``.
+
+    Args:
+        chunks: the plan, global photo indices per chunk (:func:`anycity.city.plan.plan_chunks`).
+        names: photo names by global index.
+        hw: ``(H, W)`` of the chunks' images (pixel-aligned Gaussians: N = V*H*W in view order).
+        points_per_side: depth points per view side used for alignment.
+        global_pass: run the pose graph after the pairwise fits (else chain them).
+        fit: keyword options of :func:`anycity.city.align.robust_sim3`.
+    """
+
+    def __init__(self, chunks: list[list[int]], names: list[str], hw: tuple[int, int], points_per_side: int = 8,
+                 global_pass: bool = True, workdir: str | Path | None = None, **fit) -> None:
+        self.chunks, self.names, self.hw = chunks, names, tuple(hw)
+        self.owner = owners(chunks)
+        self.pix = grid_pixels(*self.hw, points_per_side)
+        self.geometry: list[ChunkGeometry | None] = [None] * len(chunks)
+        self.K: dict[int, Tensor] = {}
+        self.spill = Path(tempfile.mkdtemp(prefix="anycity_city_", dir=workdir))
+        self.spilled: dict[int, Path] = {}
+        self.global_pass, self.fit = global_pass, fit
+
+    def add(self, k: int, gaussians: Gaussians, w2c: Tensor, K: Tensor) -> None:
+        """Chunk ``k``'s reconstruction: one-scene ``gaussians`` (N = V*H*W), cameras ``w2c [V, 4, 4]``,
+        ``K [V, 3, 3]``."""
+        views = self.chunks[k]
+        v, (h, w) = len(views), self.hw
+        if w2c.shape != (v, 4, 4) or gaussians.means.shape[:2] != (1, v * h * w):
+            raise ValueError(f"ChunkedScene.add: chunk {k} has {v} views of {h}x{w}; expected w2c [{v}, 4, 4] and "
+                             f"{v * h * w} pixel-aligned Gaussians, got {tuple(w2c.shape)} and "
+                             f"{tuple(gaussians.means.shape)} (voxel merging must be off)")
+        g = gaussians.detach().to("cpu")
+        means = g.means[0].reshape(v, h * w, 3)
+        self.geometry[k] = ChunkGeometry(list(views), w2c.detach().cpu().double(), means[:, self.pix].double())
+        own = [i for i, gv in enumerate(views) if self.owner[gv] == k]
+        for i in own:
+            self.K[views[i]] = K[i].detach().cpu().double()
+        if own:
+            sel = torch.cat([torch.arange(i * h * w, (i + 1) * h * w) for i in own])
+            part = Gaussians(*(None if t is None else t[:, sel].clone() for t in
+                               (g.means, g.quats, g.scales, g.opacities, g.sh, g.valid)))
+            path = self.spill / f"chunk_{k:05d}.pt"
+            torch.save({"gaussians": part, "views": [views[i] for i in own],
+                        "w2c": w2c[own].detach().cpu().double()}, path)
+            self.spilled[k] = path
+
+    def finish(self, folder: str | Path, width: int | None = None, height: int | None = None) -> dict:
+        """Align, merge and write ``folder/{scene.ply, cameras.json, chunks.json}``; returns the report.
+
+        Nothing is left in ``folder`` when it fails (files are written under temporary names, then renamed).
+        """
+        try:
+            missing = [k for k, g in enumerate(self.geometry) if g is None]
+            if missing:
+                raise ValueError(f"ChunkedScene.finish: chunks {missing} were never added")
+            S, edges, rep = align_chunks(self.geometry, self.names, self.global_pass, **self.fit)
+            folder = Path(folder)
+            folder.mkdir(parents=True, exist_ok=True)
+            n = len(self.names)
+            w2c = torch.zeros(n, 4, 4, dtype=torch.float64)
+            ply = PlyStream(folder / "scene.ply")
+            try:
+                for k, path in sorted(self.spilled.items()):
+                    piece = torch.load(path, weights_only=False)
+                    ply.write(sim3_gaussians(piece["gaussians"], S[k]))
+                    for v, cam in zip(piece["views"], piece["w2c"]):
+                        w2c[v] = w2c_to_world(cam, S[k])
+                    del piece
+                report = self._report(S, edges, rep, ply)
+                tmp = folder / "cameras.json.tmp"
+                save_cameras(tmp, w2c, torch.stack([self.K[v] for v in range(n)]), int(width or self.hw[1]),
+                             int(height or self.hw[0]), self.names)
+                (folder / "chunks.json.tmp").write_text(json.dumps(report, indent=1))
+                ply.close()
+            except BaseException:
+                ply.abort()
+                for f in ("cameras.json.tmp", "chunks.json.tmp"):
+                    (folder / f).unlink(missing_ok=True)
+                raise
+            os.replace(tmp, folder / "cameras.json")
+            os.replace(folder / "chunks.json.tmp", folder / "chunks.json")
+            self.w2c = w2c
+            return report
+        finally:
+            self.close()
+
+    def close(self) -> None:
+        """Remove the spill files."""
+        shutil.rmtree(self.spill, ignore_errors=True)
+
+    def _report(self, S: Tensor, edges, rep: dict, ply: PlyStream) -> dict:
+        s = sim3_parts(S)[0]
+        chunks = [{"index": k, "photos": [self.names[v] for v in views],
+                   "owned": sum(self.owner[v] == k for v in views), "scale_to_world": float(s[k])}
+                  for k, views in enumerate(self.chunks)]
+        pairs = [{"chunks": [e.a, e.b], "shared_photos": len(e.shared), "points": int(e.fit.inliers.numel()),
+                  "inliers": e.fit.num_inliers, "rms_residual": e.fit.rms, "median_residual": e.fit.median,
+                  "inlier_threshold": e.fit.threshold} for e in edges]
+        return {"num_photos": len(self.names), "num_chunks": len(self.chunks), "chunks": chunks, "pairs": pairs,
+                "pose_graph": {k: (v if math.isfinite(v) else None) for k, v in rep.items()},
+                "gaussians": ply.count, "dropped": ply.dropped,
+                "units": "residuals in world units of chunk 0's frame"}

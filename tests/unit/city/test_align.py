@@ -1,0 +1,207 @@
+import pytest
+import torch
+
+from anycity.city import (
+    ChunkedScene,
+    PlyStream,
+    align_chunks,
+    order_from_descriptors,
+    owners,
+    plan_chunks,
+    robust_sim3,
+    sim3_gaussians,
+    sim3_inverse,
+    w2c_to_world,
+)
+from anycity.city.oracle import camera_errors, oracle_chunks, orbit_scene, random_sim3
+from anycity.export import load_ply
+from anycity.structures import Gaussians
+
+
+def _merged_cameras(chunks, S, plan):
+    own = owners(plan)
+    n = max(own) + 1
+    w2c = torch.zeros(n, 4, 4, dtype=torch.float64)
+    for v, k in own.items():
+        w2c[v] = w2c_to_world(chunks[k].w2c[chunks[k].views.index(v)], S[k])
+    return w2c
+
+
+def test_plan_chunks_overlap_and_cover():
+    plan = plan_chunks(20, 8, 3)
+    assert all(len(c) == 8 for c in plan) and plan[0][0] == 0 and plan[-1][-1] == 19
+    assert all(len(set(a) & set(b)) >= 3 for a, b in zip(plan, plan[1:]))
+    assert plan_chunks(5, 8, 3) == [list(range(5))]
+    own = owners(plan)
+    assert sorted(own) == list(range(20))
+    assert own[5] == 0 and own[7] == 1  # 7 is chunk 0's last view but sits inside chunk 1
+    with pytest.raises(ValueError, match="overlap"):
+        plan_chunks(20, 8, 8)
+
+
+def test_order_from_descriptors_recovers_a_shuffled_sequence():
+    t = torch.linspace(0, 3, 30)
+    desc = torch.stack([t.cos(), t.sin(), 0.2 * t], -1)  # a smooth curve: neighbours are similar
+    perm = torch.randperm(30, generator=torch.Generator().manual_seed(0))
+    order = order_from_descriptors(desc[perm])
+    seq = perm[order].tolist()
+    assert seq == list(range(30)) or seq == list(range(29, -1, -1))
+
+
+def test_robust_sim3_rejects_outliers_and_degenerate_sets():
+    g = torch.Generator().manual_seed(0)
+    src = torch.randn(200, 3, generator=g, dtype=torch.float64)
+    T = random_sim3(g)
+    dst = src @ T[:3, :3].T + T[:3, 3]
+    dst[:40] += torch.randn(40, 3, generator=g, dtype=torch.float64) * 50  # 20 % gross outliers
+    fit = robust_sim3(src, dst)
+    assert fit.num_inliers == 160 and not fit.inliers[:40].any()
+    assert torch.allclose(fit.T, T, atol=1e-8)
+    line = torch.linspace(0, 1, 10, dtype=torch.float64)[:, None] * torch.tensor([[1.0, 2, 3]], dtype=torch.float64)
+    with pytest.raises(ValueError, match="degenerate"):
+        robust_sim3(line, line * 2)
+
+
+def test_oracle_chunks_merge_to_ground_truth_up_to_one_sim3():
+    w2c, pts = orbit_scene(40, points_per_view=32)
+    plan = plan_chunks(40, 10, 3)
+    chunks, _ = oracle_chunks(w2c, pts, plan, seed=3)
+    S, edges, rep = align_chunks(chunks)
+    assert len(edges) == len(plan) - 1 and all(e.fit.num_inliers == e.fit.inliers.numel() for e in edges)
+    err = camera_errors(_merged_cameras(chunks, S, plan), w2c)
+    assert err["w2c_max_abs"] < 1e-4 and err["pos_rel_max"] < 1e-4, err
+    assert rep["final_rms"] < 1e-6
+
+
+def test_pose_graph_spreads_error_over_extra_edges():
+    # overlap > size/2: every view is in up to 3 chunks, so the graph has more edges than a chain
+    w2c, pts = orbit_scene(36, points_per_view=32, seed=1)
+    plan = plan_chunks(36, 8, 5)
+    chunks, _ = oracle_chunks(w2c, pts, plan, seed=4, rot_deg=0.5, centre_noise=0.005, depth_noise=0.01)
+    S_chain, edges, _ = align_chunks(chunks, global_pass=False)
+    S_graph, _, rep = align_chunks(chunks)
+    assert len(edges) > len(plan) - 1
+    e_chain = camera_errors(_merged_cameras(chunks, S_chain, plan), w2c)
+    e_graph = camera_errors(_merged_cameras(chunks, S_graph, plan), w2c)
+    assert rep["final_rms"] < rep["initial_rms"]
+    assert e_graph["pos_rel_mean"] < e_chain["pos_rel_mean"], (e_chain, e_graph)
+
+
+@pytest.mark.parametrize("noise", [0.001, 0.01])
+def test_noise_degrades_gracefully(noise):
+    w2c, pts = orbit_scene(40, points_per_view=32)
+    plan = plan_chunks(40, 10, 3)
+    chunks, _ = oracle_chunks(w2c, pts, plan, seed=5, rot_deg=30 * noise, centre_noise=noise, depth_noise=noise)
+    S, _, _ = align_chunks(chunks)
+    err = camera_errors(_merged_cameras(chunks, S, plan), w2c)
+    # error of the same order as the noise, not piled up along the 5 chunks
+    assert err["pos_rel_mean"] < 5 * noise and err["rot_deg_mean"] < 30 * 5 * noise, err
+
+
+def test_alignment_failure_names_the_chunks():
+    w2c, pts = orbit_scene(20, points_per_view=8)
+    plan = [list(range(0, 10)), list(range(9, 20))]  # one shared view
+    chunks, _ = oracle_chunks(w2c, pts, plan)
+    with pytest.raises(ValueError, match=r"chunks 0 and 1 \(shared photos: p9\).*predict_chunk_overlap"):
+        align_chunks(chunks, names=[f"p{i}" for i in range(20)])
+
+
+def _gaussians(n, deg=1, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return Gaussians(torch.randn(1, n, 3, generator=g), torch.nn.functional.normalize(torch.randn(1, n, 4, generator=g),
+                     dim=-1), torch.rand(1, n, 3, generator=g) + 0.1, torch.rand(1, n, generator=g),
+                     torch.randn(1, n, (deg + 1) ** 2, 3, generator=g))
+
+
+def test_sim3_gaussians_rotates_view_dependent_colour():
+    from anycity.render.sh import sh_basis
+
+    g = _gaussians(5)
+    T = random_sim3(torch.Generator().manual_seed(1))
+    moved = sim3_gaussians(g, T)
+    R = T[:3, :3] / torch.linalg.det(T[:3, :3]) ** (1 / 3)
+    d = torch.nn.functional.normalize(torch.randn(5, 3), dim=-1)
+    before = (sh_basis(d, 1)[:, None] @ g.sh[0])[:, 0]
+    after = (sh_basis(d @ R.float().T, 1)[:, None] @ moved.sh[0])[:, 0]
+    assert torch.allclose(before, after, atol=1e-5)
+    back = sim3_gaussians(moved, sim3_inverse(T))
+    assert torch.allclose(back.means, g.means, atol=1e-4) and torch.allclose(back.scales, g.scales, atol=1e-5)
+
+
+def test_chunked_scene_writes_one_ply_and_cameras(tmp_path):
+    h = w = 4
+    w2c, _ = orbit_scene(12)
+    plan = plan_chunks(12, 6, 3)
+    rng = torch.Generator().manual_seed(0)
+    scene = ChunkedScene(plan, [f"im{i}.png" for i in range(12)], (h, w), points_per_side=3, workdir=tmp_path)
+    K = torch.tensor([[4.0, 0, 2], [0, 4, 2], [0, 0, 1]]).expand(6, 3, 3)
+    from anycity.geometry.projection import unproject_depth
+
+    for k, views in enumerate(plan):
+        G = random_sim3(rng)
+        cams = w2c_to_world(w2c[views], G).float()
+        depth = 5 + torch.rand(1, 6, 1, h, w, generator=rng)  # depth of the view in its own camera
+        means = unproject_depth(depth, K[None], cams[None]).reshape(1, -1, 3)
+        g = _gaussians(6 * h * w, seed=k)
+        g.means = means
+        scene.add(k, g, cams, K)
+    # one Gaussian per pixel of every photo: overlapping views are not doubled
+    rep = scene.finish(tmp_path / "out")
+    loaded = load_ply(tmp_path / "out" / "scene.ply")
+    assert loaded.num_gaussians == 12 * h * w == rep["gaussians"]
+    assert (tmp_path / "out" / "cameras.json").is_file() and (tmp_path / "out" / "chunks.json").is_file()
+    assert not list(tmp_path.glob("anycity_city_*")), "spill folder removed"
+    assert rep["num_chunks"] == len(plan) and all(p["inliers"] > 0 for p in rep["pairs"])
+
+
+def test_chunked_scene_failure_leaves_no_ply(tmp_path):
+    w2c, _ = orbit_scene(8)
+    plan = [list(range(0, 5)), list(range(4, 8))]  # one shared view: alignment must fail
+    scene = ChunkedScene(plan, [f"im{i}.png" for i in range(8)], (2, 2), workdir=tmp_path)
+    K = torch.eye(3).expand(5, 3, 3)
+    for k, views in enumerate(plan):
+        scene.add(k, _gaussians(len(views) * 4), w2c[views].float(), K[: len(views)])
+    with pytest.raises(ValueError, match="chunks 0 and 1"):
+        scene.finish(tmp_path / "out")
+    assert not list((tmp_path / "out").glob("*")) if (tmp_path / "out").exists() else True
+
+
+def test_ply_stream_matches_save_ply(tmp_path):
+    from anycity.export import save_ply
+
+    g = _gaussians(10)
+    save_ply(g, tmp_path / "a.ply")
+    s = PlyStream(tmp_path / "b.ply")
+    s.write(Gaussians(g.means[:, :4], g.quats[:, :4], g.scales[:, :4], g.opacities[:, :4], g.sh[:, :4]))
+    s.write(Gaussians(g.means[:, 4:], g.quats[:, 4:], g.scales[:, 4:], g.opacities[:, 4:], g.sh[:, 4:]))
+    s.close()
+    assert (tmp_path / "a.ply").read_bytes()[-400:] == (tmp_path / "b.ply").read_bytes()[-400:]
+    a, b = load_ply(tmp_path / "a.ply"), load_ply(tmp_path / "b.ply")
+    assert torch.equal(a.means, b.means) and torch.equal(a.sh, b.sh)
+    assert not list(tmp_path.glob("*.tmp"))
+
+
+def test_token_descriptors_are_per_photo():
+    from anycity.city.plan import token_descriptors
+    from anycity.models import build_network
+
+    torch.manual_seed(0)
+    net = build_network("tiny").eval()
+    imgs = torch.rand(5, 3, 28, 28)
+    imgs[3] = imgs[1]
+    d = token_descriptors(net, lambda idx: imgs[idx], 5, batch=2)
+    assert d.shape[0] == 5 and torch.allclose(d[1], d[3], atol=1e-5) and not torch.allclose(d[0], d[1])
+
+
+def test_loop_closure_chunk_adds_a_cycle_and_owns_nothing():
+    plan = plan_chunks(40, 10, 3, loop=True)
+    assert plan[-1] == list(range(35, 40)) + list(range(5))
+    assert all(k != len(plan) - 1 for k in owners(plan).values())
+    w2c, pts = orbit_scene(120, points_per_view=64, arc=1.0)
+    errs = []
+    for loop in (False, True):
+        p = plan_chunks(120, 16, 4, loop=loop)
+        chunks, _ = oracle_chunks(w2c, pts, p, seed=0, rot_deg=0.3, centre_noise=0.01, depth_noise=0.01)
+        S, edges, _ = align_chunks(chunks)
+        errs.append(camera_errors(_merged_cameras(chunks, S, p), w2c))
+    assert errs[1]["pos_rel_max"] < errs[0]["pos_rel_max"] and errs[1]["rot_deg_mean"] < errs[0]["rot_deg_mean"]
