@@ -18,6 +18,11 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--data", default="data/quickstart")
     args = p.parse_args()
+    from pathlib import Path
+
+    if not (Path(args.data) / "index.json").is_file():
+        print(f"benchmarks/regions.py: skipped, no shards at {args.data} (run make quickstart first, or pass --data)")
+        return
     from anycity.lit.datamodule import AerialDataModule
     from anycity.metrics.regions import region_masks
 

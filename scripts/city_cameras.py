@@ -1,7 +1,7 @@
 """Compare the cameras of an ``anycity predict`` output folder with reference cameras after one global Sim(3).
 
-    python benchmarks/city_cameras.py PRED_FOLDER --colmap SCENE        # e.g. real_aerial/boruszyn_kap
-    python benchmarks/city_cameras.py PRED_FOLDER --cameras REF.json    # a cameras.json (e.g. ground truth)
+    python scripts/city_cameras.py PRED_FOLDER --colmap SCENE        # e.g. real_aerial/boruszyn_kap
+    python scripts/city_cameras.py PRED_FOLDER --cameras REF.json    # a cameras.json (e.g. ground truth)
 
 Prints rotation error (degrees, after the Sim(3) fit of camera centres) and position error relative to the scene
 extent (largest distance of a reference centre from their centroid), matched by photo name.

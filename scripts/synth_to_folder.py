@@ -1,7 +1,7 @@
 """Write the views of an ``anycity data synth`` scene as a photo folder plus its ground-truth ``cameras.json``.
 
     anycity data synth --out data/city200 --scenes 1 --views 200 --size 48x48 --trajectory orbit
-    python benchmarks/synth_to_folder.py data/city200 runs/city200_photos   # -> photos/*.jpg + cameras_gt.json
+    python scripts/synth_to_folder.py data/city200 runs/city200_photos   # -> photos/*.jpg + cameras_gt.json
 
 Shards hold overlapping trajectory windows; each view is written once, named by its index along the trajectory.
 """
