@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import pytest
 import torch
+from helpers.raycast_scenes import H, W, intrinsics, look_at, render_depth
 
 import anycity.geometry.visibility as visibility
 from anycity.geometry import count_visible, unproject_depth, visible_views
-from helpers.raycast_scenes import H, W, intrinsics, look_at, render_depth
 
 BOX = ((-0.5, -0.5, 0.0), (0.5, 0.5, 1.0))
 
