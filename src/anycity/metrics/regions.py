@@ -230,7 +230,8 @@ def lpips_or_none(net: str = "alex") -> tuple[torch.nn.Module | None, str]:
         with _no_downloads():
             model = _LPIPS(pretrained=True, net=net, spatial=True).eval()
     except Exception as e:  # noqa: BLE001 - missing weights or any backbone failure
-        return None, f"LPIPS per region left out: {net} backbone weights not found offline ({str(e)[:120]}); {how}"
+        msg = " ".join(str(e).split())[:120]
+        return None, f"LPIPS per region left out: {net} backbone weights not found offline ({msg}); {how}"
     return model, f"LPIPS per region: torchmetrics {net} backbone, loaded offline"
 
 
