@@ -97,9 +97,9 @@ def joint(module, context: Views, target: Views) -> tuple[RenderOutput, Tensor]:
     optimisation). AnySplat rescales the target translations by the ratio of the context translations to put
     them in ground-truth units; rendering in the predicted frame with the predicted target cameras is the same
     picture (Gaussians and cameras scaled together), so that ratio is used only as the depth scale.
-    Reads the target images (through the network). Needs targets of the context's size.
-    Returns the render and the depth scale ``s [B]`` (mean context camera distance from the first camera,
-    predicted over ground truth)."""
+    Reads the target images (through the network). Needs targets of the context's size and pixel-aligned Gaussians.
+    Returns the renders of every variant (``{name: RenderOutput}``) and the depth scale ``s [B]`` (mean context
+    camera distance from the first camera, predicted over ground truth)."""
     if target.hw != context.hw:
         raise ValueError(f"joint protocol: targets {target.hw} must have the context size {context.hw}")
     v = context.num_views
@@ -107,6 +107,9 @@ def joint(module, context: Views, target: Views) -> tuple[RenderOutput, Tensor]:
     w2c_t, K_t = out["w2c"][:, v:], out["K"][:, v:]
     renders = {}
     for name, g in variants.items():
+        if g.valid is not None:
+            raise ValueError("joint protocol: needs the network's pixel-aligned Gaussians (net.voxel_size=None) to "
+                             "tell the context views' Gaussians from the targets'")
         n = g.means.shape[1] // out["w2c"].shape[1] * v  # the context views' pixel-aligned Gaussians come first
         ctx_g = Gaussians(g.means[:, :n], g.quats[:, :n], g.scales[:, :n], g.opacities[:, :n], g.sh[:, :n])
         renders[name] = module.render(ctx_g, w2c_t, K_t, target.hw, context.images)

@@ -1,167 +1,271 @@
-"""The region diagnostic (AnyCity, "Diagnostic evaluation"): which target pixels the sparse context observes.
+"""Region diagnostic: which target pixels the sparse context views support (*observed*) and which they do not
+(*weak*), and image metrics restricted to each region.
 
-Each target pixel is back-projected with the target's depth and reprojected into every context view; a view sees it
-when it passes the depth test of :func:`anycity.geometry.visibility.visible_views` against that view's depth.
+Definition (the paper's region diagnostic): every target pixel with valid target depth is back-projected to a
+world point and reprojected into each context view. A context view *sees* the point when it lands in its frame,
+in front of it, and passes a depth test against that view's depth map (:func:`~anycity.geometry.visible_views`:
+``z <= depth_ref * (1 + depth_tol)`` with the 2x2-neighbourhood minimum as ``depth_ref``, so an occluded point
+never leaks through a depth edge). A pixel is **observed** when
 
-* **observation-supported**: seen by at least ``min_views`` context views whose rays to the point span at least
-  ``min_parallax_deg`` (the largest angle between two seeing views' rays), and not on a depth discontinuity;
-* **weak**: every other pixel with valid depth: seen by fewer views, too little parallax, out of every context frame
-  or occluded in all of them, or on a depth edge (relative depth jump to a 4-neighbour above ``edge_thresh``, or a
-  neighbour without depth);
-* pixels without valid target depth (sky) are in neither.
+- at least ``min_views`` context views see it, and
+- the largest angle between the viewing rays (context camera centre -> point) of two seeing views is at least
+  ``min_parallax_deg`` (enough baseline to triangulate it), and
+- it is not at a depth discontinuity of the target depth (:func:`depth_edges`: relative second difference of
+  inverse depth along rows and columns at most ``edge_thresh``; ~ the relative size of a depth step, and zero on
+  any plane, so oblique ground and facades seen at grazing angles are not called edges).
 
-Defaults, from the quickstart's test cities (48x48 orbit views, 4 context views spread over the 7 nearest trajectory
-views of each held-out view, 96 target views of 8 unseen cities; `python benchmarks/regions.py`): ``min_views=2``,
-``min_parallax_deg=5``, ``depth_tol=0.03``, ``edge_thresh=0.1`` give about three quarters observed and one quarter
-weak (the exact shares are printed by that script and logged as ``region_obs`` / ``region_weak``). Stricter
-parallax moves pixels seen from nearly the same direction to weak; the paper's point is that weak content (facades,
-far buildings, thin and self-occluded structure) is where completion should help.
+**weak** = valid target depth and not observed (low visibility, weak parallax, out of every frame or occluded,
+or a depth edge). Pixels without valid target depth (sky: ``<= 0``, non-finite or ``target_valid`` False) are in
+neither mask. The masks are disjoint.
 
-``masked_psnr`` / ``masked_ssim`` score one region per image; ``lpips_or_none`` builds torchmetrics' LPIPS only when
-it can run offline.
+Defaults, chosen on the quickstart's synthetic cities (``orbit`` trajectory, 96 views per city at 48x48, windows
+of 24 views, 4 context + 2 targets per sample chosen by ``data.views.select_eval``, ray-cast true depth for
+targets and context; 8 cities, 64 target views). Fractions of valid (non-sky: 99.8 %) target pixels:
+
+=========  ========  =========  ====  ========  ====
+min_views  parallax  depth_tol  edge  observed  weak
+=========  ========  =========  ====  ========  ====
+2          2 deg     0.05       0.2   0.587     0.413
+2          1 deg     0.10       0.3   0.672     0.328
+2          2 deg     0.10       0.3   0.665     0.335   <- defaults
+2          5 deg     0.10       0.3   0.614     0.386
+2          2 deg     0.15       0.5   0.726     0.274
+3          2 deg     0.10       0.3   0.513     0.487
+=========  ========  =========  ====  ========  ====
+
+The depth edges alone mark 29 / 21 / 17 / 11 % of the pixels at ``edge_thresh`` 0.1 / 0.2 / 0.3 / 0.5 (dense
+cities at 48 px are mostly building outlines), hence 0.3: depth steps of 30 % and more. ``depth_tol`` 0.1 (looser
+than :func:`~anycity.geometry.visible_views`' 0.05): at 48 px the 2x2-minimum reference of an oblique surface is
+several per cent nearer than the surface (with no edge test and no parallax, 55 / 73 / 79 / 92 % of the pixels
+are seen by two views at tolerance 0.02 / 0.05 / 0.1 / unlimited). Parallax matters little on these orbits (the
+four context views span ~30 deg); 2 deg rules out near-coincident cameras. With teacher-rendered or predicted
+depth, expect more weak pixels (noisier depth fails the depth test more often).
 """
 
 from __future__ import annotations
 
+import math
+import os
+from contextlib import contextmanager
+
 import torch
-import torch.nn.functional as F
+import torchmetrics
 from torch import Tensor
 from torchmetrics.functional.image import structural_similarity_index_measure
 
-from anycity.geometry import camera_centers, unproject_depth
-from anycity.geometry.visibility import visible_views
+from anycity.geometry import camera_centers, unproject_depth, visible_views
 
-CHUNK = 16384  # target pixels per parallax step
+DEFAULT_MIN_VIEWS = 2
+DEFAULT_PARALLAX_DEG = 2.0
+DEFAULT_DEPTH_TOL = 0.1
+DEFAULT_EDGE_THRESH = 0.3
 
-
-def depth_edges(depth: Tensor, valid: Tensor, edge_thresh: float) -> Tensor:
-    """``[..., 1, H, W]`` bool: a relative depth jump above ``edge_thresh`` to a 4-neighbour, or a neighbour without
-    valid depth (a silhouette against the sky)."""
-    d = torch.where(valid, depth.float(), torch.zeros_like(depth, dtype=torch.float32))
-    lead = d.shape[:-3]
-    d = d.reshape(-1, 1, *d.shape[-2:])
-    m = valid.reshape(-1, 1, *valid.shape[-2:]).float()
-    dp = F.pad(d, (1, 1, 1, 1), mode="replicate")
-    mp = F.pad(m, (1, 1, 1, 1), mode="replicate")
-    h, w = d.shape[-2:]
-    edge = torch.zeros_like(d, dtype=torch.bool)
-    for dy, dx in ((0, 1), (1, 0), (1, 2), (2, 1)):
-        nd, nm = dp[..., dy:dy + h, dx:dx + w], mp[..., dy:dy + h, dx:dx + w]
-        edge |= (nm < 0.5) | ((d - nd).abs() > edge_thresh * d.clamp_min(1e-9))
-    return edge.reshape(*lead, 1, h, w) & valid
+_PAIR_CHUNK = 2**16  # points per parallax chunk: bounds the [B, V, V, chunk] cosine tensor
 
 
-def _max_parallax(points: Tensor, centres: Tensor, seen: Tensor) -> Tensor:
-    """``points [B, N, 3]``, camera ``centres [B, V, 3]``, ``seen [B, V, N]`` -> ``[B, N]`` largest angle (degrees)
-    between the rays of two seeing views (0 when fewer than two see the point)."""
+def _valid_depth(depth: Tensor, valid: Tensor | None) -> Tensor:
+    ok = torch.isfinite(depth) & (depth > 0)
+    return ok if valid is None else ok & valid.bool()
+
+
+def depth_edges(depth: Tensor, edge_thresh: float, valid: Tensor | None = None) -> Tensor:
+    """``[..., 1, H, W]`` z-depth -> bool mask of pixels at a depth discontinuity.
+
+    The measure is scale-free and zero on any plane however oblique: inverse depth is affine in pixel
+    coordinates on a plane, so a pixel b with neighbours a, c along a row or column scores
+    ``|1/d_a - 2/d_b + 1/d_c| * max(d_a, d_b, d_c)`` (the second difference of inverse depth relative to the
+    smallest inverse depth of the triple). A depth step from d to d (1 + r) between two pixels scores r on both
+    of its sides. Triples with an invalid pixel (sky) are ignored; the image border is never marked.
+    """
+    ok = _valid_depth(depth, valid)
+    d = torch.where(ok, depth, torch.ones_like(depth)).float()
+    edge = torch.zeros_like(ok)
+    for dim in (-1, -2):
+        n = d.shape[dim]
+        if n < 3:
+            continue
+        a, b, c = (d.narrow(dim, k, n - 2) for k in range(3))
+        trip = ok.narrow(dim, 0, n - 2) & ok.narrow(dim, 1, n - 2) & ok.narrow(dim, 2, n - 2)
+        score = (1 / a - 2 / b + 1 / c).abs() * torch.maximum(torch.maximum(a, b), c)
+        edge.narrow(dim, 1, n - 2).logical_or_(trip & (score > edge_thresh))
+    return edge
+
+
+def _max_parallax_cos(points: Tensor, centres: Tensor, vis: Tensor) -> Tensor:
+    """Cosine of the largest angle between viewing rays of two seeing views: ``[B, N]`` (1 where < 2 views).
+
+    points ``[B, N, 3]``, centres ``[B, V, 3]``, vis ``[B, V, N]``.
+    """
     out = []
-    for s in range(0, points.shape[1], CHUNK):
-        rays = points[:, None, s:s + CHUNK] - centres[:, :, None]  # [B, V, n, 3]
+    for s in range(0, points.shape[1], _PAIR_CHUNK):
+        p, v = points[:, s:s + _PAIR_CHUNK], vis[..., s:s + _PAIR_CHUNK]
+        rays = p[:, None] - centres[:, :, None]  # [B, V, n, 3]
         rays = rays / rays.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-        cos = torch.einsum("bvnc,bunc->bnvu", rays, rays).clamp(-1, 1)
-        sn = seen[:, :, s:s + CHUNK].transpose(1, 2)  # [B, n, V]
-        pair = sn[..., :, None] & sn[..., None, :]
-        ang = torch.where(pair, torch.rad2deg(torch.acos(cos)), torch.zeros_like(cos))
-        out.append(ang.flatten(-2).amax(-1))
-    return torch.cat(out, dim=1)
+        cos = (rays[:, :, None] * rays[:, None]).sum(-1)  # [B, V, V, n]
+        pair = v[:, :, None] & v[:, None]
+        cos = torch.where(pair, cos, torch.ones_like(cos))
+        out.append(cos.flatten(1, 2).amin(1))
+    return torch.cat(out, dim=-1) if out else points.new_ones(points.shape[:2])
 
 
 def region_masks(target_depth: Tensor, target_w2c: Tensor, target_K: Tensor, context_depth: Tensor,
-                 context_w2c: Tensor, context_K: Tensor, *, min_views: int = 2, min_parallax_deg: float = 5.0,
-                 depth_tol: float = 0.05, edge_thresh: float = 0.3, target_valid: Tensor | None = None,
+                 context_w2c: Tensor, context_K: Tensor, *, min_views: int = DEFAULT_MIN_VIEWS,
+                 min_parallax_deg: float = DEFAULT_PARALLAX_DEG, depth_tol: float = DEFAULT_DEPTH_TOL,
+                 edge_thresh: float = DEFAULT_EDGE_THRESH, target_valid: Tensor | None = None,
                  context_valid: Tensor | None = None) -> tuple[Tensor, Tensor]:
-    """Observation-supported and weak target pixels (see the module docstring).
+    """Observed and weak target pixels (module docstring has the definition).
 
     Args:
-        target_depth: ``[B, T, 1, H, W]`` z-depth of the targets (ground truth, or a teacher's render).
-        target_w2c, target_K: ``[B, T, 4, 4]``, ``[B, T, 3, 3]``.
-        context_depth: ``[B, V, 1, H', W']``; context_w2c, context_K: ``[B, V, 4, 4]``, ``[B, V, 3, 3]`` (same
-            world frame and units as the targets).
-        target_valid, context_valid: bool masks of usable depth (same shapes as the depths), or None.
+        target_depth: ``[B, T, 1, H, W]`` z-depth of the targets (ground truth, or teacher-rendered).
+        target_w2c, target_K: ``[B, T, 4, 4]``, ``[B, T, 3, 3]`` (pixels of the target depth).
+        context_depth: ``[B, V, 1, H', W']`` z-depth of the context views (same world units).
+        context_w2c, context_K: ``[B, V, 4, 4]``, ``[B, V, 3, 3]`` (pixels of the context depth).
+        min_views: context views that must see a pixel's point.
+        min_parallax_deg: largest viewing-ray angle among the seeing views must reach this (degrees).
+        depth_tol: relative depth-test tolerance (see :func:`~anycity.geometry.visible_views`).
+        edge_thresh: relative depth step above which a target pixel is a depth discontinuity.
+        target_valid, context_valid: optional bool masks shaped like the depths (False = no depth).
     Returns:
-        ``(observed, weak)``: bool ``[B, T, 1, H, W]``, disjoint; neither where the target depth is invalid.
+        ``(observed, weak)``: disjoint bool ``[B, T, 1, H, W]``.
     """
-    if target_depth.dim() != 5 or context_depth.dim() != 5:
-        raise ValueError(f"region_masks: depths must be [B, T|V, 1, H, W], got {tuple(target_depth.shape)} and "
-                         f"{tuple(context_depth.shape)}")
+    if target_depth.dim() != 5 or target_depth.shape[2] != 1:
+        raise ValueError(f"region_masks: target_depth must be [B, T, 1, H, W], got {tuple(target_depth.shape)}")
     b, t, _, h, w = target_depth.shape
-    td = target_depth.float()
-    valid = torch.isfinite(td) & (td > 0)
-    if target_valid is not None:
-        valid = valid & target_valid.bool()
-    points = unproject_depth(torch.where(valid, td, torch.ones_like(td)), target_K.float(), target_w2c.float())
-    points = points.reshape(b, -1, 3)  # [B, T*H*W, 3]
-    seen = visible_views(points, context_depth, context_w2c, context_K, depth_tol=depth_tol, valid=context_valid)
-    count = seen.sum(1)
-    parallax = _max_parallax(points, camera_centers(context_w2c.float()), seen)
-    supported = ((count >= min_views) & (parallax >= min_parallax_deg)).reshape(b, t, 1, h, w)
-    observed = supported & valid & ~depth_edges(td, valid, edge_thresh)
+    if target_w2c.shape != (b, t, 4, 4) or target_K.shape != (b, t, 3, 3):
+        raise ValueError(f"region_masks: expected target_w2c [{b}, {t}, 4, 4] and target_K [{b}, {t}, 3, 3], got "
+                         f"{tuple(target_w2c.shape)}, {tuple(target_K.shape)}")
+    if target_valid is not None and target_valid.shape != target_depth.shape:
+        raise ValueError(f"region_masks: target_valid must match target_depth {tuple(target_depth.shape)}, got "
+                         f"{tuple(target_valid.shape)}")
+    if min_views < 1:
+        raise ValueError(f"region_masks: min_views must be >= 1, got {min_views}")
+    depth = target_depth.float()
+    valid = _valid_depth(depth, target_valid)
+    d = torch.where(valid, depth, torch.ones_like(depth))
+    points = unproject_depth(d, target_K.float(), target_w2c.float()).reshape(b, t * h * w, 3)
+    vis = visible_views(points, context_depth, context_w2c, context_K, depth_tol=depth_tol, valid=context_valid)
+    vis = vis & valid.reshape(b, 1, -1)
+    enough = vis.sum(1) >= min_views
+    if min_parallax_deg > 0:
+        cos = _max_parallax_cos(points, camera_centers(context_w2c.float()), vis)
+        enough = enough & (cos <= math.cos(math.radians(min_parallax_deg)))
+    observed = enough.reshape(b, t, 1, h, w) & valid & ~depth_edges(depth, edge_thresh, target_valid)
     return observed, valid & ~observed
 
 
-def _mask_weights(mask: Tensor, like: Tensor) -> Tensor:
-    if mask.shape[0] != like.shape[0] or mask.shape[-2:] != like.shape[-2:]:
-        raise ValueError(f"masked metric: mask {tuple(mask.shape)} does not match images {tuple(like.shape)}")
-    return mask.float().expand_as(like)
+def _flat(x: Tensor, c: int | None, name: str) -> Tensor:
+    if x.dim() < 4 or (c is not None and x.shape[-3] != c):
+        raise ValueError(f"{name}: expected [..., {c or 'C'}, H, W] with a leading dim, got {tuple(x.shape)}")
+    return x.reshape(-1, *x.shape[-3:])
 
 
 def masked_psnr(pred: Tensor, target: Tensor, mask: Tensor) -> Tensor:
-    """``[M]`` PSNR (dB, data range 1) of ``[M, 3, H, W]`` images over the pixels of ``mask [M, 1, H, W]``; NaN
-    where the mask is empty."""
-    m = _mask_weights(mask, pred)
-    n = m.sum(dim=(1, 2, 3))
-    mse = ((pred.float().clamp(0, 1) - target.float()).square() * m).sum(dim=(1, 2, 3)) / n.clamp_min(1)
-    out = -10 * torch.log10(mse.clamp_min(1e-10))
+    """Per-image PSNR (dB, images in [0, 1]) over the masked pixels and all channels: ``[..., 3, H, W]`` images,
+    ``[..., 1, H, W]`` bool mask -> ``[M]``; NaN where the mask is empty."""
+    p, g = _flat(pred, 3, "masked_psnr").float().clamp(0, 1), _flat(target, 3, "masked_psnr").float()
+    m = _flat(mask, 1, "masked_psnr").to(p.dtype)
+    n = m.sum(dim=(1, 2, 3)) * p.shape[1]
+    mse = ((p - g) ** 2 * m).sum(dim=(1, 2, 3)) / n.clamp_min(1)
+    out = -10 * torch.log10(mse)
     return torch.where(n > 0, out, torch.full_like(out, float("nan")))
 
 
 def masked_ssim(pred: Tensor, target: Tensor, mask: Tensor) -> Tensor:
-    """``[M]`` mean of the SSIM map (Gaussian window 11, sigma 1.5) over ``mask [M, 1, H, W]``; NaN where empty."""
-    _, full = structural_similarity_index_measure(pred.float().clamp(0, 1), target.float(), data_range=1.0,
-                                                  reduction="none", return_full_image=True)
-    m = _mask_weights(mask, full)
+    """Per-image mean of the full SSIM map (torchmetrics, Gaussian window 11, sigma 1.5) over the masked pixels
+    and channels -> ``[M]``; NaN where the mask is empty. The window still reads unmasked neighbours."""
+    p, g = _flat(pred, 3, "masked_ssim").float().clamp(0, 1), _flat(target, 3, "masked_ssim").float()
+    m = _flat(mask, 1, "masked_ssim").to(p.dtype)
+    _, smap = structural_similarity_index_measure(p, g, data_range=1.0, reduction="none", return_full_image=True)
     n = m.sum(dim=(1, 2, 3))
-    out = (full * m).sum(dim=(1, 2, 3)) / n.clamp_min(1)
+    out = (smap * m).sum(dim=(1, 2, 3)) / (n * smap.shape[1]).clamp_min(1)
     return torch.where(n > 0, out, torch.full_like(out, float("nan")))
 
 
-def masked_lpips(lpips, pred: Tensor, target: Tensor, mask: Tensor) -> Tensor:
-    """``[M]`` LPIPS of one region: torchmetrics' LPIPS gives one number per image pair, so the region is scored as the
-    LPIPS between the target and a composite that is the prediction inside ``mask`` and the target outside it
-    (0 outside the region by construction); NaN where the mask is empty. ``lpips(a [1, 3, H, W], b) -> scalar``."""
-    m = _mask_weights(mask, pred)
-    comp = pred.float().clamp(0, 1) * m + target.float() * (1 - m)
-    out = torch.stack([torch.as_tensor(lpips(comp[i:i + 1], target[i:i + 1].float())).float().reshape(())
-                       for i in range(pred.shape[0])])
-    return torch.where(m.flatten(1).sum(1) > 0, out, torch.full_like(out, float("nan")))
+def masked_lpips(net: torch.nn.Module, pred: Tensor, target: Tensor, mask: Tensor) -> Tensor:
+    """Per-image mean of a spatial LPIPS map (from :func:`lpips_or_none`) over the mask -> ``[M]`` (NaN if empty)."""
+    p, g = _flat(pred, 3, "masked_lpips").float().clamp(0, 1), _flat(target, 3, "masked_lpips").float()
+    m = _flat(mask, 1, "masked_lpips").to(p.dtype)
+    lmap = net(p, g, normalize=True)  # [M, 1, H, W]
+    n = m.sum(dim=(1, 2, 3))
+    out = (lmap * m).sum(dim=(1, 2, 3)) / n.clamp_min(1)
+    return torch.where(n > 0, out, torch.full_like(out, float("nan")))
 
 
-def lpips_or_none(net_type: str = "alex") -> tuple[object | None, str]:
-    """torchmetrics' LPIPS when it can be built offline (torchvision installed and the backbone weights already in
-    the torch hub cache), else None. Returns ``(metric or None, one line saying which and why)``; never downloads."""
-    import os
+@contextmanager
+def _no_downloads():
+    """Make every torch.hub download (what torchvision's weight loading falls back to) raise instead."""
+    import torch.hub as hub
 
+    def refuse(url, *args, **kwargs):
+        raise RuntimeError(f"offline: {url} is not in the torch hub cache {hub.get_dir()}")
+
+    saved = hub.download_url_to_file
+    env = {k: os.environ.get(k) for k in ("HF_HUB_OFFLINE", "TORCH_HUB_OFFLINE")}
+    hub.download_url_to_file = refuse
+    os.environ.update(HF_HUB_OFFLINE="1", TORCH_HUB_OFFLINE="1")
     try:
-        import torchvision  # noqa: F401
-    except Exception:  # ImportError, or torchvision built for another torch
-        return None, ("LPIPS: left out (torchvision is not installed); install torchvision matching torch and put "
-                      f"the {net_type} backbone weights in the torch hub cache to get it")
-    old = {k: os.environ.get(k) for k in ("HF_HUB_OFFLINE", "TORCH_HOME")}
-    os.environ["HF_HUB_OFFLINE"] = "1"
-    try:
-        import torch.hub
-        from torchmetrics.image.lpip import LearnedPerceptualImagePatchSimilarity
-
-        hub = os.path.join(torch.hub.get_dir(), "checkpoints")
-        if not os.path.isdir(hub) or not os.listdir(hub):
-            return None, (f"LPIPS: left out (no backbone weights in {hub}); put the {net_type} weights there to get it"
-                          " (this never downloads)")
-        return LearnedPerceptualImagePatchSimilarity(net_type=net_type, normalize=True), "LPIPS: on"
-    except Exception as err:  # noqa: BLE001 - any failure to build offline means: leave the figure out
-        return None, f"LPIPS: left out ({type(err).__name__}: {str(err).splitlines()[0][:120]})"
+        yield
     finally:
-        for k, v in old.items():
+        hub.download_url_to_file = saved
+        for k, v in env.items():
             if v is None:
                 os.environ.pop(k, None)
             else:
                 os.environ[k] = v
+
+
+def lpips_or_none(net: str = "alex") -> tuple[torch.nn.Module | None, str]:
+    """A spatial LPIPS network (torchmetrics' ``_LPIPS``, ``spatial=True``: ``[M, 1, H, W]`` maps) built fully
+    offline, or ``(None, reason)`` with one line saying why and how to enable it. Never downloads anything."""
+    how = (f"install torchvision matching your torch and put its ImageNet {net} weights in the torch hub cache "
+           f"({torch.hub.get_dir()}/checkpoints) to score LPIPS per region")
+    try:
+        from torchmetrics.functional.image.lpips import _LPIPS
+        from torchmetrics.utilities.imports import _TORCHVISION_AVAILABLE
+    except Exception as e:  # noqa: BLE001 - any import failure means "absent"
+        return None, f"LPIPS per region left out: torchmetrics LPIPS unavailable ({type(e).__name__}); {how}"
+    if not _TORCHVISION_AVAILABLE:
+        return None, f"LPIPS per region left out: torchvision is not installed; {how}"
+    try:
+        with _no_downloads():
+            model = _LPIPS(pretrained=True, net=net, spatial=True).eval()
+    except Exception as e:  # noqa: BLE001 - missing weights or any backbone failure
+        msg = " ".join(str(e).split())[:120]
+        return None, f"LPIPS per region left out: {net} backbone weights not found offline ({msg}); {how}"
+    return model, f"LPIPS per region: torchmetrics {net} backbone, loaded offline"
+
+
+class RegionMetric(torchmetrics.Metric):
+    """DDP-safe mean over images of masked PSNR (dB) and of the region's pixel fraction.
+
+    ``update(pred [..., 3, H, W], target, mask [..., 1, H, W], valid [..., 1, H, W] | None)``: images whose mask
+    is empty are skipped for PSNR (counted for the fraction); the fraction is mask pixels / valid pixels (all
+    pixels when ``valid`` is None). ``compute()`` -> ``{"psnr": mean, "fraction": mean}`` (NaN when no image).
+    """
+
+    full_state_update = False
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__(**kwargs)
+        for name in ("psnr_sum", "psnr_count", "frac_sum", "frac_count"):
+            self.add_state(name, default=torch.tensor(0.0, dtype=torch.float64), dist_reduce_fx="sum")
+
+    def update(self, pred: Tensor, target: Tensor, mask: Tensor, valid: Tensor | None = None) -> None:
+        v = masked_psnr(pred, target, mask).double()
+        keep = ~torch.isnan(v)  # empty masks; a perfect region (+inf dB) is kept, as plain PSNR would
+        self.psnr_sum += v[keep].sum()
+        self.psnr_count += keep.sum()
+        m = _flat(mask, 1, "RegionMetric").float()
+        denom = m[:, 0].new_full((m.shape[0],), float(m[0].numel())) if valid is None else \
+            _flat(valid, 1, "RegionMetric").float().sum(dim=(1, 2, 3))
+        frac = m.sum(dim=(1, 2, 3)) / denom.clamp_min(1)
+        ok = denom > 0
+        self.frac_sum += frac[ok].double().sum()
+        self.frac_count += ok.sum()
+
+    def compute(self) -> dict[str, Tensor]:
+        nan = torch.tensor(float("nan"), dtype=torch.float64, device=self.psnr_sum.device)
+        return {
+            "psnr": self.psnr_sum / self.psnr_count if self.psnr_count > 0 else nan,
+            "fraction": self.frac_sum / self.frac_count if self.frac_count > 0 else nan,
+        }
