@@ -162,12 +162,14 @@ def _dispatch(args: list[str], argv_given: bool) -> int:
     if cmd in LIGHTNING or cmd.startswith("-"):
         import argparse
 
-        if not argv_given:  # LightningCLI reads sys.argv itself (and warns when given both)
-            sys.argv[1:] = args
+        saved = sys.argv[:]
+        sys.argv[1:] = args  # LightningCLI reads sys.argv itself (and warns when given args that differ from it)
         try:
-            build_cli(args if argv_given else None, parser_kwargs={"exit_on_error": False})
+            build_cli(None, parser_kwargs={"exit_on_error": False})
         except argparse.ArgumentError as e:
             raise ValueError(config_error(str(e), args)) from e
+        finally:
+            sys.argv[:] = saved
         return 0
     raise ValueError(f"unknown command {cmd!r}; expected one of data, {', '.join(LIGHTNING)}, export, view, "
                      "render-video (anycity --help)")
