@@ -22,6 +22,7 @@ from anycity.geometry.projection import (
     unproject_depth,
     unproject_depth_to_camera,
 )
+from anycity.geometry.visibility import count_visible, visible_views
 from anycity.geometry.rotations import quat_multiply, quat_to_rotmat, rotmat_to_quat, wxyz_to_xyzw, xyzw_to_wxyz
 
 __all__ = [
@@ -29,4 +30,5 @@ __all__ = [
     "make_intrinsics", "rescale_intrinsics", "to_homogeneous", "w2c_to_c2w", "depth_to_normals", "pixel_grid",
     "pixel_rays", "project_points", "transform_points", "unproject_depth", "unproject_depth_to_camera",
     "quat_multiply", "quat_to_rotmat", "rotmat_to_quat", "wxyz_to_xyzw", "xyzw_to_wxyz", "sim3_matrix", "umeyama",
+    "count_visible", "visible_views",
 ]
