@@ -11,12 +11,14 @@ from lightning.pytorch.callbacks import BasePredictionWriter
 from PIL import Image
 
 from anycity.export import save_cameras, save_ply
+from anycity.export.provenance import provenance, summary
 
 
 class PredictionExport(BasePredictionWriter):
     """Export every predicted scene under ``out_dir/<scene>/``.
 
-    Files: ``scene.ply`` (standard 3DGS PLY), ``cameras.json`` (predicted OpenCV w2c + K),
+    Files: ``scene.ply`` (standard 3DGS PLY plus the provenance columns ``obs_views`` and ``completion`` when
+    the prediction carries ``scaffold`` and ``depth``; see :mod:`anycity.export.provenance`), ``cameras.json`` (predicted OpenCV w2c + K),
     ``renders/NNN.png`` (the Gaussians re-rendered at the predicted context cameras) and
     ``inputs/NNN.png`` (the context images, for side-by-side comparison).
 
@@ -40,9 +42,17 @@ class PredictionExport(BasePredictionWriter):
         images, renders = prediction["images"], prediction["renders"]
         h, w = images.shape[-2:]
         scenes = prediction.get("scene") or [f"scene_{batch_idx:04d}_{i}" for i in range(w2c.shape[0])]
+        prov = None
+        if prediction.get("scaffold") is not None and prediction.get("depth") is not None:
+            prov = provenance(g, prediction["scaffold"], prediction["depth"], w2c, K)
         for i, name in enumerate(scenes):
             folder = self._root(trainer) / f"{name}".replace("/", "_")
-            save_ply(g, folder / "scene.ply", index=i)
+            save_ply(g, folder / "scene.ply", index=i, extra=prov)
+            if prov is not None:
+                share = summary({k: v[i: i + 1] for k, v in prov.items()},
+                                None if g.valid is None else g.valid[i: i + 1])
+                print(f"{name}: {share['supported']:.0%} of Gaussians observation-supported (>= 2 views, kept), "
+                      f"{share['completed']:.0%} completed by Stage II, {share['unsupported']:.0%} seen by < 2 views")
             save_cameras(folder / "cameras.json", w2c[i], K[i], int(w), int(h))
             if self.save_renders:
                 for kind, imgs in (("renders", renders.rgb[i]), ("inputs", images[i])):
