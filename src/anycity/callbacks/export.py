@@ -18,7 +18,8 @@ class PredictionExport(BasePredictionWriter):
     """Export every predicted scene under ``out_dir/<scene>/``.
 
     Files: ``scene.ply`` (standard 3DGS PLY plus the provenance columns ``obs_views`` and ``completion`` when
-    the prediction carries ``scaffold`` and ``depth``; see :mod:`anycity.export.provenance`), ``cameras.json`` (predicted OpenCV w2c + K),
+    the prediction carries ``scaffold`` and ``depth``; see :mod:`anycity.export.provenance`), ``cameras.json``
+    (predicted OpenCV w2c + K),
     ``renders/NNN.png`` (the Gaussians re-rendered at the predicted context cameras) and
     ``inputs/NNN.png`` (the context images, for side-by-side comparison).
 
