@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+from helpers.raycast_scenes import intrinsics, look_at, render_depth
 from plyfile import PlyData
 
 from anycity.export import load_ply, load_ply_extras, save_ply
 from anycity.export.provenance import completion_score, provenance, summary
 from anycity.structures import Gaussians
-from helpers.raycast_scenes import intrinsics, look_at, render_depth
 
 BOX = ((-0.5, -0.5, 0.0), (0.5, 0.5, 1.0))
 
