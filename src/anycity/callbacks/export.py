@@ -12,6 +12,7 @@ from PIL import Image
 
 from anycity.export import save_cameras, save_ply
 from anycity.export.provenance import provenance, summary
+from anycity.export.smoothing import VARIANCE_PX, smooth_3d
 
 
 class PredictionExport(BasePredictionWriter):
@@ -26,12 +27,16 @@ class PredictionExport(BasePredictionWriter):
     Args:
         out_dir: output folder; None = ``<log_dir>/predictions``.
         save_renders: also write the PNG renders and inputs.
+        smooth_3d: Mip-Splatting 3-D filter variance in px² of the input cameras, baked into the PLY's scales and
+            opacities so that other viewers (and zoomed-in views) show no holes; 0 writes the raw Gaussians.
     """
 
-    def __init__(self, out_dir: str | None = None, save_renders: bool = True) -> None:
+    def __init__(self, out_dir: str | None = None, save_renders: bool = True,
+                 smooth_3d: float = VARIANCE_PX) -> None:
         super().__init__(write_interval="batch")
         self.out_dir = out_dir
         self.save_renders = save_renders
+        self.smooth_3d = smooth_3d
         self.written: list[Path] = []
 
     def _root(self, trainer: pl.Trainer) -> Path:
@@ -46,6 +51,8 @@ class PredictionExport(BasePredictionWriter):
         prov = None
         if prediction.get("scaffold") is not None and prediction.get("depth") is not None:
             prov = provenance(g, prediction["scaffold"], prediction["depth"], w2c, K)
+        if self.smooth_3d > 0:
+            g = smooth_3d(g, w2c, K, int(w), int(h), self.smooth_3d)
         for i, name in enumerate(scenes):
             folder = self._root(trainer) / f"{name}".replace("/", "_")
             save_ply(g, folder / "scene.ply", index=i, extra=prov)
