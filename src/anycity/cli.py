@@ -88,6 +88,11 @@ def _one_line(e: BaseException) -> str:
     if lines[0].startswith("Caught ") and "worker" in lines[0]:
         m = re.match(r"^\s*(?:\w+\.)*\w+(?:Error|Exception): (.*)$", lines[-1])
         return m.group(1) if m else lines[-1].strip()
+    # jsonargparse's "Does not validate against any of the Union subtypes ... Errors: - <ours> - Expected a
+    # <class 'NoneType'>": the first listed error that is not the None alternative is the one our code wrote.
+    errors = [ln.strip()[2:] for ln in lines if ln.strip().startswith("- ") and "Expected a <class" not in ln]
+    if errors:
+        return errors[0]
     return " ".join(ln.strip() for ln in lines) if len(lines) <= 3 else lines[0]
 
 
@@ -152,7 +157,7 @@ def _dispatch(args: list[str], argv_given: bool) -> int:
 
         return int(export_main(rest) or 0)
     if cmd == "view":
-        from anycity.viewer.cli import view_main
+        from anycity.viewer.server import view_main
 
         return int(view_main(rest) or 0)
     if cmd == "render-video":
