@@ -45,8 +45,9 @@ def render_view(scene: ViewScene, w2c: torch.Tensor, K: torch.Tensor, width: int
     return (out.rgb[0, 0].clamp(0, 1).permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8)
 
 
-def build_server(path: str | Path, host: str = "127.0.0.1", port: int = 8080):
-    """Start the viewer on ``scene`` at ``path``; returns ``(server, scene)``. ``port=0`` picks a free port."""
+def build_server(path: str | Path, host: str = "127.0.0.1", port: int = 8080, cameras: bool = True):
+    """Start the viewer on ``scene`` at ``path``; returns ``(server, scene)``. ``port=0`` picks a free port;
+    ``cameras=False`` hides the camera frustums."""
     import viser
 
     scene = load_view_scene(path)
@@ -55,18 +56,23 @@ def build_server(path: str | Path, host: str = "127.0.0.1", port: int = 8080):
     centres, cov, rgb, opac = splat_arrays(scene.gaussians)
     splats = {"h": server.scene.add_gaussian_splats("/splats", centres, cov, rgb, opac)}
 
-    if scene.w2c is not None:
+    if scene.w2c is not None and cameras:
         c2w = torch.linalg.inv(scene.w2c).numpy()
         fov = 2 * math.atan(0.5 * scene.height / float(scene.K[0, 1, 1]))
         extent = float(np.linalg.norm(c2w[:, :3, 3] - c2w[:, :3, 3].mean(0), axis=-1).mean()) or 1.0
         for v in range(len(c2w)):
             server.scene.add_camera_frustum(
                 f"/cameras/{v:03d}", fov=fov, aspect=scene.width / scene.height, scale=0.15 * extent,
+                thickness=1.5, thickness_units="screen",
                 image=scene.thumbs[v] if scene.thumbs else None, wxyz=_rotmat_to_wxyz(c2w[v, :3, :3]),
                 position=c2w[v, :3, 3], color=(255, 160, 0))
-        eye = c2w[0, :3, 3]
-        server.initial_camera.position = tuple(eye)
-        server.initial_camera.look_at = tuple(eye + c2w[0, :3, 2] * 2 * extent)
+        # Start behind the mean camera, looking the mean viewing direction: the cameras and the scene in view.
+        fwd = c2w[:, :3, 2].mean(0)
+        fwd /= np.linalg.norm(fwd) or 1.0
+        centre = np.median(centres, 0)
+        depth = float(np.dot(centre - c2w[:, :3, 3].mean(0), fwd))
+        server.initial_camera.position = tuple(centre - fwd * 1.6 * max(depth, extent))
+        server.initial_camera.look_at = tuple(centre)
         server.initial_camera.up = (0.0, -1.0, 0.0)
         server.initial_camera.fov = fov
 
@@ -113,8 +119,9 @@ def view_main(argv: list[str]) -> int:
     p.add_argument("path", help="scene.ply or a predict output folder (predictions/<scene>/)")
     p.add_argument("--host", default="127.0.0.1", help="interface to listen on (0.0.0.0 serves the network)")
     p.add_argument("--port", type=int, default=8080, help="port (0: any free one; a busy one moves up)")
+    p.add_argument("--no-cameras", action="store_true", help="hide the camera frustums")
     a = p.parse_args(argv)
-    server, scene = build_server(a.path, a.host, a.port)
+    server, scene = build_server(a.path, a.host, a.port, cameras=not a.no_cameras)
     print(f"anycity view: {scene.gaussians.num_gaussians:,} Gaussians at http://{a.host}:{server.get_port()} "
           "(Ctrl-C to stop)", flush=True)
     try:
