@@ -1,7 +1,9 @@
-"""The ``anycity`` command: LightningCLI subcommands ``fit|validate|test|predict`` plus ``anycity data ...``.
+"""The ``anycity`` command: one front door for every subcommand.
 
-Heavy imports (torch, Lightning, the network) happen only when a training subcommand runs, so
-``anycity data synth`` starts quickly and does not need the network.
+``anycity data synth|convert``, ``export``, ``view`` and ``render-video`` run without importing Lightning (they
+start in about a second); ``fit|validate|test|predict`` are the LightningCLI subcommands. Errors a user caused
+(``ValueError``/``FileNotFoundError``, also when raised inside a DataLoader worker, and unknown config keys) print
+as one line; ``--debug`` or ``ANYCITY_DEBUG=1`` shows the traceback.
 """
 
 from __future__ import annotations
@@ -50,7 +52,7 @@ def _cli_class():
     return AnyCityCLI
 
 
-def build_cli(args: list[str] | None = None, run: bool = True):
+def build_cli(args: list[str] | None = None, run: bool = True, parser_kwargs: dict | None = None):
     """Build (and by default run) the training CLI in-process; ``args`` as on the command line after
     ``anycity``, e.g. ``["fit", "--config", "configs/quickstart.yaml"]``. Returns the LightningCLI object."""
     from anycity.lit import AnyCityModule
@@ -64,18 +66,147 @@ def build_cli(args: list[str] | None = None, run: bool = True):
         save_config_kwargs={"overwrite": True},
         args=args,
         run=run,
+        parser_kwargs=parser_kwargs,
     )
+
+
+HELP = """usage: anycity COMMAND [options]   (anycity COMMAND --help for a command's options)
+
+Commands:
+  data synth     render procedural aerial cities into webdataset shards
+  data convert   convert a posed dataset (colmap, nerfstudio, llff, ...) into shards
+  fit            train a model (LightningCLI; --config configs/quickstart.yaml)
+  validate       evaluate a model on the validation split
+  test           evaluate a model on the test split (held-out views)
+  predict        reconstruct scenes from photos: scene.ply, cameras.json, renders
+  export         write a predicted scene as .splat, COLMAP text, nerfstudio transforms.json or PLY
+  view           open a predicted scene in the browser (viser: splats, cameras, provenance)
+  render-video   render an mp4 fly-through along the predicted cameras
+
+Options:
+  --debug        show the full traceback of an error (or set ANYCITY_DEBUG=1)
+"""
+
+LIGHTNING = ("fit", "validate", "test", "predict")
+_ALIASES = {"learning_rate": "lr", "learningrate": "lr", "max_step": "max_steps", "epochs": "max_epochs"}
+
+
+def _one_line(e: BaseException) -> str:
+    """The message our code wrote, without the DataLoader worker's "Caught ... Original Traceback" wrapper."""
+    import re
+
+    lines = [ln for ln in str(e).strip().splitlines() if ln.strip()]
+    if not lines:
+        return type(e).__name__
+    if lines[0].startswith("Caught ") and "worker" in lines[0]:
+        m = re.match(r"^\s*(?:\w+\.)*\w+(?:Error|Exception): (.*)$", lines[-1])
+        return m.group(1) if m else lines[-1].strip()
+    # jsonargparse's "Does not validate against any of the Union subtypes ... Errors: - <ours> - Expected a
+    # <class 'NoneType'>": the first listed error that is not the None alternative is the one our code wrote.
+    errors = [ln.strip()[2:] for ln in lines if ln.strip().startswith("- ") and "Expected a <class" not in ln]
+    if errors:
+        return errors[0]
+    return " ".join(ln.strip() for ln in lines) if len(lines) <= 3 else lines[0]
+
+
+def _candidates(message: str) -> list[str]:
+    """Option names the bad key could have meant: init parameters of the class the error names, else of every
+    class the training CLI configures."""
+    import importlib
+    import inspect
+    import re
+
+    classes = []
+    for path in re.findall(r"class_path '([\w.]+)'", message):
+        mod, _, name = path.rpartition(".")
+        try:
+            classes.append(getattr(importlib.import_module(mod), name))
+        except (ImportError, AttributeError):
+            pass
+    if not classes:
+        from lightning.pytorch import Trainer
+
+        from anycity.lit import AnyCityModule
+        from anycity.lit.datamodule import AerialDataModule
+
+        classes = [Trainer, AerialDataModule, AnyCityModule, *AnyCityModule.__subclasses__()]
+    names = set()
+    for c in classes:
+        for k in inspect.getmro(c):
+            if "__init__" in vars(k):
+                names.update(p for p in inspect.signature(k.__init__).parameters if p not in ("self", "args", "kwargs"))
+    return sorted(names)
+
+
+def config_error(message: str, argv: list[str]) -> str:
+    """One line for a jsonargparse error: the unknown option and the nearest valid key."""
+    import difflib
+    import re
+
+    bad = re.findall(r"Option '(\w+)' is not accepted", message) + re.findall(r"NestedArg\(key='(\w+)'", message)
+    bad += re.findall(r"[Kk]ey '([\w.]+)' is not expected", message)
+    if not bad:
+        return _one_line(message).replace("\n", " ")
+    key = bad[0].split(".")[-1]
+    opt = next((a.split("=")[0] for a in argv if a.startswith("--") and a.split("=")[0].endswith("." + key)),
+               f"--{bad[0]}")
+    near = difflib.get_close_matches(key, _candidates(message), n=1, cutoff=0.6)
+    alias = difflib.get_close_matches(key.lower(), list(_ALIASES), n=1, cutoff=0.8)
+    hint = near[0] if near else (f"{_ALIASES[alias[0]]} ({alias[0].replace('_', ' ')})" if alias else None)
+    return f"unknown option {opt}" + (f"; did you mean {hint}?" if hint else "; see anycity COMMAND --help")
+
+
+def _dispatch(args: list[str], argv_given: bool) -> int:
+    if not args or args[0] in ("-h", "--help", "help"):
+        print(HELP, end="")
+        return 0
+    cmd, rest = args[0], args[1:]
+    if cmd == "data":
+        from anycity.data.cli import data_main
+
+        return int(data_main(rest) or 0)
+    if cmd == "export":
+        from anycity.export.cli import export_main
+
+        return int(export_main(rest) or 0)
+    if cmd == "view":
+        from anycity.viewer.server import view_main
+
+        return int(view_main(rest) or 0)
+    if cmd == "render-video":
+        from anycity.viewer.video import render_video_main
+
+        return int(render_video_main(rest) or 0)
+    if cmd in LIGHTNING or cmd.startswith("-"):
+        import argparse
+
+        saved = sys.argv[:]
+        sys.argv[1:] = args  # LightningCLI reads sys.argv itself (and warns when given args that differ from it)
+        try:
+            build_cli(None, parser_kwargs={"exit_on_error": False})
+        except argparse.ArgumentError as e:
+            raise ValueError(config_error(str(e), args)) from e
+        finally:
+            sys.argv[:] = saved
+        return 0
+    raise ValueError(f"unknown command {cmd!r}; expected one of data, {', '.join(LIGHTNING)}, export, view, "
+                     "render-video (anycity --help)")
 
 
 def main(argv: list[str] | None = None) -> int:
     """Console entry point (``anycity``)."""
-    args = list(sys.argv[1:] if argv is None else argv)
-    if args and args[0] == "data":
-        from anycity.data.cli import data_main
+    import os
 
-        return int(data_main(args[1:]) or 0)
-    build_cli(None if argv is None else args)  # None: LightningCLI reads sys.argv itself
-    return 0
+    args = list(sys.argv[1:] if argv is None else argv)
+    debug = "--debug" in args or os.environ.get("ANYCITY_DEBUG", "") not in ("", "0")
+    args = [a for a in args if a != "--debug"]
+    if debug:
+        return _dispatch(args, argv is not None)
+    try:
+        return _dispatch(args, argv is not None)
+    except (ValueError, FileNotFoundError, NotADirectoryError) as e:
+        print(f"anycity: error: {_one_line(e)}  (--debug for the traceback)", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

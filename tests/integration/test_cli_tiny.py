@@ -73,6 +73,11 @@ def test_fit_test_predict_stage1_then_stage2(tiny_shards, tmp_path):
     assert scenes and (scenes[0] / "scene.ply").stat().st_size > 1000
     cams = json.loads((scenes[0] / "cameras.json").read_text())
     assert len(cams["views"]) == 2 and len(list((scenes[0] / "renders").glob("*.png"))) == 2
+    from anycity.export import load_ply_extras
+
+    prov = load_ply_extras(scenes[0] / "scene.ply")  # provenance columns (issue 14)
+    assert prov["obs_views"].max() <= 2 and (prov["obs_views"] >= 1).mean() > 0.5
+    assert np.isfinite(prov["completion"]).all() and prov["completion"].min() >= 0
 
     # the user's own photos: a folder of one scene, no poses
     photos = tmp_path / "my_photos"

@@ -11,12 +11,16 @@ from lightning.pytorch.callbacks import BasePredictionWriter
 from PIL import Image
 
 from anycity.export import save_cameras, save_ply
+from anycity.export.provenance import provenance, summary
+from anycity.export.smoothing import VARIANCE_PX, smooth_3d
 
 
 class PredictionExport(BasePredictionWriter):
     """Export every predicted scene under ``out_dir/<scene>/``.
 
-    Files: ``scene.ply`` (standard 3DGS PLY), ``cameras.json`` (predicted OpenCV w2c + K),
+    Files: ``scene.ply`` (standard 3DGS PLY plus the provenance columns ``obs_views`` and ``completion`` when
+    the prediction carries ``scaffold`` and ``depth``; see :mod:`anycity.export.provenance`), ``cameras.json``
+    (predicted OpenCV w2c + K),
     ``renders/NNN.png`` (the Gaussians re-rendered at the predicted context cameras) and
     ``inputs/NNN.png`` (the context images, for side-by-side comparison).
 
@@ -30,12 +34,16 @@ class PredictionExport(BasePredictionWriter):
     Args:
         out_dir: output folder; None = ``<log_dir>/predictions``.
         save_renders: also write the PNG renders and inputs.
+        smooth_3d: Mip-Splatting 3-D filter variance in px² of the input cameras, baked into the PLY's scales and
+            opacities so that other viewers (and zoomed-in views) show no holes; 0 writes the raw Gaussians.
     """
 
-    def __init__(self, out_dir: str | None = None, save_renders: bool = True) -> None:
+    def __init__(self, out_dir: str | None = None, save_renders: bool = True,
+                 smooth_3d: float = VARIANCE_PX) -> None:
         super().__init__(write_interval="batch")
         self.out_dir = out_dir
         self.save_renders = save_renders
+        self.smooth_3d = smooth_3d
         self.written: list[Path] = []
         self._city = None
         self._bar = None
@@ -54,9 +62,19 @@ class PredictionExport(BasePredictionWriter):
         images, renders = prediction["images"], prediction["renders"]
         h, w = images.shape[-2:]
         scenes = prediction.get("scene") or [f"scene_{batch_idx:04d}_{i}" for i in range(w2c.shape[0])]
+        prov = None
+        if prediction.get("scaffold") is not None and prediction.get("depth") is not None:
+            prov = provenance(g, prediction["scaffold"], prediction["depth"], w2c, K)
+        if self.smooth_3d > 0:
+            g = smooth_3d(g, w2c, K, int(w), int(h), self.smooth_3d)
         for i, name in enumerate(scenes):
             folder = self._root(trainer) / f"{name}".replace("/", "_")
-            save_ply(g, folder / "scene.ply", index=i)
+            save_ply(g, folder / "scene.ply", index=i, extra=prov)
+            if prov is not None:
+                share = summary({k: v[i: i + 1] for k, v in prov.items()},
+                                None if g.valid is None else g.valid[i: i + 1])
+                print(f"{name}: {share['supported']:.0%} of Gaussians observation-supported (>= 2 views, kept), "
+                      f"{share['completed']:.0%} completed by Stage II, {share['unsupported']:.0%} seen by < 2 views")
             names = batch.get("names") if isinstance(batch, dict) else None  # a photo folder's file names
             save_cameras(folder / "cameras.json", w2c[i], K[i], int(w), int(h), names[i] if names else None)
             if self.save_renders:

@@ -1,6 +1,6 @@
 """Export of reconstructions: standard 3DGS PLY, cameras.json."""
 
 from anycity.export.cameras import cameras_to_dict, save_cameras
-from anycity.export.ply import gaussians_to_ply_arrays, load_ply, save_ply
+from anycity.export.ply import gaussians_to_ply_arrays, load_ply, load_ply_extras, save_ply
 
-__all__ = ["cameras_to_dict", "save_cameras", "gaussians_to_ply_arrays", "load_ply", "save_ply"]
+__all__ = ["cameras_to_dict", "save_cameras", "gaussians_to_ply_arrays", "load_ply", "load_ply_extras", "save_ply"]

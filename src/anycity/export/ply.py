@@ -13,8 +13,12 @@ from torch import Tensor
 from anycity.structures import Gaussians
 
 
-def gaussians_to_ply_arrays(g: Gaussians, index: int = 0, max_degree: int = 3) -> tuple[dict[str, np.ndarray], int]:
+def gaussians_to_ply_arrays(g: Gaussians, index: int = 0, max_degree: int = 3,
+                            extra: dict[str, Tensor] | None = None) -> tuple[dict[str, np.ndarray], int]:
     """Columns of scene ``index`` of ``g`` as float32 arrays; returns ``(columns, dropped)``.
+
+    ``extra``: more per-Gaussian columns ``{name: [B, N]}`` (e.g. provenance) appended after the standard ones;
+    standard viewers ignore them.
 
     Invalid, non-finite and zero-norm-rotation Gaussians are dropped (their count is returned). SH above
     ``max_degree`` (at most 3, the format's limit) are cut per band, then written channel-major.
@@ -49,12 +53,16 @@ def gaussians_to_ply_arrays(g: Gaussians, index: int = 0, max_degree: int = 3) -
         cols[f"scale_{i}"] = scales[:, i].log()
     for i in range(4):
         cols[f"rot_{i}"] = quats[:, i]
+    for name, t in (extra or {}).items():
+        cols[name] = t[index].to(keep.device).float()[keep]
     return {k: v.detach().cpu().numpy().astype(np.float32) for k, v in cols.items()}, dropped
 
 
-def save_ply(g: Gaussians, path: str | Path, index: int = 0, max_degree: int = 3) -> int:
-    """Write scene ``index`` of ``g`` to ``path`` as a binary little-endian 3DGS PLY; returns rows dropped."""
-    cols, dropped = gaussians_to_ply_arrays(g, index, max_degree)
+def save_ply(g: Gaussians, path: str | Path, index: int = 0, max_degree: int = 3,
+             extra: dict[str, Tensor] | None = None) -> int:
+    """Write scene ``index`` of ``g`` to ``path`` as a binary little-endian 3DGS PLY; returns rows dropped.
+    ``extra`` as in :func:`gaussians_to_ply_arrays`."""
+    cols, dropped = gaussians_to_ply_arrays(g, index, max_degree, extra)
     n = len(cols["x"])
     data = np.empty(n, dtype=[(k, "f4") for k in cols])
     for k, v in cols.items():
@@ -85,3 +93,13 @@ def load_ply(path: str | Path) -> Gaussians:
         scales=col("scale_0", "scale_1", "scale_2").exp()[None],
         opacities=torch.sigmoid(col("opacity")[:, 0])[None], sh=torch.cat([dc, rest], 1)[None],
     )
+
+
+STANDARD = ("x", "y", "z", "nx", "ny", "nz", "opacity")
+
+
+def load_ply_extras(path: str | Path) -> dict[str, np.ndarray]:
+    """The non-standard per-Gaussian columns of a PLY (e.g. ``obs_views``, ``completion``), ``{name: [N]}``."""
+    v = PlyData.read(str(path))["vertex"]
+    skip = ("f_dc_", "f_rest_", "scale_", "rot_")
+    return {k: np.asarray(v[k]) for k in v.data.dtype.names if k not in STANDARD and not k.startswith(skip)}

@@ -329,12 +329,13 @@ class AnyCityModule(pl.LightningModule):
             ctx = batch.context if isinstance(batch, ViewBatch) else batch
             images, scene = (ctx.images if isinstance(ctx, Views) else ctx), getattr(batch, "scene", None)
         out, variants = self.predict_variants(images)
-        final, w2c = variants[list(variants)[-1]], out["w2c"]
+        final, scaffold, w2c = variants[list(variants)[-1]], variants["scaffold"], out["w2c"]
         if self.hparams.camera_refine_steps > 0:
             w2c, A = self.refine_cameras(final, w2c, out["K"], images, self.hparams.camera_refine_steps)
-            final = transform_gaussians(final, A)
+            final, scaffold = transform_gaussians(final, A), transform_gaussians(scaffold, A)
         hw = (int(images.shape[-2]), int(images.shape[-1]))
         renders = self.render(final, w2c, out["K"], hw, images)
         return {"gaussians": final.detach(), "w2c": w2c.detach(), "K": out["K"].detach(),
-                "images": images, "renders": renders, "scene": scene,
+                "images": images, "renders": renders, "scene": scene, "scaffold": scaffold.detach(),
+                "depth": out["depth"].detach(),
                 "batch_idx": batch_idx}

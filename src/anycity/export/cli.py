@@ -1,0 +1,94 @@
+"""``anycity export --from PATH --format splat|colmap|nerfstudio|ply --out DIR``.
+
+``PATH`` is a ``predict`` scene folder (``scene.ply`` + ``cameras.json``) or a bare ``scene.ply`` (then only the
+Gaussian formats can be written). No Lightning import: this runs in a second.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+from pathlib import Path
+
+import torch
+
+FORMATS = ("splat", "colmap", "nerfstudio", "ply")
+
+
+def load_scene(path: str | Path):
+    """``(gaussians, cameras)`` of a predict folder or a ``scene.ply``; ``cameras`` is the ``cameras.json`` dict
+    or None."""
+    from anycity.export.ply import load_ply
+
+    path = Path(path)
+    if path.is_dir():
+        ply = path / "scene.ply"
+        if not ply.is_file():
+            raise FileNotFoundError(f"{path}: no scene.ply inside; pass a folder written by `anycity predict` "
+                                    "(predictions/<scene>/) or a .ply file")
+        cam_file = path / "cameras.json"
+        cams = json.loads(cam_file.read_text()) if cam_file.is_file() else None
+        return load_ply(ply), cams
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: does not exist; pass a predict scene folder or a scene.ply")
+    cams_file = path.parent / "cameras.json"
+    return load_ply(path), (json.loads(cams_file.read_text()) if cams_file.is_file() else None)
+
+
+def camera_tensors(cams: dict) -> tuple[torch.Tensor, torch.Tensor, int, int, list[str]]:
+    """``cameras.json`` dict -> ``(w2c [V,4,4], K [V,3,3], width, height, names)`` (float64)."""
+    views = cams["views"]
+    w2c = torch.tensor([v["w2c"] for v in views], dtype=torch.float64)
+    K = torch.tensor([v["K"] for v in views], dtype=torch.float64)
+    return w2c, K, int(views[0]["width"]), int(views[0]["height"]), [v["name"] for v in views]
+
+
+def export(src: str | Path, fmt: str, out: str | Path) -> Path:
+    """Write scene ``src`` in format ``fmt`` under ``out``; returns the main file or folder written."""
+    from anycity.export.formats import save_colmap, save_scale, save_splat, save_transforms
+    from anycity.export.ply import save_ply
+
+    if fmt not in FORMATS:
+        raise ValueError(f"--format: expected one of {', '.join(FORMATS)}, got {fmt!r}")
+    g, cams = load_scene(src)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    scale = cams.get("metres_per_unit") if cams else None
+    save_scale(out / "scale.json", scale, fmt)
+    if fmt == "splat":
+        target = out / "scene.splat"
+        save_splat(g, target)
+        return target
+    if fmt == "ply":
+        target = out / "scene.ply"
+        save_ply(g, target)
+        return target
+    if cams is None:
+        raise ValueError(f"{src}: no cameras.json beside the scene; --format {fmt} needs the predicted cameras, "
+                         "pass the predict scene folder")
+    w2c, K, w, h, names = camera_tensors(cams)
+    src_dir = Path(src) if Path(src).is_dir() else Path(src).parent
+    files = [f"images/{n}.png" for n in names]
+    inputs = src_dir / "inputs"
+    for n, f in zip(names, files, strict=True):  # the context images the cameras belong to, when predict saved them
+        if (inputs / f"{n}.png").is_file():
+            (out / "images").mkdir(exist_ok=True)
+            shutil.copyfile(inputs / f"{n}.png", out / f)
+    if fmt == "colmap":
+        return save_colmap(out / "sparse" / "0", w2c, K, w, h, [f"{n}.png" for n in names], g)
+    save_ply(g, out / "scene.ply")
+    return save_transforms(out / "transforms.json", w2c, K, w, h, files, ply_file_path="scene.ply")
+
+
+def export_main(argv: list[str]) -> int:
+    p = argparse.ArgumentParser(prog="anycity export", description="Export a predicted scene for other tools.")
+    p.add_argument("--from", dest="src", required=True, help="predict scene folder or scene.ply")
+    p.add_argument("--format", required=True, choices=FORMATS)
+    p.add_argument("--out", default=None, help="output folder (default: <from>/export_<format>)")
+    a = p.parse_args(argv)
+    src = Path(a.src)
+    out = Path(a.out) if a.out else (src if src.is_dir() else src.parent) / f"export_{a.format}"
+    target = export(src, a.format, out)
+    print(f"wrote {target}")
+    return 0

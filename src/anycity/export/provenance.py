@@ -1,0 +1,56 @@
+"""Provenance of each Gaussian: which ones the photos support and which ones the model completed.
+
+- ``obs_views [B, N]``: how many context views see the Gaussian's centre (in frame, in front, and not behind
+  that view's predicted depth; :func:`anycity.geometry.visibility.count_visible`). A pixel-aligned Gaussian is
+  always seen by its own view, so *observation-supported* means seen by at least two.
+- ``completion [B, N]`` in [0, 1]: how much Stage II changed the Gaussian from its scaffold (the Stage I
+  decoding of the same pixel): the largest of the centre shift in units of the scaffold's mean std (/3), the
+  opacity change and the DC colour change (RGB distance / sqrt 3), each clipped to 1. 0 for a Stage I model.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from anycity.geometry.visibility import count_visible
+from anycity.structures import Gaussians
+
+SH_C0 = 0.28209479177387814
+SUPPORT_VIEWS = 2  # seen by its own view and at least one other
+COMPLETED = 0.25  # completion above this: Stage II moved/recoloured it noticeably
+
+
+def completion_score(refined: Gaussians, scaffold: Gaussians) -> Tensor:
+    """``[B, N]`` in [0, 1]; zeros when the two are the same object, NaN when their Gaussians do not pair up
+    (a voxel merge changed N)."""
+    if refined is scaffold:
+        return torch.zeros_like(refined.opacities)
+    if refined.means.shape != scaffold.means.shape:
+        return torch.full_like(refined.opacities, float("nan"))
+    size = scaffold.scales.mean(-1).clamp_min(1e-12)
+    pos = (refined.means - scaffold.means).norm(dim=-1) / (3 * size)
+    opa = (refined.opacities - scaffold.opacities).abs()
+    rgb = lambda g: (0.5 + SH_C0 * g.sh[..., 0, :]).clamp(0, 1)  # noqa: E731
+    col = (rgb(refined) - rgb(scaffold)).norm(dim=-1) / 3 ** 0.5
+    return torch.stack([pos, opa, col], -1).clamp(0, 1).amax(-1)
+
+
+def provenance(refined: Gaussians, scaffold: Gaussians, depth: Tensor, w2c: Tensor, K: Tensor,
+               depth_tol: float = 0.05) -> dict[str, Tensor]:
+    """``{"obs_views": [B, N] float, "completion": [B, N]}`` for the final Gaussians; ``depth [B, V, 1, H, W]``,
+    ``w2c [B, V, 4, 4]``, ``K [B, V, 3, 3]`` of the context views (the cameras the Gaussians live with)."""
+    obs = count_visible(refined.means.float(), depth.float(), w2c.float(), K.float(), depth_tol=depth_tol)
+    return {"obs_views": obs.float(), "completion": completion_score(refined, scaffold).float()}
+
+
+def summary(prov: dict[str, Tensor], valid: Tensor | None = None) -> dict[str, float]:
+    """Shares over (valid) Gaussians: ``supported`` (>= 2 views and not completed), ``completed`` (completion >
+    :data:`COMPLETED`), ``unsupported`` (fewer than 2 views see it)."""
+    obs, comp = prov["obs_views"], prov["completion"].nan_to_num(0.0)
+    keep = torch.ones_like(obs, dtype=torch.bool) if valid is None else valid
+    n = keep.sum().clamp_min(1).item()
+    completed = comp > COMPLETED
+    few = obs < SUPPORT_VIEWS
+    return {"supported": ((~completed & ~few) & keep).sum().item() / n,
+            "completed": (completed & keep).sum().item() / n, "unsupported": (few & keep).sum().item() / n}

@@ -1,0 +1,69 @@
+"""A predicted scene as the viewer and the video renderer need it: Gaussians, provenance columns, cameras and
+input thumbnails, loaded from a predict folder or a ``scene.ply``."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image
+
+from anycity.export.cli import camera_tensors, load_scene
+from anycity.export.ply import load_ply_extras
+from anycity.structures import Gaussians
+
+SH_C0 = 0.28209479177387814
+
+
+@dataclass
+class ViewScene:
+    """``gaussians`` (one scene); ``extras`` per-Gaussian columns (``obs_views``, ``completion``) ``{name: [N]}``;
+    ``w2c [V, 4, 4]``, ``K [V, 3, 3]`` float64 or None; ``width``, ``height`` of the input images; ``thumbs``: the
+    input images ``[h, w, 3]`` uint8 (empty when predict saved none); ``folder``: where renders are saved."""
+
+    gaussians: Gaussians
+    extras: dict[str, np.ndarray]
+    w2c: torch.Tensor | None
+    K: torch.Tensor | None
+    width: int
+    height: int
+    folder: Path
+    thumbs: list[np.ndarray] = field(default_factory=list)
+
+
+def load_view_scene(path: str | Path, thumb_side: int = 128) -> ViewScene:
+    path = Path(path)
+    g, cams = load_scene(path)
+    folder = path if path.is_dir() else path.parent
+    ply = folder / "scene.ply" if path.is_dir() else path
+    extras = load_ply_extras(ply)
+    if cams is None:
+        return ViewScene(g, extras, None, None, 0, 0, folder)
+    w2c, K, w, h, names = camera_tensors(cams)
+    thumbs = []
+    for n in names:
+        f = folder / "inputs" / f"{n}.png"
+        if f.is_file():
+            im = Image.open(f).convert("RGB")
+            im.thumbnail((thumb_side, thumb_side))
+            thumbs.append(np.asarray(im))
+    return ViewScene(g, extras, w2c, K, w, h, folder, thumbs if len(thumbs) == len(names) else [])
+
+
+def splat_arrays(g: Gaussians) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``(centres [N, 3], covariances [N, 3, 3], rgb [N, 3] in [0, 1], opacity [N, 1])`` as viser takes them."""
+    from anycity.geometry import quat_to_rotmat
+
+    R = quat_to_rotmat(g.quats[0].float())
+    cov = R @ torch.diag_embed(g.scales[0].float() ** 2) @ R.transpose(-1, -2)
+    rgb = (0.5 + SH_C0 * g.sh[0, :, 0, :].float()).clamp(0, 1)
+    return (g.means[0].float().numpy(), cov.numpy(), rgb.numpy(), g.opacities[0, :, None].float().numpy())
+
+
+def ramp(x: np.ndarray) -> np.ndarray:
+    """Values in [0, 1] -> ``[N, 3]`` colours from blue (0) through white to red (1)."""
+    x = np.clip(np.nan_to_num(x, nan=0.0), 0, 1)[:, None]
+    blue, white, red = np.array([0.15, 0.3, 0.9]), np.ones(3), np.array([0.9, 0.15, 0.1])
+    return np.where(x < 0.5, blue + (white - blue) * 2 * x, white + (red - white) * (2 * x - 1))

@@ -1,0 +1,132 @@
+"""``anycity view PATH``: a viser server with the splats, the predicted cameras (frustums with the input
+images), a provenance colouring control and a button that saves a render of the current view with our
+renderer. Listens on 127.0.0.1 unless told otherwise."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image
+
+from anycity.viewer.scene import ViewScene, load_view_scene, ramp, splat_arrays
+
+COLOURINGS = ("colour", "obs_views (blue 0 -> red 4+ views)", "completion (blue kept -> red completed)")
+
+
+def _rotmat_to_wxyz(R: np.ndarray) -> np.ndarray:
+    from anycity.geometry import rotmat_to_quat
+
+    return rotmat_to_quat(torch.as_tensor(R, dtype=torch.float64)).numpy()
+
+
+def camera_w2c(wxyz, position, fov_y: float, width: int, height: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """A viser camera (OpenCV camera-to-world ``wxyz``, ``position``; vertical ``fov_y`` radians) ->
+    ``(w2c [1, 1, 4, 4], K [1, 1, 3, 3])`` for a ``width x height`` render."""
+    from anycity.geometry import quat_to_rotmat
+
+    c2w = torch.eye(4, dtype=torch.float64)
+    c2w[:3, :3] = quat_to_rotmat(torch.as_tensor(np.asarray(wxyz), dtype=torch.float64))
+    c2w[:3, 3] = torch.as_tensor(np.asarray(position), dtype=torch.float64)
+    f = 0.5 * height / math.tan(fov_y / 2)
+    K = torch.tensor([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1]], dtype=torch.float64)
+    return torch.linalg.inv(c2w)[None, None].float(), K[None, None].float()
+
+
+def render_view(scene: ViewScene, w2c: torch.Tensor, K: torch.Tensor, width: int, height: int) -> np.ndarray:
+    """Our renderer at one camera -> ``[H, W, 3]`` uint8."""
+    from anycity.render import render
+
+    out = render(scene.gaussians, w2c, K, width, height, backend="auto")
+    return (out.rgb[0, 0].clamp(0, 1).permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8)
+
+
+def build_server(path: str | Path, host: str = "127.0.0.1", port: int = 8080, cameras: bool = True):
+    """Start the viewer on ``scene`` at ``path``; returns ``(server, scene)``. ``port=0`` picks a free port;
+    ``cameras=False`` hides the camera frustums."""
+    import viser
+
+    scene = load_view_scene(path)
+    server = viser.ViserServer(host=host, port=port, verbose=False)
+    server.scene.set_up_direction("-y")  # OpenCV world of the predicted cameras: y points down
+    centres, cov, rgb, opac = splat_arrays(scene.gaussians)
+    splats = {"h": server.scene.add_gaussian_splats("/splats", centres, cov, rgb, opac)}
+
+    if scene.w2c is not None and cameras:
+        c2w = torch.linalg.inv(scene.w2c).numpy()
+        fov = 2 * math.atan(0.5 * scene.height / float(scene.K[0, 1, 1]))
+        extent = float(np.linalg.norm(c2w[:, :3, 3] - c2w[:, :3, 3].mean(0), axis=-1).mean()) or 1.0
+        for v in range(len(c2w)):
+            server.scene.add_camera_frustum(
+                f"/cameras/{v:03d}", fov=fov, aspect=scene.width / scene.height, scale=0.15 * extent,
+                thickness=1.5, thickness_units="screen",
+                image=scene.thumbs[v] if scene.thumbs else None, wxyz=_rotmat_to_wxyz(c2w[v, :3, :3]),
+                position=c2w[v, :3, 3], color=(255, 160, 0))
+        # Start behind the mean camera, looking the mean viewing direction: the cameras and the scene in view.
+        fwd = c2w[:, :3, 2].mean(0)
+        fwd /= np.linalg.norm(fwd) or 1.0
+        centre = np.median(centres, 0)
+        depth = float(np.dot(centre - c2w[:, :3, 3].mean(0), fwd))
+        server.initial_camera.position = tuple(centre - fwd * 1.6 * max(depth, extent))
+        server.initial_camera.look_at = tuple(centre)
+        server.initial_camera.up = (0.0, -1.0, 0.0)
+        server.initial_camera.fov = fov
+
+    choices = [c for c in COLOURINGS if c == "colour" or c.split()[0] in scene.extras]
+    colouring = server.gui.add_dropdown("Colour by", tuple(choices), initial_value="colour")
+    info = server.gui.add_markdown(_share_text(scene))
+
+    @colouring.on_update
+    def _(_event) -> None:
+        key = colouring.value.split()[0]
+        col = rgb if key == "colour" else ramp(scene.extras[key] / (4.0 if key == "obs_views" else 1.0))
+        splats["h"].remove()
+        splats["h"] = server.scene.add_gaussian_splats("/splats", centres, cov, col.astype(np.float32), opac)
+
+    button = server.gui.add_button("Save render")
+
+    @button.on_click
+    def _(event) -> None:
+        cam = event.client.camera
+        h = 480
+        w = max(1, round(h * cam.aspect))
+        w2c, K = camera_w2c(cam.wxyz, cam.position, cam.fov, w, h)
+        out = scene.folder / "view_renders"
+        out.mkdir(exist_ok=True)
+        f = out / f"render_{time.strftime('%Y%m%d_%H%M%S')}.png"
+        Image.fromarray(render_view(scene, w2c, K, w, h)).save(f)
+        info.content = _share_text(scene) + f"\n\nsaved `{f}`"
+
+    return server, scene
+
+
+def _share_text(scene: ViewScene) -> str:
+    n = scene.gaussians.num_gaussians
+    lines = [f"**{n:,} Gaussians**"]
+    if "obs_views" in scene.extras:
+        lines.append(f"seen by >= 2 input views: {(scene.extras['obs_views'] >= 2).mean():.0%}")
+    if "completion" in scene.extras:
+        lines.append(f"completed by Stage II (> 0.25): {(np.nan_to_num(scene.extras['completion']) > 0.25).mean():.0%}")
+    return "  \n".join(lines)
+
+
+def view_main(argv: list[str]) -> int:
+    p = argparse.ArgumentParser(prog="anycity view", description="Open a predicted scene in the browser (viser).")
+    p.add_argument("path", help="scene.ply or a predict output folder (predictions/<scene>/)")
+    p.add_argument("--host", default="127.0.0.1", help="interface to listen on (0.0.0.0 serves the network)")
+    p.add_argument("--port", type=int, default=8080, help="port (0: any free one; a busy one moves up)")
+    p.add_argument("--no-cameras", action="store_true", help="hide the camera frustums")
+    a = p.parse_args(argv)
+    server, scene = build_server(a.path, a.host, a.port, cameras=not a.no_cameras)
+    print(f"anycity view: {scene.gaussians.num_gaussians:,} Gaussians at http://{a.host}:{server.get_port()} "
+          "(Ctrl-C to stop)", flush=True)
+    try:
+        while True:
+            time.sleep(3600)
+    except KeyboardInterrupt:
+        server.stop()
+    return 0

@@ -1,0 +1,64 @@
+"""``anycity`` front door: one help listing, no Lightning for the light commands, one-line user errors."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
+import torch
+
+from anycity import cli
+
+
+def _run(code: str) -> subprocess.CompletedProcess:
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
+
+
+def test_help_lists_every_subcommand_without_lightning():
+    r = _run("import sys; from anycity.cli import main; main(['--help']); "
+             "print('LIGHTNING_LOADED' if 'lightning' in sys.modules else 'NO_LIGHTNING')")
+    assert r.returncode == 0, r.stderr
+    for cmd in ("data synth", "data convert", "fit", "validate", "test", "predict", "export", "view",
+                "render-video"):
+        assert f"  {cmd} " in r.stdout, cmd
+    assert "NO_LIGHTNING" in r.stdout
+
+
+class _Missing(torch.utils.data.Dataset):
+    def __len__(self):
+        return 2
+
+    def __getitem__(self, i):
+        raise FileNotFoundError("shard /nope/train-000.tar: not found; check --data.root")
+
+
+def test_worker_error_reaches_the_user_as_one_line(monkeypatch, capsys):
+    def dispatch(args, argv_given):
+        next(iter(torch.utils.data.DataLoader(_Missing(), num_workers=1)))
+
+    monkeypatch.setattr(cli, "_dispatch", dispatch)
+    monkeypatch.delenv("ANYCITY_DEBUG", raising=False)
+    assert cli.main(["fit"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["anycity: error: shard /nope/train-000.tar: not found; check --data.root  (--debug for the "
+                   "traceback)"]
+    with pytest.raises(FileNotFoundError, match="worker"):
+        cli.main(["fit", "--debug"])
+
+
+def test_unknown_command_is_one_line(capsys):
+    assert cli.main(["frobnicate"]) == 2
+    assert capsys.readouterr().err.count("\n") == 1
+
+
+def test_config_typo_names_the_nearest_key(capsys):
+    argv = ["fit", "--config", "configs/quickstart.yaml", "--model.init_args.warmup_step", "3"]
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0
+    assert "unknown option --model.init_args.warmup_step; did you mean warmup_steps?" in err
+    assert cli.main(["fit", "--config", "configs/quickstart.yaml", "--model.init_args.lerning_rate", "1e-3"]) == 2
+    assert "did you mean lr (learning rate)?" in capsys.readouterr().err

@@ -1,0 +1,25 @@
+"""``anycity render-video``: frame count of the interpolated path (+ orbit) and frames that move."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from helpers.viewer_scenes import tiny_predict_folder
+
+from anycity.cli import main
+
+
+def test_render_video_frames(tmp_path):
+    imageio_ffmpeg = pytest.importorskip("imageio_ffmpeg")
+    (tmp_path / "s").mkdir()
+    folder = tiny_predict_folder(tmp_path / "s", n=400, with_prov=False)
+    out = tmp_path / "fly.mp4"
+    assert main(["render-video", str(folder), "--out", str(out), "--per-segment", "3", "--orbit", "4",
+                 "--width", "48"]) == 0
+    reader = imageio_ffmpeg.read_frames(str(out))
+    meta = next(reader)
+    assert meta["size"] == (48, 32)
+    frames = [np.frombuffer(f, np.uint8).reshape(32, 48, 3).astype(int) for f in reader]
+    assert len(frames) == 2 * 3 + 1 + 4  # 3 cameras: 2 segments of 3 + the last camera, then the orbit
+    diffs = [np.abs(a - b).mean() for a, b in zip(frames, frames[1:], strict=False)]
+    assert min(diffs) > 0.1, diffs
