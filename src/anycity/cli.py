@@ -49,6 +49,8 @@ def build_cli(args: list[str] | None = None, run: bool = True):
         subclass_mode_model=True,
         auto_configure_optimizers=False,  # the modules build their own AdamW param groups + schedule
         save_config_kwargs={"overwrite": True},
+        # atomic checkpoint writes, weights_only reads (issue 16)
+        trainer_defaults={"plugins": {"class_path": "anycity.lit.checkpoint_io.SafeCheckpointIO"}},
         args=args,
         run=run,
     )
