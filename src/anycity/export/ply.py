@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import numpy as np
@@ -10,6 +11,7 @@ import torch
 from plyfile import PlyData, PlyElement
 from torch import Tensor
 
+from anycity.atomic import atomic_write_bytes
 from anycity.structures import Gaussians
 
 
@@ -61,7 +63,9 @@ def save_ply(g: Gaussians, path: str | Path, index: int = 0, max_degree: int = 3
         data[k] = v
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    PlyData([PlyElement.describe(data, "vertex")], text=False, byte_order="<").write(str(path))
+    buf = io.BytesIO()  # written whole then renamed: a killed export leaves no scene.ply that looks complete
+    PlyData([PlyElement.describe(data, "vertex")], text=False, byte_order="<").write(buf)
+    atomic_write_bytes(path, buf.getbuffer())
     return dropped
 
 
