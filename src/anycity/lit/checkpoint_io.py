@@ -66,6 +66,28 @@ def safe_torch_load(path: str | os.PathLike, map_location: Any = "cpu") -> Any:
                          "checkpoint (use the previous checkpoint or rerun)") from None
 
 
+_saves = 0
+
+
+def _maybe_die_mid_write(path, data) -> None:
+    """Fault injection for tests/reliability: ``ANYCITY_FAULT_KILL_IN_SAVE=k`` SIGKILLs this process half-way
+    through writing the temp file of its k-th checkpoint save (exactly what a preemption mid-write leaves)."""
+    global _saves
+    k = os.environ.get("ANYCITY_FAULT_KILL_IN_SAVE")
+    if not k:
+        return
+    _saves += 1
+    if _saves == int(k):
+        import signal
+
+        tmp = Path(path).with_name(f".{Path(path).name}.tmp-{os.getpid()}")
+        with open(tmp, "wb") as f:
+            f.write(data[: len(data) // 2])
+            f.flush()
+            os.fsync(f.fileno())
+        os.kill(os.getpid(), signal.SIGKILL)
+
+
 class SafeCheckpointIO(TorchCheckpointIO):
     """Atomic, fsynced checkpoint writes and ``weights_only`` reads (see the module docstring)."""
 
@@ -74,6 +96,7 @@ class SafeCheckpointIO(TorchCheckpointIO):
             raise TypeError(f"storage_options is not supported by {type(self).__name__}")
         buf = io.BytesIO()
         torch.save(checkpoint, buf)
+        _maybe_die_mid_write(path, buf.getbuffer())
         atomic_write_bytes(path, buf.getbuffer())
 
     def load_checkpoint(self, path, map_location: Any = lambda storage, loc: storage,

@@ -130,7 +130,20 @@ class AerialDataModule(pl.LightningDataModule):
                           persistent_workers=workers > 0, pin_memory=self.hp.pin_memory, drop_last=train)
 
     def train_dataloader(self) -> DataLoader:
-        return self._loader("train")
+        loader = self._loader("train")
+        # resumed mid-epoch (``--ckpt_path``): skip the samples the interrupted run already trained on, so the
+        # resumed run sees exactly the stream an uninterrupted one would (exact with num_workers=0)
+        t = self.trainer
+        done = 0 if t is None else t.global_step * t.accumulate_grad_batches
+        if done and self.hp.epoch_samples:  # position within the current epoch
+            done %= max(1, self.hp.epoch_samples // loader.batch_size)
+        if done:
+            skip = done * loader.batch_size // max(1, self.hp.num_workers)
+            loader = DataLoader(_SkipFirst(loader.dataset, skip), batch_size=loader.batch_size,
+                                collate_fn=loader.collate_fn, num_workers=loader.num_workers,
+                                persistent_workers=loader.persistent_workers, pin_memory=loader.pin_memory,
+                                drop_last=loader.drop_last)
+        return loader
 
     def val_dataloader(self) -> DataLoader:
         return self._loader("val")
@@ -164,3 +177,20 @@ class AerialDataModule(pl.LightningDataModule):
                                f"see {self.skip_counter.directory}")
                 self._reported = n
         return batch
+
+
+class _SkipFirst(torch.utils.data.IterableDataset):
+    """The first iteration of ``dataset`` drops its first ``n`` samples (per worker); later ones are whole."""
+
+    def __init__(self, dataset, n: int) -> None:
+        self.dataset, self.n = dataset, int(n)
+
+    def __iter__(self):
+        it, n, self.n = iter(self.dataset), self.n, 0
+        for _ in range(n):
+            if next(it, _END) is _END:
+                return
+        yield from it
+
+
+_END = object()
