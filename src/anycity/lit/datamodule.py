@@ -72,7 +72,8 @@ class AerialDataModule(pl.LightningDataModule):
         with_normals: give batches camera-frame normals: the shards' own when stored (``anycity data synth
             --normals``), else derived from depth (no loss consumes them; False reads ~1.5x faster at 448 px).
         seed: seed of shard resampling, shuffling and view selection.
-        skip_corrupt: skip corrupt samples and count them (logged as ``data/skipped_samples``) instead of raising.
+        skip_corrupt: skip corrupt samples (unreadable, or NaN/inf in a camera, depth or image) and count them
+            (logged as ``data/skipped_samples``); false: raise naming the shard and sample.
         pin_memory: DataLoader pin_memory.
         compact_batches: batches leave the DataLoader compact (uint8 images, float16 depth and normals: a third
             of the bytes through worker shared memory and host-to-device copies) and become the usual float32
@@ -90,7 +91,7 @@ class AerialDataModule(pl.LightningDataModule):
                  batch_size: int = 1, eval_batch_size: int | None = None, num_workers: int = 2,
                  epoch_samples: int = 1000, resampled: bool = True, shuffle_buffer: int = 16,
                  window: int | None = None, llffhold: int = 8, with_depth: bool = True, with_normals: bool = True,
-                 seed: int = 0, skip_corrupt: bool = False, pin_memory: bool = False,
+                 seed: int = 0, skip_corrupt: bool = True, pin_memory: bool = False,
                  compact_batches: bool = False, predict_images: str | None = None) -> None:
         super().__init__()
         if not 1 <= num_context <= 64:
