@@ -6,9 +6,11 @@ from pathlib import Path
 
 from anycity.data.parsers import blendedmvs, colmap, llff, matrixcity, nerfstudio
 from anycity.data.parsers.base import ParsedScene, ParsedView, write_scenes
+from anycity.data.parsers.guard import guarded
 
-PARSERS = {"colmap": colmap.parse, "nerfstudio": nerfstudio.parse, "matrixcity": matrixcity.parse,
-           "blendedmvs": blendedmvs.parse, "llff": llff.parse_llff, "bungeenerf": llff.parse_bungeenerf}
+PARSERS = {name: guarded(name, fn) for name, fn in {
+    "colmap": colmap.parse, "nerfstudio": nerfstudio.parse, "matrixcity": matrixcity.parse,
+    "blendedmvs": blendedmvs.parse, "llff": llff.parse_llff, "bungeenerf": llff.parse_bungeenerf}.items()}
 
 
 def convert(format: str, src: str | Path, out: str | Path, split: str = "auto", max_views: int = 64,
