@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 import torch
 
+from anycity.data.imagecheck import check_image_file
 from anycity.data.views import resize_view
 
 PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png")
@@ -35,6 +36,7 @@ def load_photo_folder(folder: str | Path, size: tuple[int, int], mode: str = "cr
                          f"network takes 2..{MAX_VIEWS} views of one scene, so add or remove photos")
     images = []
     for f in files:
+        check_image_file(f)  # decompression bombs and truncated JPEGs are refused before decoding
         bgr = cv2.imread(str(f), cv2.IMREAD_COLOR)
         if bgr is None:
             raise ValueError(f"predict_images: cannot decode {f}; re-save it as JPEG or PNG, or remove it")

@@ -74,6 +74,18 @@ def load_ply(path: str | Path) -> Gaussians:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"load_ply: {path} does not exist; pass the scene.ply written by `anycity predict`")
+    try:
+        g = _read_ply(path)
+        bad = not all(bool(torch.isfinite(t).all()) for t in (g.means, g.quats, g.scales, g.opacities, g.sh))
+    except Exception as e:  # noqa: BLE001 - a damaged file of any kind: one line naming it (issue 16)
+        raise ValueError(f"load_ply: {path} is not a readable 3DGS PLY ({type(e).__name__}: "
+                         f"{' '.join(str(e).split())[:160]}); re-export it with `anycity predict`") from None
+    if bad:
+        raise ValueError(f"load_ply: {path} holds NaN/inf Gaussian parameters; re-export it with `anycity predict`")
+    return g
+
+
+def _read_ply(path: Path) -> Gaussians:
     v = PlyData.read(str(path))["vertex"]
     names = v.data.dtype.names
 
