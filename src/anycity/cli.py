@@ -26,6 +26,13 @@ def _cli_class():
             parser.add_lightning_class_args(LossProgressBar, "progress")
             parser.add_lightning_class_args(PredictionExport, "export")
 
+        def _run_subcommand(self, subcommand: str) -> None:
+            from anycity.lit.keep import keep_previous_run  # earlier runs' logs/checkpoints/exports are kept
+
+            out = next((c.out_dir for c in self.trainer.callbacks if isinstance(c, PredictionExport)), None)
+            keep_previous_run(self.trainer, subcommand, self.config[subcommand].get("ckpt_path"), out)
+            super()._run_subcommand(subcommand)
+
         def before_predict(self) -> None:
             # A data module without a predict set reconstructs its test scenes.
             from lightning.pytorch import LightningDataModule
