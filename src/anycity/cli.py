@@ -41,6 +41,13 @@ def _cli_class():
             for k, v in keep.items():
                 self.config[f"{sub}.model.init_args.{k}"] = v
 
+        def _run_subcommand(self, subcommand: str) -> None:
+            from anycity.lit.keep import keep_previous_run  # earlier runs' logs/checkpoints/exports are kept
+
+            out = next((c.out_dir for c in self.trainer.callbacks if isinstance(c, PredictionExport)), None)
+            keep_previous_run(self.trainer, subcommand, self.config[subcommand].get("ckpt_path"), out)
+            super()._run_subcommand(subcommand)
+
         def before_predict(self) -> None:
             # A data module without a predict set reconstructs its test scenes.
             from lightning.pytorch import LightningDataModule
@@ -64,6 +71,8 @@ def build_cli(args: list[str] | None = None, run: bool = True, parser_kwargs: di
         subclass_mode_model=True,
         auto_configure_optimizers=False,  # the modules build their own AdamW param groups + schedule
         save_config_kwargs={"overwrite": True},
+        # atomic checkpoint writes, weights_only reads (issue 16)
+        trainer_defaults={"plugins": {"class_path": "anycity.lit.checkpoint_io.SafeCheckpointIO"}},
         args=args,
         run=run,
         parser_kwargs=parser_kwargs,

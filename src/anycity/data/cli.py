@@ -17,6 +17,8 @@ from jsonargparse import ActionYesNo, ArgumentParser
 def _synth_parser() -> ArgumentParser:
     p = ArgumentParser(description="Render procedural aerial cities into webdataset shards.")
     p.add_argument("--out", type=str, required=True, help="output shard directory")
+    p.add_argument("--overwrite", action=ActionYesNo, default=False,
+                   help="replace a shard set already in --out (default: refuse)")
     p.add_argument("--scenes", type=int, default=8, help="number of cities (one sample each; split 8:1:1)")
     p.add_argument("--views", type=int, default=48, help="views per city along the trajectory")
     p.add_argument("--size", type=str, default="256x256", help="image size HxW in pixels")
@@ -46,6 +48,8 @@ def _convert_parser() -> ArgumentParser:
     p.add_argument("--format", type=str, required=True, choices=sorted(PARSERS), help="source format")
     p.add_argument("--src", type=str, required=True, help="source dataset folder (or pose file)")
     p.add_argument("--out", type=str, required=True, help="output shard directory")
+    p.add_argument("--overwrite", action=ActionYesNo, default=False,
+                   help="replace a shard set already in --out (default: refuse)")
     p.add_argument("--split", type=str, default="auto", choices=["auto", "train", "val", "test"],
                    help="auto: the dataset's split, else 8:1:1 by scene")
     p.add_argument("--max_views", type=int, default=64, help="views per sample (longer trajectories are cut)")
@@ -78,7 +82,7 @@ def data_main(argv: list[str]) -> int:
         index = synth(a.out, scenes=a.scenes, views=a.views, size=a.size, seed=a.seed, trajectory=a.trajectory,
                       preview=a.preview, workers=a.workers, image_format=a.image_format, depth_dtype=a.depth_dtype,
                       normals=a.normals, window=a.window or None, stride=a.stride,
-                      supersample=a.supersample, hfov=a.hfov)
+                      supersample=a.supersample, hfov=a.hfov, overwrite=a.overwrite)
         print(f"synth: {_summary(index)} -> {a.out} in {index['seconds']:.1f} s"
               + (f"; preview {a.out}/preview.png" if a.preview else ""))
     else:
@@ -86,7 +90,7 @@ def data_main(argv: list[str]) -> int:
 
         a = cfg.convert
         index = convert(a.format, a.src, a.out, split=a.split, max_views=a.max_views, max_side=a.max_side,
-                        seed=a.seed)
+                        seed=a.seed, overwrite=a.overwrite)
         print(f"convert {a.format}: {_summary(index)} -> {a.out}")
     return 0
 

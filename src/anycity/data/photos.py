@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 import torch
 
+from anycity.data.imagecheck import check_image_file
 from anycity.data.views import resize_plan, resize_view
 
 PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png")
@@ -36,9 +37,11 @@ def list_photos(folder: str | Path) -> list[Path]:
 
 
 def photo_size(path: Path) -> tuple[int, int]:
-    """``(h, w)`` as displayed (EXIF orientation applied), from the header only."""
+    """``(h, w)`` as displayed (EXIF orientation applied), from the header only; decompression bombs and truncated
+    JPEGs are refused here, before anything is decoded (:func:`anycity.data.imagecheck.check_image_file`)."""
     from PIL import Image
 
+    check_image_file(path)
     try:
         with Image.open(path) as im:
             w, h = im.size

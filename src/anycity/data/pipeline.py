@@ -340,6 +340,25 @@ def _eval_shard(src: Iterator[dict]) -> Iterator[dict]:
             yield s
 
 
+def check_finite(obj, where: str = "sample", path: str = "") -> None:
+    """Raise ``ValueError`` naming ``where`` and the field if any floating tensor/array in ``obj`` (nested
+    dicts/lists of a built sample: images, depths, ``w2c``, ``K``...) holds NaN or inf."""
+    if isinstance(obj, dict):
+        for k, v in obj.items():
+            check_finite(v, where, f"{path}.{k}" if path else str(k))
+    elif isinstance(obj, (list, tuple)):
+        for i, v in enumerate(obj):
+            check_finite(v, where, f"{path}[{i}]")
+    elif isinstance(obj, torch.Tensor) and obj.is_floating_point():
+        if not bool(torch.isfinite(obj).all()):
+            raise ValueError(f"{where}: non-finite values (NaN/inf) in {path or 'tensor'}; fix or drop this sample "
+                             "(skip_corrupt: true skips and counts it)")
+    elif isinstance(obj, np.ndarray) and np.issubdtype(obj.dtype, np.floating):
+        if not np.isfinite(obj).all():
+            raise ValueError(f"{where}: non-finite values (NaN/inf) in {path or 'array'}; fix or drop this sample "
+                             "(skip_corrupt: true skips and counts it)")
+
+
 def make_pipeline(urls: list[str], builder: SampleBuilder, *, train: bool, resampled: bool = True,
                   epoch_samples: int | None = None, shuffle: int = 16, seed: int = 0,
                   skip_corrupt: bool = False, counter: SkipCounter | None = None) -> wds.DataPipeline:
@@ -366,7 +385,9 @@ def make_pipeline(urls: list[str], builder: SampleBuilder, *, train: bool, resam
 
     def build(sample: dict):
         try:
-            return builder(sample)
+            out = builder(sample)
+            check_finite(out, sample_where(sample))  # a NaN camera/depth/image never reaches the loss
+            return out
         except Exception as e:
             msg = str(e) if "shard" in str(e) else f"{sample_where(sample)}: {e}"
             if skip_corrupt:

@@ -163,7 +163,7 @@ def synth(out: str | Path, scenes: int = 8, views: int = 48, size: str | tuple[i
           trajectory: str = "mixed", preview: bool = False, workers: int | None = None, image_format: str = "jpg",
           depth_dtype: str = "float16", maxcount: int = 64, aa: bool = True, normals: bool = False,
           window: int | None = 24, stride: int | None = None, supersample: int = 1,
-          hfov: float = HFOV_DEG) -> dict:
+          hfov: float = HFOV_DEG, overwrite: bool = False) -> dict:
     """Render ``scenes`` synthetic cities into ``{train,val,test}-*.tar`` shards under ``out`` (8:1:1 split).
 
     Args:
@@ -174,6 +174,7 @@ def synth(out: str | Path, scenes: int = 8, views: int = 48, size: str | tuple[i
         supersample: colour from a k x k box filter of sub-pixel rays (k^2 + 1 times the rays; 1 = one ray per
             pixel plus adaptive 5-ray anti-aliasing at contrast edges).
         hfov: horizontal field of view in degrees (a narrower lens resolves the city in more pixels).
+        overwrite: replace a shard set already in ``out`` (default: refuse).
     Returns the written ``index.json`` content plus ``seconds``.
     """
     if trajectory not in TRAJECTORIES:
@@ -193,7 +194,8 @@ def synth(out: str | Path, scenes: int = 8, views: int = 48, size: str | tuple[i
             for i in range(scenes)]
     splits = split_scenes(scenes, seed)
     first: list[SceneRecord] = []
-    with ShardSetWriter(out, maxcount=maxcount, depth_dtype=depth_dtype, window=window, stride=stride) as writer:
+    with ShardSetWriter(out, maxcount=maxcount, depth_dtype=depth_dtype, window=window, stride=stride,
+                        overwrite=overwrite) as writer:
         pool = ProcessPoolExecutor(workers, mp_context=get_context("spawn"), initializer=_worker_init) \
             if workers > 1 else None
         try:

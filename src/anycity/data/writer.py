@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import errno
 import json
+import os
 import time
 from pathlib import Path
 
 import numpy as np
 import webdataset as wds
 
+from anycity.atomic import atomic_write_bytes
 from anycity.data.schema import SCHEMA_VERSION, SceneRecord, encode_scene, split_windows
 
 SPLITS = ("train", "val", "test")
@@ -47,11 +50,18 @@ class ShardSetWriter:
 
     def __init__(self, out: str | Path, maxcount: int = 64, maxsize: float = 1e9, depth_dtype: str = "float16",
                  window: int | None = None, stride: int | None = None,
-                 window_splits: tuple[str, ...] = ("train",)) -> None:
+                 window_splits: tuple[str, ...] = ("train",), overwrite: bool = False) -> None:
         self.out = Path(out)
         self.out.mkdir(parents=True, exist_ok=True)
         self.maxcount, self.maxsize, self.depth_dtype = maxcount, maxsize, depth_dtype
         self.window, self.stride, self.window_splits = window, stride, tuple(window_splits)
+        index = self.out / "index.json"
+        if index.exists() and not overwrite:
+            raise FileExistsError(f"{self.out} already holds a shard set (index.json); pass --overwrite to replace "
+                                  "it or choose another --out")
+        index.unlink(missing_ok=True)  # from here on the old index can never list a half-rewritten shard
+        for stale in self.out.glob("*.tar.partial"):  # leftovers of a killed run: never listed, safe to drop
+            stale.unlink()
         self._writers: dict[str, wds.ShardWriter] = {}
         self._scenes: dict[str, dict] = {}
         self._samples: list[dict] = []
@@ -62,15 +72,24 @@ class ShardSetWriter:
             raise ValueError(f"split: expected one of {SPLITS}, got {split!r}")
         if split not in self._writers:
             # an integer mtime keeps tar headers plain ustar (a float one adds a pax header to every member)
-            self._writers[split] = wds.ShardWriter(str(self.out / f"{split}-%06d.tar"), maxcount=self.maxcount,
-                                                   maxsize=self.maxsize, verbose=0, mtime=int(time.time()))
+            # shards are written as ``*.tar.partial`` and renamed when complete (``_publish``): a killed run
+            # leaves no ``.tar`` that looks complete, and index.json (written last, atomically) lists only those
+            self._writers[split] = wds.ShardWriter(str(self.out / f"{split}-%06d.tar.partial"),
+                                                   maxcount=self.maxcount, maxsize=self.maxsize, verbose=0,
+                                                   mtime=int(time.time()), post=_publish)
         w = self._writers[split]
         parts = split_windows(rec, self.window, self.stride) if split in self.window_splits else [rec]
         for part in parts:
-            w.write(encode_scene(part, split, self.depth_dtype))
+            sample = encode_scene(part, split, self.depth_dtype)
+            try:
+                w.write(sample)
+            except OSError as e:
+                _raise_if_disk_full(e, Path(w.fname or self.out),
+                                    sum(len(v) for v in sample.values() if isinstance(v, bytes)))
+                raise
             self._samples.append({"key": part.key, "scene": part.scene or part.key, "split": split,
                                   "first": part.first_index, "num_views": len(part.views),
-                                  "shard": Path(w.fname).name})
+                                  "shard": Path(w.fname).name.removesuffix(".partial")})
         sid = rec.scene or rec.key
         sc = self._scenes.setdefault(sid, {"key": sid, "split": split, "num_views": 0, "num_samples": 0,
                                            "source": rec.source})
@@ -96,15 +115,46 @@ class ShardSetWriter:
                  "window": {"size": self.window, "stride": self.stride or (self.window and self.window // 2),
                             "splits": list(self.window_splits)},
                  "splits": {sp: sorted(e["path"] for e in shards.values() if e["split"] == sp) for sp in SPLITS}}
-        (self.out / "index.json").write_text(json.dumps(index, indent=1))
+        data = json.dumps(index, indent=1).encode()
+        try:
+            atomic_write_bytes(self.out / "index.json", data)
+        except OSError as e:
+            _raise_if_disk_full(e, self.out / "index.json", len(data))
+            raise
         self._index = index
         return index
 
     def __enter__(self) -> ShardSetWriter:
         return self
 
-    def __exit__(self, *exc) -> None:
-        self.close()
+    def __exit__(self, exc_type, *exc) -> None:
+        if exc_type is None:
+            self.close()
+            return
+        # failed part-way: no index.json, and no shard left that looks complete
+        for w in self._writers.values():
+            if w.tarstream is not None:
+                w.post = None
+                try:
+                    w.tarstream.close()
+                except OSError:
+                    pass
+                w.tarstream = None
+        for stale in self.out.glob("*.tar.partial"):
+            stale.unlink(missing_ok=True)
+
+
+def _publish(fname: str) -> None:
+    """``ShardWriter`` post hook: fsync a finished ``*.tar.partial`` and rename it to ``*.tar``."""
+    with open(fname, "rb+") as f:
+        os.fsync(f.fileno())
+    os.replace(fname, fname.removesuffix(".partial"))
+
+
+def _raise_if_disk_full(e: OSError, path: Path, nbytes: int) -> None:
+    if e.errno in (errno.ENOSPC, errno.EDQUOT):
+        raise OSError(e.errno, f"disk full writing {path}: about {nbytes} more bytes needed; free space on "
+                               f"{path.parent} and rerun (no index.json was written for this run)") from e
 
 
 def read_index(root: str | Path) -> dict:

@@ -7,6 +7,8 @@ from pathlib import Path
 
 from torch import Tensor
 
+from anycity.atomic import atomic_write_bytes
+
 SCHEMA_VERSION = 1
 
 
@@ -31,4 +33,4 @@ def save_cameras(path: str | Path, w2c: Tensor, K: Tensor, width: int, height: i
     """Write :func:`cameras_to_dict` to ``path``."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(cameras_to_dict(w2c, K, width, height, names, scale), indent=1))
+    atomic_write_bytes(path, json.dumps(cameras_to_dict(w2c, K, width, height, names, scale), indent=1).encode())

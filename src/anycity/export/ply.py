@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import numpy as np
@@ -10,6 +11,7 @@ import torch
 from plyfile import PlyData, PlyElement
 from torch import Tensor
 
+from anycity.atomic import atomic_write_bytes
 from anycity.structures import Gaussians
 
 
@@ -69,7 +71,9 @@ def save_ply(g: Gaussians, path: str | Path, index: int = 0, max_degree: int = 3
         data[k] = v
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    PlyData([PlyElement.describe(data, "vertex")], text=False, byte_order="<").write(str(path))
+    buf = io.BytesIO()  # written whole then renamed: a killed export leaves no scene.ply that looks complete
+    PlyData([PlyElement.describe(data, "vertex")], text=False, byte_order="<").write(buf)
+    atomic_write_bytes(path, buf.getbuffer())
     return dropped
 
 
@@ -78,6 +82,18 @@ def load_ply(path: str | Path) -> Gaussians:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"load_ply: {path} does not exist; pass the scene.ply written by `anycity predict`")
+    try:
+        g = _read_ply(path)
+        bad = not all(bool(torch.isfinite(t).all()) for t in (g.means, g.quats, g.scales, g.opacities, g.sh))
+    except Exception as e:  # noqa: BLE001 - a damaged file of any kind: one line naming it (issue 16)
+        raise ValueError(f"load_ply: {path} is not a readable 3DGS PLY ({type(e).__name__}: "
+                         f"{' '.join(str(e).split())[:160]}); re-export it with `anycity predict`") from None
+    if bad:
+        raise ValueError(f"load_ply: {path} holds NaN/inf Gaussian parameters; re-export it with `anycity predict`")
+    return g
+
+
+def _read_ply(path: Path) -> Gaussians:
     v = PlyData.read(str(path))["vertex"]
     names = v.data.dtype.names
 

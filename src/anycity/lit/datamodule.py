@@ -95,7 +95,8 @@ class AerialDataModule(pl.LightningDataModule):
         with_normals: give batches camera-frame normals: the shards' own when stored (``anycity data synth
             --normals``), else derived from depth (no loss consumes them; False reads ~1.5x faster at 448 px).
         seed: seed of shard resampling, shuffling and view selection.
-        skip_corrupt: skip corrupt samples and count them (logged as ``data/skipped_samples``) instead of raising.
+        skip_corrupt: skip corrupt samples (unreadable, or NaN/inf in a camera, depth or image) and count them
+            (logged as ``data/skipped_samples``); false: raise naming the shard and sample.
         pin_memory: DataLoader pin_memory.
         compact_batches: batches leave the DataLoader compact (uint8 images, float16 depth and normals: a third
             of the bytes through worker shared memory and host-to-device copies) and become the usual float32
@@ -124,7 +125,7 @@ class AerialDataModule(pl.LightningDataModule):
                  batch_size: int = 1, eval_batch_size: int | None = None, num_workers: int = 2,
                  epoch_samples: int = 1000, resampled: bool = True, shuffle_buffer: int = 16,
                  window: int | None = None, llffhold: int = 8, with_depth: bool = True, with_normals: bool = True,
-                 seed: int = 0, skip_corrupt: bool = False, pin_memory: bool = False,
+                 seed: int = 0, skip_corrupt: bool = True, pin_memory: bool = False,
                  compact_batches: bool = False, predict_images: str | None = None, predict_chunk_size: int = 16,
                  predict_chunk_overlap: int = 4, predict_order: str = "auto", predict_resize: str = "keep",
                  predict_loop: bool = False) -> None:
@@ -170,7 +171,20 @@ class AerialDataModule(pl.LightningDataModule):
                           persistent_workers=workers > 0, pin_memory=self.hp.pin_memory, drop_last=train)
 
     def train_dataloader(self) -> DataLoader:
-        return self._loader("train")
+        loader = self._loader("train")
+        # resumed mid-epoch (``--ckpt_path``): skip the samples the interrupted run already trained on, so the
+        # resumed run sees exactly the stream an uninterrupted one would (exact with num_workers=0)
+        t = self.trainer
+        done = 0 if t is None else t.global_step * t.accumulate_grad_batches
+        if done and self.hp.epoch_samples:  # position within the current epoch
+            done %= max(1, self.hp.epoch_samples // loader.batch_size)
+        if done:
+            skip = done * loader.batch_size // max(1, self.hp.num_workers)
+            loader = DataLoader(_SkipFirst(loader.dataset, skip), batch_size=loader.batch_size,
+                                collate_fn=loader.collate_fn, num_workers=loader.num_workers,
+                                persistent_workers=loader.persistent_workers, pin_memory=loader.pin_memory,
+                                drop_last=loader.drop_last)
+        return loader
 
     def val_dataloader(self) -> DataLoader:
         return self._loader("val")
@@ -228,3 +242,20 @@ class AerialDataModule(pl.LightningDataModule):
                                f"see {self.skip_counter.directory}")
                 self._reported = n
         return batch
+
+
+class _SkipFirst(torch.utils.data.IterableDataset):
+    """The first iteration of ``dataset`` drops its first ``n`` samples (per worker); later ones are whole."""
+
+    def __init__(self, dataset, n: int) -> None:
+        self.dataset, self.n = dataset, int(n)
+
+    def __iter__(self):
+        it, n, self.n = iter(self.dataset), self.n, 0
+        for _ in range(n):
+            if next(it, _END) is _END:
+                return
+        yield from it
+
+
+_END = object()

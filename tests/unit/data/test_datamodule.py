@@ -74,7 +74,7 @@ def test_missing_and_corrupt_shards(synth_root, tmp_path):
     data[i + 600:i + 1600] = b"\x00" * 1000  # clobber the first sample's cameras.json payload
     tar.write_bytes(bytes(data))
     with pytest.raises(ValueError, match="train-000000.tar"):
-        list(_dm(bad, num_dense=0).train_dataloader())
+        list(_dm(bad, num_dense=0, skip_corrupt=False).train_dataloader())
     dm = _dm(bad, num_dense=0, skip_corrupt=True, epoch_samples=3)
     out = list(dm.train_dataloader())
     assert dm.num_skipped >= 1 and len(out) >= 1

@@ -6,19 +6,22 @@ from pathlib import Path
 
 from anycity.data.parsers import blendedmvs, colmap, llff, matrixcity, nerfstudio
 from anycity.data.parsers.base import ParsedScene, ParsedView, write_scenes
+from anycity.data.parsers.guard import guarded
 
-PARSERS = {"colmap": colmap.parse, "nerfstudio": nerfstudio.parse, "matrixcity": matrixcity.parse,
-           "blendedmvs": blendedmvs.parse, "llff": llff.parse_llff, "bungeenerf": llff.parse_bungeenerf}
+PARSERS = {name: guarded(name, fn) for name, fn in {
+    "colmap": colmap.parse, "nerfstudio": nerfstudio.parse, "matrixcity": matrixcity.parse,
+    "blendedmvs": blendedmvs.parse, "llff": llff.parse_llff, "bungeenerf": llff.parse_bungeenerf}.items()}
 
 
 def convert(format: str, src: str | Path, out: str | Path, split: str = "auto", max_views: int = 64,
-            max_side: int | None = None, seed: int = 0) -> dict:
+            max_side: int | None = None, seed: int = 0, overwrite: bool = False) -> dict:
     """Convert a dataset in ``format`` under ``src`` into anycity shards under ``out``; returns the index."""
     if format not in PARSERS:
         raise ValueError(f"format: expected one of {sorted(PARSERS)}, got {format!r}")
     if not Path(src).exists():
         raise FileNotFoundError(f"{src}: source folder not found; pass --src the dataset folder")
-    return write_scenes(PARSERS[format](src), out, split=split, max_views=max_views, max_side=max_side, seed=seed)
+    return write_scenes(PARSERS[format](src), out, split=split, max_views=max_views, max_side=max_side, seed=seed,
+                        overwrite=overwrite)
 
 
 __all__ = ["PARSERS", "ParsedScene", "ParsedView", "convert"]

@@ -120,12 +120,13 @@ def to_records(scene: ParsedScene, max_views: int = 64, max_side: int | None = N
 
 
 def write_scenes(scenes: list[ParsedScene], out: str | Path, split: str = "auto", max_views: int = 64,
-                 max_side: int | None = None, seed: int = 0, maxcount: int = 16) -> dict:
+                 max_side: int | None = None, seed: int = 0, maxcount: int = 16,
+                 overwrite: bool = False) -> dict:
     """Write parsed scenes as shards. ``split``: auto (dataset split, else 8:1:1 by scene) or train|val|test."""
     if split not in ("auto", *SPLITS):
         raise ValueError(f"split: expected auto, train, val or test, got {split!r}")
     auto = split_scenes(len(scenes), seed)
-    with ShardSetWriter(out, maxcount=maxcount, depth_dtype="float32") as w:
+    with ShardSetWriter(out, maxcount=maxcount, depth_dtype="float32", overwrite=overwrite) as w:
         for i, sc in enumerate(scenes):
             sp = split if split != "auto" else (sc.split or auto[i])
             for rec in to_records(sc, max_views, max_side):

@@ -1,0 +1,36 @@
+"""Cheap checks of an image file before decoding it: refuse decompression bombs and truncated JPEGs.
+
+The header is read without decoding pixels (PIL opens lazily), so a 30000 x 30000 header costs nothing.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+MAX_PIXELS = 100_000_000  # 100 MP: larger than any aerial photo we resize to a few hundred pixels
+
+
+def check_image_file(path: str | Path, max_pixels: int = MAX_PIXELS) -> None:
+    """Raise a one-line ``ValueError`` naming ``path`` if its header declares more than ``max_pixels`` pixels,
+    it cannot be identified as an image, or it is a JPEG cut short (no end-of-image marker)."""
+    from PIL import Image, UnidentifiedImageError
+
+    path = Path(path)
+    try:
+        with Image.open(path) as im:  # header only
+            w, h = im.size
+            fmt = im.format
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as e:
+        raise ValueError(f"{path}: not a readable image ({type(e).__name__}); re-save it as JPEG or PNG, or remove "
+                         "it") from None
+    except Image.DecompressionBombError:
+        w, h, fmt = -1, -1, None
+    if w < 0 or w * h > max_pixels:
+        raise ValueError(f"{path}: header declares {w}x{h} pixels, over the {max_pixels // 10**6} MP limit "
+                         "(a decompression bomb or a corrupt header); downscale it or remove it")
+    if fmt == "JPEG":
+        with open(path, "rb") as f:
+            f.seek(max(0, path.stat().st_size - 4096))
+            tail = f.read().rstrip(b"\x00")
+        if not tail.endswith(b"\xff\xd9"):
+            raise ValueError(f"{path}: truncated JPEG (no end-of-image marker); re-copy or re-save it, or remove it")

@@ -1,0 +1,14 @@
+"""Fixtures for the reliability tests: tiny synthetic shards, built once per session."""
+
+import pytest
+
+
+@pytest.fixture(scope="session")
+def tiny_shards(tmp_path_factory):
+    """3 synthetic cities x 8 views at 32x32 (train/val/test one scene each)."""
+    from anycity.data.cli import data_main
+
+    out = tmp_path_factory.mktemp("shards")
+    rc = data_main(["synth", "--out", str(out), "--scenes", "3", "--views", "8", "--size", "32x32", "--workers", "1"])
+    assert rc in (0, None)
+    return out

@@ -1,0 +1,70 @@
+"""NaN/inf in one sample's camera or depth: caught where the sample is built, skipped and counted (default) or
+refused with an error naming the sample (``skip_corrupt: false``); never passed on towards the loss."""
+
+import numpy as np
+import pytest
+import torch
+
+from anycity.data.pipeline import SampleBuilder, SkipCounter, check_finite, collate, make_pipeline
+from anycity.data.schema import SceneRecord, ViewRecord
+from anycity.data.writer import ShardSetWriter, shard_urls
+
+
+def _scene(key, bad=None):
+    rng = np.random.default_rng(0)
+    views = []
+    for i in range(4):
+        w2c = np.eye(4)
+        w2c[0, 3] = 0.1 * i
+        depth = np.full((24, 24), 5.0, np.float32)
+        K = np.diag([24.0, 24.0, 1.0])
+        K[:2, 2] = 12.0
+        if bad == "camera" and i == 1:
+            w2c[1, 3] = np.nan
+        if bad == "depth":
+            depth[3, 4] = np.inf
+        if bad == "K" and i == 0:
+            K[0, 0] = np.inf
+        views.append(ViewRecord(name=f"{i}.png", image=rng.integers(0, 255, (24, 24, 3), dtype=np.uint8),
+                                w2c=w2c, K=K, width=24, height=24, depth=depth, ext="png"))
+    return SceneRecord(key=key, views=views, source="test", units="metres", metres_per_unit=1.0)
+
+
+@pytest.fixture
+def shards(tmp_path):
+    with ShardSetWriter(tmp_path, maxcount=8) as w:
+        for key, bad in (("good_a", None), ("nan_camera", "camera"), ("inf_depth", "depth"), ("inf_K", "K"),
+                         ("good_b", None)):
+            w.write(_scene(key, bad), "test")
+    return shard_urls(tmp_path, "test")
+
+
+def test_bad_samples_are_skipped_and_counted(shards, tmp_path):
+    counter = SkipCounter(tmp_path / "skips")
+    pipe = make_pipeline(shards, SampleBuilder(2, 1, 0, (16, 16), train=False), train=False, skip_corrupt=True,
+                         counter=counter)
+    out = list(pipe)
+    assert sorted(s["scene"] for s in out) == ["good_a", "good_b"]
+    assert counter.count == 3
+    assert all("test-000000.tar" in r["where"] and "non-finite" in r["error"] for r in counter.records())
+    batch = collate(out)  # what reaches the model and the loss
+    for t in (batch.context.images, batch.context.w2c, batch.context.K, batch.target.images, batch.target.w2c):
+        assert torch.isfinite(t.float()).all()
+
+
+def test_bad_sample_raises_naming_it_without_skip(shards):
+    pipe = make_pipeline(shards, SampleBuilder(2, 1, 0, (16, 16), train=False), train=False, skip_corrupt=False)
+    with pytest.raises(ValueError, match=r"nan_camera.*(non-finite|NaN)"):
+        list(pipe)
+
+
+def test_check_finite_names_the_field():
+    with pytest.raises(ValueError, match=r"s1: non-finite values .* in context\.depth"):
+        check_finite({"context": {"depth": torch.tensor([1.0, float("nan")])}}, "s1")
+    check_finite({"context": {"image": torch.zeros(2, dtype=torch.uint8), "K": torch.eye(3)}}, "s1")
+
+
+def test_datamodule_skips_by_default():
+    from anycity.lit.datamodule import AerialDataModule
+
+    assert AerialDataModule(root="x").hparams.skip_corrupt is True

@@ -1,0 +1,92 @@
+"""Checkpoints: atomic writes (crash / full disk keep the previous file), weights_only reads (no code runs)."""
+
+import errno
+import os
+
+import pytest
+import torch
+
+from anycity.lit.checkpoint_io import SafeCheckpointIO, atomic_write_bytes, safe_torch_load
+
+
+class _Evil:
+    """Unpickling this calls a function: the canonical malicious-checkpoint payload."""
+
+    def __reduce__(self):
+        return (os.system, ("touch PWNED_BY_CHECKPOINT",))
+
+
+def test_crafted_checkpoint_is_refused_and_runs_nothing(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    path = tmp_path / "evil.ckpt"
+    torch.save({"state_dict": {"w": torch.zeros(2)}, "payload": _Evil()}, path)
+    with pytest.raises(ValueError, match=r"refusing to load .*evil\.ckpt") as e:
+        SafeCheckpointIO().load_checkpoint(path)
+    assert "\n" not in str(e.value)
+    assert not (tmp_path / "PWNED_BY_CHECKPOINT").exists()
+
+
+def test_truncated_checkpoint_is_a_one_line_error(tmp_path):
+    path = tmp_path / "t.ckpt"
+    torch.save({"w": torch.arange(1000.0)}, path)
+    path.write_bytes(path.read_bytes()[:300])
+    with pytest.raises(ValueError, match=r"cannot read checkpoint .*t\.ckpt"):
+        safe_torch_load(path)
+
+
+def test_save_then_load_roundtrip_plain_data(tmp_path):
+    io = SafeCheckpointIO()
+    ckpt = {"state_dict": {"w": torch.randn(3)}, "epoch": 1, "hyper_parameters": {"lr": 1e-3, "size": (32, 32)}}
+    io.save_checkpoint(ckpt, tmp_path / "a" / "x.ckpt")
+    back = io.load_checkpoint(tmp_path / "a" / "x.ckpt")
+    torch.testing.assert_close(back["state_dict"]["w"], ckpt["state_dict"]["w"])
+    assert back["hyper_parameters"]["size"] == (32, 32)
+    assert [p.name for p in (tmp_path / "a").iterdir()] == ["x.ckpt"]  # no temp file left behind
+
+
+def test_disk_full_keeps_previous_and_names_path_and_bytes(tmp_path, monkeypatch):
+    io = SafeCheckpointIO()
+    path = tmp_path / "last.ckpt"
+    io.save_checkpoint({"w": torch.ones(4)}, path)
+    before = path.read_bytes()
+
+    real_open = open
+
+    class _Full:
+        def __init__(self, f):
+            self.f = f
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *a):
+            self.f.close()
+
+        def write(self, data):
+            self.f.write(bytes(data)[:10])
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+        def flush(self):
+            pass
+
+        def fileno(self):
+            return self.f.fileno()
+
+    def fake_open(p, mode="r", *a, **k):
+        f = real_open(p, mode, *a, **k)
+        return _Full(f) if "w" in mode and ".tmp-" in str(p) else f
+
+    monkeypatch.setattr("builtins.open", fake_open)
+    with pytest.raises(OSError, match=r"disk full writing .*last\.ckpt: \d+ bytes needed") as e:
+        io.save_checkpoint({"w": torch.zeros(1000)}, path)
+    assert e.value.errno == errno.ENOSPC
+    monkeypatch.undo()
+    assert path.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["last.ckpt"]
+
+
+def test_atomic_write_replaces_whole_file(tmp_path):
+    p = tmp_path / "f.bin"
+    atomic_write_bytes(p, b"old" * 10)
+    atomic_write_bytes(p, b"new")
+    assert p.read_bytes() == b"new"

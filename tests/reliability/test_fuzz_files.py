@@ -1,0 +1,181 @@
+"""Fuzz the other readers of files users hand us: ``load_ply``, shard tars and their members, photo folders.
+
+Outcome: a correct result or the project's one-line ``ValueError``/``FileNotFoundError`` naming the file.
+"""
+
+import io
+import struct
+import zlib
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import HealthCheck, given, settings
+from PIL import Image
+
+from anycity.data.photos import load_photo_folder
+from anycity.data.pipeline import SampleBuilder, make_pipeline
+from anycity.data.schema import SceneRecord, ViewRecord
+from anycity.data.writer import ShardSetWriter, shard_urls
+from anycity.export.ply import load_ply, save_ply
+from anycity.structures import Gaussians
+
+from .test_fuzz_readers import CASES, mutate, mutations
+
+
+def _gaussians(n=20):
+    g = torch.Generator().manual_seed(0)
+    return Gaussians(means=torch.randn(1, n, 3, generator=g), quats=torch.nn.functional.normalize(
+        torch.randn(1, n, 4, generator=g), dim=-1), scales=torch.rand(1, n, 3, generator=g) * 0.1 + 0.01,
+        opacities=torch.rand(1, n, generator=g), sh=torch.randn(1, n, 4, 3, generator=g))
+
+
+def _one_line_naming(e, path):
+    assert "\n" not in str(e) and path.name in str(e), repr(e)
+
+
+def _fuzz_ply(tmp_path_factory, ops):
+    d = tmp_path_factory.mktemp("ply")
+    p = d / "scene.ply"
+    save_ply(_gaussians(), p, max_degree=1)
+    p.write_bytes(mutate(p.read_bytes(), ops))
+    CASES["load_ply"] = CASES.get("load_ply", 0) + 1
+    try:
+        g = load_ply(p)
+    except (ValueError, FileNotFoundError) as e:
+        _one_line_naming(e, p)
+        return
+    assert torch.isfinite(g.means).all() and g.means.shape[-1] == 3
+
+
+def _shard_dir(tmp_path_factory):
+    d = tmp_path_factory.mktemp("shard")
+    rng = np.random.default_rng(0)
+    views = [ViewRecord(name=f"{i}.png", image=rng.integers(0, 255, (16, 16, 3), dtype=np.uint8),
+                        w2c=np.eye(4), K=np.diag([16.0, 16.0, 1.0]), width=16, height=16,
+                        depth=np.full((16, 16), 3.0, np.float32), ext="png") for i in range(3)]
+    with ShardSetWriter(d) as w:
+        w.write(SceneRecord(key="s0", views=views, source="t", units="metres", metres_per_unit=1.0), "test")
+    return d
+
+
+def _fuzz_shard(tmp_path_factory, ops):
+    d = _shard_dir(tmp_path_factory)
+    url = shard_urls(d, "test")[0]
+    from pathlib import Path
+
+    Path(url).write_bytes(mutate(Path(url).read_bytes(), ops))
+    CASES["shard_tar"] = CASES.get("shard_tar", 0) + 1
+    try:
+        out = list(make_pipeline([url], SampleBuilder(2, 1, 0, (16, 16), train=False), train=False,
+                                 skip_corrupt=False))
+    except (ValueError, FileNotFoundError) as e:
+        assert "\n" not in str(e).strip() or "test-000000.tar" in str(e).splitlines()[0], repr(e)
+        assert "test-000000.tar" in str(e), repr(e)
+        return
+    for s in out:
+        assert torch.isfinite(s["context"]["w2c"]).all() if isinstance(s.get("context"), dict) else True
+
+
+def _settings(n):
+    return settings(max_examples=n, deadline=3000, derandomize=True, database=None,
+                    suppress_health_check=list(HealthCheck))
+
+
+@_settings(50)
+@given(ops=mutations())
+def _ply_fast(tmp_path_factory, ops):
+    _fuzz_ply(tmp_path_factory, ops)
+
+
+@_settings(1000)
+@given(ops=mutations())
+def _ply_slow(tmp_path_factory, ops):
+    _fuzz_ply(tmp_path_factory, ops)
+
+
+@_settings(50)
+@given(ops=mutations())
+def _shard_fast(tmp_path_factory, ops):
+    _fuzz_shard(tmp_path_factory, ops)
+
+
+@_settings(1000)
+@given(ops=mutations())
+def _shard_slow(tmp_path_factory, ops):
+    _fuzz_shard(tmp_path_factory, ops)
+
+
+def test_fuzz_load_ply(tmp_path_factory):
+    _ply_fast(tmp_path_factory)
+
+
+def test_fuzz_shard_tar(tmp_path_factory):
+    _shard_fast(tmp_path_factory)
+
+
+@pytest.mark.slow
+def test_fuzz_load_ply_slow(tmp_path_factory):
+    _ply_slow(tmp_path_factory)
+    print(f"\nfuzz load_ply: {CASES['load_ply']} cases")
+
+
+@pytest.mark.slow
+def test_fuzz_shard_tar_slow(tmp_path_factory):
+    _shard_slow(tmp_path_factory)
+    print(f"\nfuzz shard_tar: {CASES['shard_tar']} cases")
+
+
+def _png_header_only(w, h):
+    """A valid-looking PNG whose IHDR declares w x h but whose data is a few bytes (a decompression bomb)."""
+    def chunk(t, d):
+        return struct.pack(">I", len(d)) + t + d + struct.pack(">I", zlib.crc32(t + d) & 0xFFFFFFFF)
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0))
+            + chunk(b"IDAT", zlib.compress(b"\0" * 64)) + chunk(b"IEND", b""))
+
+
+def _photo_bytes(kind):
+    rgb = np.random.default_rng(0).integers(0, 255, (40, 56, 3), dtype=np.uint8)
+    buf = io.BytesIO()
+    if kind == "1x1":
+        Image.fromarray(rgb[:1, :1]).save(buf, "PNG")
+    elif kind == "png16":
+        import cv2
+
+        buf.write(cv2.imencode(".png", rgb.astype(np.uint16) * 257)[1].tobytes())  # 16-bit RGB PNG
+    elif kind == "palette":
+        Image.fromarray(rgb).convert("P").save(buf, "PNG")
+    elif kind == "cmyk":
+        Image.fromarray(rgb).convert("CMYK").save(buf, "JPEG")
+    elif kind in ("jpeg", "truncated"):
+        Image.fromarray(rgb).save(buf, "JPEG")
+    elif kind == "bomb":
+        return _png_header_only(30000, 30000)
+    elif kind == "garbage":
+        return b"\xff\xd8\xff\xe0 not really a jpeg"
+    data = buf.getvalue()
+    return data[: len(data) // 2] if kind == "truncated" else data
+
+
+@pytest.mark.parametrize("kind,ok", [("1x1", True), ("png16", True), ("palette", True), ("cmyk", True),
+                                     ("truncated", False), ("bomb", False), ("garbage", False)])
+def test_photo_folder_hostile_images(tmp_path, kind, ok):
+    import resource
+
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    for i in range(2):
+        (folder / f"good{i}.jpg").write_bytes(_photo_bytes("jpeg"))
+    ext = "jpg" if kind in ("cmyk", "truncated", "garbage") else "png"
+    bad = folder / f"x_{kind}.{ext}"
+    bad.write_bytes(_photo_bytes(kind))
+    rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    if ok:
+        out = load_photo_folder(folder, (32, 32))
+        assert out["images"].shape == (3, 3, 32, 32) and torch.isfinite(out["images"]).all()
+    else:
+        with pytest.raises(ValueError) as e:
+            load_photo_folder(folder, (32, 32))
+        _one_line_naming(e.value, bad)
+    grew_mb = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss0) / 1024
+    assert grew_mb < 500, f"{kind}: peak memory grew by {grew_mb:.0f} MB"  # the 30000^2 bomb was not allocated

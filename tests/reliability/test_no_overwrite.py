@@ -1,0 +1,68 @@
+"""Every command leaves earlier runs' logs, checkpoints and outputs intact (moved aside or refused)."""
+
+import pytest
+
+from anycity.cli import build_cli
+from anycity.data.cli import data_main
+from anycity.lit.keep import free_name
+
+from .harness import REPO
+
+
+@pytest.fixture(autouse=True)
+def _argv(monkeypatch):
+    monkeypatch.setattr("sys.argv", ["anycity"])
+
+
+def _args(shards, run, extra=()):
+    return ["-c", str(REPO / "configs/quickstart.yaml"), "--data.root", str(shards), "--data.image_size", "[32, 32]",
+            "--data.num_context", "2", "--data.num_targets", "1", "--data.num_dense", "2",
+            "--trainer.max_steps", "1", "--trainer.val_check_interval", "1", "--trainer.limit_val_batches", "1",
+            "--trainer.limit_test_batches", "1", "--trainer.limit_predict_batches", "1",
+            "--trainer.default_root_dir", str(run), "--trainer.logger.init_args.save_dir", str(run),
+            "--model.init_args.warmup_steps", "1", "--model.init_args.render_backend", "torch",
+            "--model.init_args.camera_refine_steps", "0", "--model.init_args.eval_pose_align_steps", "0", *extra]
+
+
+def test_fit_validate_test_predict_keep_earlier_runs(tiny_shards, tmp_path):
+    run = tmp_path / "run"
+    ck = ["-c", str(tmp_path / "ck.yaml")]
+    (tmp_path / "ck.yaml").write_text("trainer:\n  callbacks:\n  - class_path: lightning.pytorch.callbacks."
+                                      "ModelCheckpoint\n    init_args: {save_last: true, save_top_k: 0, "
+                                      "every_n_train_steps: 1}\n")
+    build_cli(["fit", *_args(tiny_shards, run, ck)])
+    first = (run / "checkpoints" / "last.ckpt").read_bytes()
+    metrics1 = (run / "metrics.csv").read_text()
+    build_cli(["fit", *_args(tiny_shards, run, ck + ["--seed_everything", "1"])])  # a fresh second fit, same dir
+    assert (run / "checkpoints.1" / "last.ckpt").read_bytes() == first  # the first run's checkpoint is kept
+    assert (run / "metrics.1.csv").read_text() == metrics1 and (run / "config.1.yaml").is_file()
+    ckpt = str(run / "checkpoints" / "last.ckpt")
+    for i, cmd in enumerate(("validate", "test"), start=2):
+        before = (run / "metrics.csv").read_text()
+        build_cli([cmd, *_args(tiny_shards, run), "--ckpt_path", ckpt])
+        assert (run / f"metrics.{i}.csv").read_text() == before, cmd
+    out = tmp_path / "export"
+    build_cli(["predict", *_args(tiny_shards, run), "--ckpt_path", ckpt, "--export.out_dir", str(out)])
+    plys = sorted(p.relative_to(out) for p in out.rglob("scene.ply"))
+    first_ply = (out / plys[0]).read_bytes()
+    build_cli(["predict", *_args(tiny_shards, run), "--ckpt_path", ckpt, "--export.out_dir", str(out)])
+    assert (tmp_path / "export.1" / plys[0]).read_bytes() == first_ply  # the first export is kept
+    assert (out / plys[0]).is_file()
+
+
+def test_data_synth_refuses_to_overwrite_without_the_flag(tmp_path):
+    args = ["synth", "--out", str(tmp_path / "d"), "--scenes", "2", "--views", "4", "--size", "16x16",
+            "--workers", "1"]
+    data_main(args)
+    index = (tmp_path / "d" / "index.json").read_bytes()
+    with pytest.raises(FileExistsError, match="--overwrite"):
+        data_main(args)
+    assert (tmp_path / "d" / "index.json").read_bytes() == index
+    data_main(args + ["--overwrite"])
+
+
+def test_free_name(tmp_path):
+    (tmp_path / "m.csv").write_text("a")
+    (tmp_path / "m.1.csv").write_text("b")
+    assert free_name(tmp_path / "m.csv") == tmp_path / "m.2.csv"
+    assert free_name(tmp_path / "checkpoints") == tmp_path / "checkpoints.1"
