@@ -50,7 +50,7 @@ def test_folder_errors_name_the_problem(tmp_path):
     bad = tmp_path / "bad"
     _write(bad, "a.png", 32, 32)
     (bad / "b.jpg").write_bytes(b"not a jpeg")
-    with pytest.raises(ValueError, match="cannot decode .*b.jpg"):
+    with pytest.raises(ValueError, match=r"b\.jpg: not a readable image.*re-save it"):
         load_photo_folder(bad, (32, 32))
     (bad / "a.png").unlink()
     with pytest.raises(ValueError, match="holds 1 photos .only b.jpg.*add more"):
