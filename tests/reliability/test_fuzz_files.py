@@ -78,7 +78,7 @@ def _fuzz_shard(tmp_path_factory, ops):
 
 
 def _settings(n):
-    return settings(max_examples=n, deadline=3000, derandomize=True, database=None,
+    return settings(max_examples=n, deadline=10000, derandomize=True, database=None,
                     suppress_health_check=list(HealthCheck))
 
 

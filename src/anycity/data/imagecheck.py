@@ -21,8 +21,8 @@ def check_image_file(path: str | Path, max_pixels: int = MAX_PIXELS) -> None:
             w, h = im.size
             fmt = im.format
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as e:
-        raise ValueError(f"{path}: not a readable image ({type(e).__name__}); re-save it as JPEG or PNG, or remove "
-                         "it") from None
+        raise ValueError(f"cannot decode {path}: not a readable image ({type(e).__name__}); re-save it as JPEG "
+                         "or PNG, or remove it") from None
     except Image.DecompressionBombError:
         w, h, fmt = -1, -1, None
     if w < 0 or w * h > max_pixels:
