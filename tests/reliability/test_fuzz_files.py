@@ -171,11 +171,11 @@ def test_photo_folder_hostile_images(tmp_path, kind, ok):
     bad.write_bytes(_photo_bytes(kind))
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     if ok:
-        out = load_photo_folder(folder, (32, 32))
+        out = load_photo_folder(folder, (32, 32), mode="crop")
         assert out["images"].shape == (3, 3, 32, 32) and torch.isfinite(out["images"]).all()
     else:
         with pytest.raises(ValueError) as e:
-            load_photo_folder(folder, (32, 32))
+            load_photo_folder(folder, (32, 32), mode="crop")
         _one_line_naming(e.value, bad)
     grew_mb = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss0) / 1024
     assert grew_mb < 500, f"{kind}: peak memory grew by {grew_mb:.0f} MB"  # the 30000^2 bomb was not allocated
