@@ -30,10 +30,10 @@ def main() -> None:
                           num_dense=6, batch_size=1, num_workers=0)
     dm.setup("test")
     batches = list(dm.test_dataloader())
-    grid = [dict(min_parallax_deg=a, depth_tol=0.05, edge_thresh=0.3, min_views=m) for m in (2, 3)
-            for a in (2.0, 5.0, 10.0)]
-    grid += [dict(min_parallax_deg=5.0, depth_tol=t, edge_thresh=e, min_views=2) for t in (0.02, 0.1)
-             for e in (0.1, 0.3, 1e9)]
+    grid = [dict(min_parallax_deg=a, depth_tol=0.1, edge_thresh=0.3, min_views=m) for m in (2, 3)
+            for a in (1.0, 2.0, 5.0)]
+    grid += [dict(min_parallax_deg=2.0, depth_tol=t, edge_thresh=e, min_views=2) for t in (0.05, 0.15)
+             for e in (0.2, 0.3, 0.5)]
     print(f"{len(batches)} test batches, {sum(b.target.num_views for b in batches)} target views")
     print("| min_views | parallax (deg) | depth_tol | edge_thresh | observed | weak | sky | ms/batch |")
     print("|---|---|---|---|---|---|---|---|")
