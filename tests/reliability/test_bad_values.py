@@ -62,6 +62,13 @@ def test_check_finite_names_the_field():
     with pytest.raises(ValueError, match=r"s1: non-finite values .* in context\.depth"):
         check_finite({"context": {"depth": torch.tensor([1.0, float("nan")])}}, "s1")
     check_finite({"context": {"image": torch.zeros(2, dtype=torch.uint8), "K": torch.eye(3)}}, "s1")
+    # normals derived from depth are NaN where there is no depth (sky): not corrupt there, corrupt where valid
+    normal, mask = torch.zeros(1, 3, 2, 2), torch.ones(1, 1, 2, 2, dtype=torch.bool)
+    normal[..., 0, 0], mask[..., 0, 0] = float("nan"), False
+    check_finite({"context": {"normal": normal, "mask": mask}}, "s1")
+    normal[..., 1, 1] = float("nan")
+    with pytest.raises(ValueError, match=r"context\.normal"):
+        check_finite({"context": {"normal": normal, "mask": mask}}, "s1")
 
 
 def test_datamodule_skips_by_default():

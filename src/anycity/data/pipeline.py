@@ -342,9 +342,14 @@ def _eval_shard(src: Iterator[dict]) -> Iterator[dict]:
 
 def check_finite(obj, where: str = "sample", path: str = "") -> None:
     """Raise ``ValueError`` naming ``where`` and the field if any floating tensor/array in ``obj`` (nested
-    dicts/lists of a built sample: images, depths, ``w2c``, ``K``...) holds NaN or inf."""
+    dicts/lists of a built sample: images, depths, ``w2c``, ``K``...) holds NaN or inf. A view group's ``normal``
+    is checked only where its ``mask`` is valid: normals derived from depth are undefined (NaN) where there is no
+    depth (sky), and no loss reads them there."""
     if isinstance(obj, dict):
+        mask = obj.get("mask")
         for k, v in obj.items():
+            if k == "normal" and isinstance(v, torch.Tensor) and isinstance(mask, torch.Tensor):
+                v = v.masked_fill(~mask.bool().expand_as(v), 0.0)
             check_finite(v, where, f"{path}.{k}" if path else str(k))
     elif isinstance(obj, (list, tuple)):
         for i, v in enumerate(obj):
