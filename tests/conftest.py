@@ -1,4 +1,4 @@
-"""Shared fixtures for the CLI integration tests: tiny synthetic shards, built once per session."""
+"""Fixtures shared by the integration and reliability tests: tiny synthetic shards, built once per session."""
 
 import pytest
 
