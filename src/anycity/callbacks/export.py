@@ -7,10 +7,11 @@ from typing import Any
 
 import lightning.pytorch as pl
 import numpy as np
+import torch
 from lightning.pytorch.callbacks import BasePredictionWriter
 from PIL import Image
 
-from anycity.export import save_cameras, save_ply
+from anycity.export import load_ply_extras, save_cameras, save_ply
 from anycity.export.provenance import provenance, summary
 from anycity.export.smoothing import VARIANCE_PX, smooth_3d
 
@@ -28,7 +29,8 @@ class PredictionExport(BasePredictionWriter):
     :class:`anycity.lit.datamodule.AerialDataModule` ``predict_chunk_size``) is merged into one scene by
     :class:`anycity.city.ChunkedScene`: ``scene.ply`` and ``cameras.json`` for all photos plus ``chunks.json``
     (per-chunk photos, pairwise alignment residuals and inlier counts). Renders and inputs are then written per
-    photo from the chunk that owns it (renders of that chunk's Gaussians). Chunk predictions are consumed here
+    photo from the chunk that owns it (renders of that chunk's Gaussians), and the provenance columns count the views
+    of the Gaussian's own chunk. Chunk predictions are consumed here
     (emptied in place), so ``trainer.predict`` does not keep every chunk's Gaussians in memory.
 
     Args:
@@ -101,7 +103,14 @@ class PredictionExport(BasePredictionWriter):
         city = self._city
         if city is None:
             raise RuntimeError("PredictionExport: a chunked prediction did not start at chunk 0")
-        city.add(k, prediction["gaussians"], prediction["w2c"][0], prediction["K"][0])
+        g, w2c, K = prediction["gaussians"], prediction["w2c"], prediction["K"]
+        prov = None
+        if prediction.get("scaffold") is not None and prediction.get("depth") is not None:
+            prov = provenance(g, prediction["scaffold"], prediction["depth"], w2c, K)  # within this chunk's views
+        if self.smooth_3d > 0:  # Sim(3)-covariant, so filtering in the chunk's own frame is the same as after
+            h, w = prediction["images"].shape[-2:]
+            g = smooth_3d(g, w2c, K, int(w), int(h), self.smooth_3d)
+        city.add(k, g, w2c[0], K[0], prov)
         if self.save_renders:
             own = [i for i, v in enumerate(views) if city.owner[v] == k]
             for kind, imgs in (("renders", prediction["renders"].rgb[0]), ("inputs", prediction["images"][0])):
@@ -115,6 +124,12 @@ class PredictionExport(BasePredictionWriter):
             self._city = None
             self.city_report = city.finish(folder)
             rep = self.city_report
+            extras = load_ply_extras(folder / "scene.ply")
+            if extras:
+                share = summary({k: torch.from_numpy(v) for k, v in extras.items()})
+                print(f"{batch['scene'][0]}: {share['supported']:.0%} of Gaussians observation-supported (>= 2 views "
+                      f"of their chunk, kept), {share['completed']:.0%} completed by Stage II, "
+                      f"{share['unsupported']:.0%} seen by < 2 views of their chunk")
             worst = max((p["rms_residual"] for p in rep["pairs"]), default=0.0)
             print(f"anycity predict: {rep['num_photos']} photos in {rep['num_chunks']} chunks -> {folder}/scene.ply "
                   f"({rep['gaussians']} Gaussians); worst pairwise rms residual {worst:.4g}, pose graph rms "

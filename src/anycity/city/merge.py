@@ -52,10 +52,12 @@ class PlyStream:
         self.count = 0
         self.dropped = 0
 
-    def write(self, g: Gaussians) -> None:
-        """Append every scene of ``g`` (invalid / non-finite rows dropped, as in ``save_ply``)."""
+    def write(self, g: Gaussians, extra: dict[str, Tensor] | None = None) -> None:
+        """Append every scene of ``g`` (invalid / non-finite rows dropped, as in ``save_ply``); ``extra``: more
+        columns ``{name: [B, N]}``, as in :func:`anycity.export.ply.gaussians_to_ply_arrays` (every piece the same
+        names)."""
         for i in range(g.batch_size):
-            cols, dropped = gaussians_to_ply_arrays(g, i, self.max_degree)
+            cols, dropped = gaussians_to_ply_arrays(g, i, self.max_degree, extra)
             if self.columns is None:
                 self.columns = list(cols)
             elif list(cols) != self.columns:

@@ -55,9 +55,9 @@ class ChunkedScene:
         self.spilled: dict[int, Path] = {}
         self.global_pass, self.fit = global_pass, fit
 
-    def add(self, k: int, gaussians: Gaussians, w2c: Tensor, K: Tensor) -> None:
+    def add(self, k: int, gaussians: Gaussians, w2c: Tensor, K: Tensor, extra: dict[str, Tensor] | None = None) -> None:
         """Chunk ``k``'s reconstruction: one-scene ``gaussians`` (N = V*H*W), cameras ``w2c [V, 4, 4]``,
-        ``K [V, 3, 3]``."""
+        ``K [V, 3, 3]``; ``extra``: per-Gaussian PLY columns ``{name: [1, N]}`` (provenance), written with them."""
         views = self.chunks[k]
         v, (h, w) = len(views), self.hw
         if w2c.shape != (v, 4, 4) or gaussians.means.shape[:2] != (1, v * h * w):
@@ -75,7 +75,8 @@ class ChunkedScene:
             part = Gaussians(*(None if t is None else t[:, sel].clone() for t in
                                (g.means, g.quats, g.scales, g.opacities, g.sh, g.valid)))
             path = self.spill / f"chunk_{k:05d}.pt"
-            torch.save({"gaussians": part, "views": [views[i] for i in own],
+            cols = {name: t.detach().cpu()[:, sel].clone() for name, t in (extra or {}).items()}
+            torch.save({"gaussians": part, "views": [views[i] for i in own], "extra": cols,
                         "w2c": w2c[own].detach().cpu().double()}, path)
             self.spilled[k] = path
 
@@ -97,7 +98,7 @@ class ChunkedScene:
             try:
                 for k, path in sorted(self.spilled.items()):
                     piece = torch.load(path, weights_only=False)
-                    ply.write(sim3_gaussians(piece["gaussians"], S[k]))
+                    ply.write(sim3_gaussians(piece["gaussians"], S[k]), piece["extra"] or None)
                     for v, cam in zip(piece["views"], piece["w2c"]):
                         w2c[v] = w2c_to_world(cam, S[k])
                     del piece

@@ -4,8 +4,11 @@
   that view's predicted depth; :func:`anycity.geometry.visibility.count_visible`). A pixel-aligned Gaussian is
   always seen by its own view, so *observation-supported* means seen by at least two.
 - ``completion [B, N]`` in [0, 1]: how much Stage II changed the Gaussian from its scaffold (the Stage I
-  decoding of the same pixel): the largest of the centre shift in units of the scaffold's mean std (/3), the
-  opacity change and the DC colour change (RGB distance / sqrt 3), each clipped to 1. 0 for a Stage I model.
+  decoding of the same pixel): the largest of the centre shift in units of 3 × its size, the opacity change and
+  the DC colour change (RGB distance / sqrt 3), each clipped to 1. The size is the scaffold's mean std, but at
+  least one input pixel at the Gaussian (``1 / ν``, ν the highest sampling rate of a context camera): most
+  predicted Gaussians are far below a pixel, and a shift no photo could resolve is not a completion. 0 for a
+  Stage I model.
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from anycity.export.smoothing import sampling_rate
 from anycity.geometry.visibility import count_visible
 from anycity.structures import Gaussians
 
@@ -21,14 +25,18 @@ SUPPORT_VIEWS = 2  # seen by its own view and at least one other
 COMPLETED = 0.25  # completion above this: Stage II moved/recoloured it noticeably
 
 
-def completion_score(refined: Gaussians, scaffold: Gaussians) -> Tensor:
+def completion_score(refined: Gaussians, scaffold: Gaussians, pixel: Tensor | None = None) -> Tensor:
     """``[B, N]`` in [0, 1]; zeros when the two are the same object, NaN when their Gaussians do not pair up
-    (a voxel merge changed N)."""
+    (a voxel merge changed N). ``pixel [B, N]``: the world size of one input pixel at each scaffold centre (the
+    smallest shift that counts; None = the std alone)."""
     if refined is scaffold:
         return torch.zeros_like(refined.opacities)
     if refined.means.shape != scaffold.means.shape:
         return torch.full_like(refined.opacities, float("nan"))
-    size = scaffold.scales.mean(-1).clamp_min(1e-12)
+    size = scaffold.scales.mean(-1)
+    if pixel is not None:
+        size = torch.maximum(size, pixel.to(size))
+    size = size.clamp_min(1e-12)
     pos = (refined.means - scaffold.means).norm(dim=-1) / (3 * size)
     opa = (refined.opacities - scaffold.opacities).abs()
     rgb = lambda g: (0.5 + SH_C0 * g.sh[..., 0, :]).clamp(0, 1)  # noqa: E731
@@ -41,7 +49,9 @@ def provenance(refined: Gaussians, scaffold: Gaussians, depth: Tensor, w2c: Tens
     """``{"obs_views": [B, N] float, "completion": [B, N]}`` for the final Gaussians; ``depth [B, V, 1, H, W]``,
     ``w2c [B, V, 4, 4]``, ``K [B, V, 3, 3]`` of the context views (the cameras the Gaussians live with)."""
     obs = count_visible(refined.means.float(), depth.float(), w2c.float(), K.float(), depth_tol=depth_tol)
-    return {"obs_views": obs.float(), "completion": completion_score(refined, scaffold).float()}
+    nu = sampling_rate(scaffold.means.float(), w2c.float(), K.float(), depth.shape[-1], depth.shape[-2])
+    pixel = torch.where(nu > 0, 1 / nu.clamp_min(1e-12), torch.zeros_like(nu))
+    return {"obs_views": obs.float(), "completion": completion_score(refined, scaffold, pixel).float()}
 
 
 def summary(prov: dict[str, Tensor], valid: Tensor | None = None) -> dict[str, float]:

@@ -1,10 +1,18 @@
 """Mip-Splatting's 3D smoothing filter, baked into exported scales and opacities.
 
 Most predicted Gaussians are far below a pixel; our renderer shows them only through its 0.3 px² 2-D low-pass
-(:data:`anycity.render.projection.EPS2D`). Viewers with a smaller or no low-pass drop them and show holes. The
-3-D filter gives each Gaussian a minimum size from the highest sampling rate at which an input camera saw it:
-``Σ' = Σ + (variance_px / ν²) I`` with ``ν = f / z`` (pixels per world unit), and scales the opacity by
-``sqrt(det Σ / det Σ')`` so the integrated density is kept.
+(:data:`anycity.render.projection.EPS2D`). Viewers with a smaller or no low-pass drop them and show holes, and
+so does our own renderer as soon as one zooms in. The 3-D filter gives each Gaussian a minimum size from the
+highest sampling rate at which an input camera saw it: ``Σ' = Σ + (variance_px / ν²) I`` with ``ν = f / z``
+(pixels per world unit).
+
+The opacity is scaled so the Gaussian keeps its 2-D mass (peak alpha × footprint area) in that camera,
+``o' = o · sqrt(det(Σ₂ + ε I) / det(Σ₂' + ε I))`` with Σ₂ the projected covariance and ε the 0.3 px² low-pass,
+rather than its 3-D density as Mip-Splatting does (``sqrt(det Σ / det Σ')``): our splats are thin and far below a
+pixel, and the 3-D rule multiplies their opacity by ~1e-5 (median, ``boruszyn_kap``), which leaves 94 % of them
+below the 1/255 that 8-bit viewers can store, so the scene vanishes there. The 2-D rule keeps what the input
+cameras saw: a sub-pixel splat becomes a ``variance_px + ε`` px² splat of peak ``ε / (variance_px + ε)`` of its
+opacity.
 """
 
 from __future__ import annotations
@@ -12,15 +20,16 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from anycity.geometry import quat_to_rotmat
+from anycity.render.projection import EPS2D
 from anycity.structures import Gaussians
 
 VARIANCE_PX = 0.2  # Mip-Splatting's 3D filter variance in pixels² of the input cameras
 
 
-def sampling_rate(means: Tensor, w2c: Tensor, K: Tensor, width: int, height: int) -> Tensor:
-    """``[B, N]`` highest ``f / z`` (pixels per world unit) over the cameras that see each centre in frame; for a
-    centre no camera frames, the highest over the cameras it is in front of; 0 when behind all of them.
-    ``means [B, N, 3]``, ``w2c [B, V, 4, 4]``, ``K [B, V, 3, 3]`` for ``width x height`` images."""
+def _best_camera(means: Tensor, w2c: Tensor, K: Tensor, width: int, height: int) -> tuple[Tensor, Tensor]:
+    """``(ν [B, N], camera [B, N])``: the highest ``f / z`` over the cameras that frame each centre (else over those
+    it is in front of; ν = 0 when behind all of them) and the index of that camera."""
     p = torch.einsum("bvij,bnj->bvni", w2c[..., :3, :3], means) + w2c[..., None, :3, 3]
     z = p[..., 2]
     front = z > 1e-6
@@ -30,17 +39,48 @@ def sampling_rate(means: Tensor, w2c: Tensor, K: Tensor, width: int, height: int
     inside = front & (u >= 0) & (u <= width) & (v >= 0) & (v <= height)
     nu = torch.maximum(K[..., 0, 0, None], K[..., 1, 1, None]) / zs  # [B, V, N]
     zero = torch.zeros_like(nu)
-    best = torch.where(inside, nu, zero).amax(1)
-    return torch.where(best > 0, best, torch.where(front, nu, zero).amax(1))
+    best, cam = torch.where(inside, nu, zero).max(1)
+    best_front, cam_front = torch.where(front, nu, zero).max(1)
+    framed = best > 0
+    return torch.where(framed, best, best_front), torch.where(framed, cam, cam_front)
+
+
+def sampling_rate(means: Tensor, w2c: Tensor, K: Tensor, width: int, height: int) -> Tensor:
+    """``[B, N]`` highest ``f / z`` (pixels per world unit) over the cameras that see each centre in frame; for a
+    centre no camera frames, the highest over the cameras it is in front of; 0 when behind all of them.
+    ``means [B, N, 3]``, ``w2c [B, V, 4, 4]``, ``K [B, V, 3, 3]`` for ``width x height`` images."""
+    return _best_camera(means, w2c, K, width, height)[0]
+
+
+def _footprint_jacobian(means: Tensor, w2c: Tensor, K: Tensor) -> Tensor:
+    """``[B, N, 2, 3]`` EWA Jacobian times rotation, world -> pixels, of each centre in its camera
+    (``w2c [B, N, 4, 4]``, ``K [B, N, 3, 3]``: one camera per Gaussian)."""
+    R = w2c[..., :3, :3]
+    p = (R @ means[..., None])[..., 0] + w2c[..., :3, 3]
+    z = p[..., 2].clamp_min(1e-6)
+    fx, fy = K[..., 0, 0], K[..., 1, 1]
+    J = torch.zeros(*means.shape[:-1], 2, 3, dtype=means.dtype, device=means.device)
+    J[..., 0, 0], J[..., 0, 2] = fx / z, -fx * p[..., 0] / z ** 2
+    J[..., 1, 1], J[..., 1, 2] = fy / z, -fy * p[..., 1] / z ** 2
+    return J @ R
 
 
 def smooth_3d(g: Gaussians, w2c: Tensor, K: Tensor, width: int, height: int,
               variance_px: float = VARIANCE_PX) -> Gaussians:
-    """``g`` with the 3-D filter baked in (a new object; Gaussians no camera sees in front are kept as is)."""
-    nu = sampling_rate(g.means.float(), w2c.float(), K.float(), width, height)
+    """``g`` with the 3-D filter baked in (a new object; Gaussians no camera sees in front are kept as is).
+
+    ``g`` holds B scenes of N Gaussians, ``w2c [B, V, 4, 4]`` and ``K [B, V, 3, 3]`` their input cameras for
+    ``width x height`` images; ``variance_px`` is the filter in px² of those images."""
+    means = g.means.float()
+    nu, cam = _best_camera(means, w2c.float(), K.float(), width, height)
     filt = torch.where(nu > 0, variance_px / nu.clamp_min(1e-12) ** 2, torch.zeros_like(nu))  # [B, N] world²
     var = g.scales.float() ** 2
-    new_var = var + filt[..., None]
-    gain = torch.sqrt(var.prod(-1) / new_var.prod(-1))
-    return Gaussians(means=g.means, quats=g.quats, scales=new_var.sqrt().to(g.scales.dtype),
+    take = cam[..., None, None].expand(-1, -1, 4, 4)
+    T = _footprint_jacobian(means, w2c.float().gather(1, take), K.float().gather(1, take[..., :3, :3]))
+    R = quat_to_rotmat(g.quats.float())
+    eye = torch.eye(2, dtype=means.dtype, device=means.device)
+    before = T @ (R * var[..., None, :]) @ R.transpose(-1, -2) @ T.transpose(-1, -2) + EPS2D * eye
+    after = before + filt[..., None, None] * (T @ T.transpose(-1, -2))
+    gain = torch.sqrt(torch.linalg.det(before) / torch.linalg.det(after)).clamp(max=1.0)
+    return Gaussians(means=g.means, quats=g.quats, scales=(var + filt[..., None]).sqrt().to(g.scales.dtype),
                      opacities=(g.opacities * gain.to(g.opacities.dtype)), sh=g.sh, valid=g.valid)

@@ -9,7 +9,9 @@ from PIL import Image
 
 from anycity.callbacks import PredictionExport
 from anycity.city import apply_sim3, plan_chunks, w2c_to_world
+from anycity.city.align import sim3_parts
 from anycity.city.oracle import orbit_scene, random_sim3
+from anycity.export import load_ply, load_ply_extras
 from anycity.geometry.projection import unproject_depth
 from anycity.lit.datamodule import AerialDataModule
 from anycity.structures import Gaussians, RenderOutput
@@ -28,7 +30,7 @@ def test_photo_folder_chunks_merge_into_one_scene(tmp_path):
 
     gt, _ = orbit_scene(n)
     K = torch.tensor([[8.0, 0, 4], [0, 8, 4], [0, 0, 1]])
-    depth = 5 + torch.rand(1, n, 1, h, w, generator=torch.Generator().manual_seed(0))
+    depth = 5 + 0.2 * torch.rand(1, n, 1, h, w, generator=torch.Generator().manual_seed(0))  # within 5 % tol
     cb = PredictionExport(out_dir=str(tmp_path / "out"))
     trainer = SimpleNamespace(log_dir=None, default_root_dir=str(tmp_path))
     for k, b in enumerate(batches):  # an oracle network: true cameras and depth, each chunk in its own frame
@@ -42,7 +44,8 @@ def test_photo_folder_chunks_merge_into_one_scene(tmp_path):
         g = Gaussians(means, torch.tensor([1.0, 0, 0, 0]).expand(1, m, 4), torch.full((1, m, 3), 0.01),
                       torch.full((1, m), 0.5), torch.zeros(1, m, 1, 3))
         rgb = b["images"]
-        pred = {"gaussians": g, "w2c": cams, "K": Ks, "images": rgb,
+        pred = {"gaussians": g, "w2c": cams, "K": Ks, "images": rgb, "scaffold": g,
+                "depth": depth[:, views] * sim3_parts(G)[0].float(),  # z-depth in the chunk's own frame
                 "renders": RenderOutput(rgb=rgb, depth=depth[:, views], alpha=torch.ones_like(depth[:, views]))}
         cb.write_on_batch_end(trainer, None, pred, None, b, k)
         assert pred == {}  # consumed: trainer.predict keeps no chunk's Gaussians
@@ -56,6 +59,13 @@ def test_photo_folder_chunks_merge_into_one_scene(tmp_path):
     rep = json.loads((out / "chunks.json").read_text())
     assert rep["num_chunks"] == 4 and rep["gaussians"] == n * h * w
     assert len(list((out / "renders").glob("*.png"))) == n
+    # provenance and the smoothing filter, as for a single-pass scene: every Gaussian is seen by its own view (and
+    # the overlapping ones by more), none was changed by Stage II; the filter only grows the 0.01 scales
+    extras = load_ply_extras(out / "scene.ply")
+    assert set(extras) == {"obs_views", "completion"} and len(extras["obs_views"]) == n * h * w
+    assert extras["obs_views"].min() >= 1 and extras["obs_views"].max() >= 2 and extras["completion"].max() == 0
+    merged = load_ply(out / "scene.ply")
+    assert merged.scales.min() > 0.01 * min(rep["chunks"][k]["scale_to_world"] for k in range(4)) * (1 - 1e-4)
 
 
 def test_token_order_is_a_permutation_from_the_network(tmp_path):

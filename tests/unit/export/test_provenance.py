@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-from helpers.raycast_scenes import intrinsics, look_at, render_depth
+from helpers.raycast_scenes import H, W, intrinsics, look_at, render_depth
 from plyfile import PlyData
 
 from anycity.export import load_ply, load_ply_extras, save_ply
 from anycity.export.provenance import completion_score, provenance, summary
+from anycity.export.smoothing import sampling_rate
 from anycity.structures import Gaussians
 
 BOX = ((-0.5, -0.5, 0.0), (0.5, 0.5, 1.0))
@@ -28,11 +29,13 @@ def test_obs_views_and_completion():
     pts = torch.tensor([[[0.0, 0.0, 1.0], [0.0, 0.0, 0.0], [1.2, -1.0, 0.0]]])  # roof, hidden ground, ground
     scaffold = _gaussians(pts)
     refined = _gaussians(pts.clone())
-    refined.means[0, 2, 0] += 0.03  # one std of 0.01 -> shift of 3 std: completion 1
+    pixel = 1 / sampling_rate(pts, w2c, K, W, H)  # world size of one input pixel (the 0.01 std is below it)
+    refined.means[0, 2, 0] -= 3 * pixel[0, 2]  # a 3-pixel shift: completion 1
+    refined.means[0, 1, 0] += 0.3 * pixel[0, 1]  # 0.3 px, no photo resolves it: 0.1, not 1 as 30 stds would say
     refined.opacities[0, 0] = 0.6  # opacity change 0.1
     prov = provenance(refined, scaffold, depth, w2c, K)
     torch.testing.assert_close(prov["obs_views"], torch.tensor([[2.0, 0.0, 2.0]]))
-    torch.testing.assert_close(prov["completion"], torch.tensor([[0.1, 0.0, 1.0]]), atol=1e-5, rtol=0)
+    torch.testing.assert_close(prov["completion"], torch.tensor([[0.1, 0.1, 1.0]]), atol=1e-5, rtol=0)
     share = summary(prov)
     assert share == {"supported": 1 / 3, "completed": 1 / 3, "unsupported": 1 / 3}
     assert (completion_score(scaffold, scaffold) == 0).all()  # Stage I: nothing completed

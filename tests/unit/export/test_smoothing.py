@@ -1,11 +1,19 @@
-"""The baked 3-D smoothing filter: a minimum size from the input cameras' sampling rate, density kept."""
+"""The baked 3-D smoothing filter: a minimum size from the input cameras' sampling rate, 2-D mass kept."""
 
 from __future__ import annotations
 
 import torch
 
 from anycity.export.smoothing import sampling_rate, smooth_3d
+from anycity.render import render
+from anycity.render.projection import EPS2D
 from anycity.structures import Gaussians
+
+
+def _gaussians(means, scales, opacity=0.8):
+    n = means.shape[1]
+    return Gaussians(means=means, quats=torch.tensor([1.0, 0, 0, 0]).expand(1, n, 4), scales=scales,
+                     opacities=torch.full((1, n), opacity), sh=torch.zeros(1, n, 1, 3))
 
 
 def test_tiny_gaussians_grow_to_the_sampling_limit_big_ones_stay():
@@ -13,15 +21,32 @@ def test_tiny_gaussians_grow_to_the_sampling_limit_big_ones_stay():
     w2c[0, 1, 2, 3] = 5.0  # the second camera is 5 units farther back: the points sit at z = 10 in it
     K = torch.tensor([[40.0, 0, 24], [0, 40.0, 24], [0, 0, 1]]).expand(1, 2, 3, 3)
     means = torch.tensor([[[0.0, 0.0, 5.0], [0.0, 0.0, 5.0], [100.0, 0.0, 5.0]]])
-    g = Gaussians(means=means, quats=torch.tensor([1.0, 0, 0, 0]).expand(1, 3, 4),
-                  scales=torch.tensor([[[1e-5] * 3, [1.0] * 3, [1e-5] * 3]]), opacities=torch.full((1, 3), 0.8),
-                  sh=torch.zeros(1, 3, 1, 3))
+    g = _gaussians(means, torch.tensor([[[1e-5] * 3, [1.0] * 3, [1e-5] * 3]]))
     nu = sampling_rate(means, w2c, K, 48, 48)
     torch.testing.assert_close(nu[0, :2], torch.tensor([8.0, 8.0]))  # f / z of the nearer camera (z = 5)
     s = smooth_3d(g, w2c, K, 48, 48)
     std = 0.2 ** 0.5 / 8.0
     torch.testing.assert_close(s.scales[0, 0], torch.full((3,), (std ** 2 + 1e-10) ** 0.5))
-    assert s.opacities[0, 0] < 1e-6  # density kept: a tiny splat spread out becomes faint
+    # 2-D mass kept in the sampling camera: a sub-pixel splat's 0.3 px² footprint grows to 0.5 px², so its peak
+    # falls to 0.3 / 0.5 of its opacity (not to ~0, as Mip-Splatting's 3-D density rule would make it)
+    torch.testing.assert_close(s.opacities[0, 0], torch.tensor(0.8 * EPS2D / (EPS2D + 0.2)), rtol=1e-4, atol=0)
     torch.testing.assert_close(s.scales[0, 1], g.scales[0, 1], rtol=2e-3, atol=0)
     assert abs(s.opacities[0, 1].item() - 0.8) < 1e-2
     assert s.scales[0, 2, 0] > 1e-3  # out of frame: still filtered at the rate of the cameras it is in front of
+    assert 0 < s.opacities[0, 2] < 0.8
+
+
+def test_render_at_the_input_camera_keeps_each_splats_mass_and_zoom_in_has_no_holes():
+    """A thin sub-pixel splat (a 1e-5 flat disc, as the network predicts them) renders with the same integrated
+    alpha before and after the filter at the input resolution, and at 8x zoom it covers pixels instead of
+    vanishing into the low-pass."""
+    w2c = torch.eye(4)[None, None]
+    K = torch.tensor([[40.0, 0, 24], [0, 40.0, 24], [0, 0, 1]])[None, None]
+    g = _gaussians(torch.tensor([[[0.01, -0.02, 5.0]]]), torch.tensor([[[2e-3, 1e-3, 1e-7]]]), opacity=0.3)
+    s = smooth_3d(g, w2c, K, 48, 48)
+    mass = [render(x, w2c, K, 48, 48).alpha.sum().item() for x in (g, s)]
+    assert abs(mass[1] / mass[0] - 1) < 0.03, mass
+    zoom = K.clone()
+    zoom[..., :2, :] *= 8
+    covered = [(render(x, w2c, zoom, 384, 384).alpha > 0.05).sum().item() for x in (g, s)]
+    assert covered[1] > 10 * covered[0], covered

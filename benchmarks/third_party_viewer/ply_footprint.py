@@ -5,9 +5,11 @@ predicted camera and widths 48 / 240 / 640 px:
 - the share of splats whose projected 2-D footprint ``sqrt(det Σ2D)`` (no low-pass) is under 0.016 px² (what a
   viewer without our 0.3 px² low-pass drops), raw vs with :func:`anycity.export.smoothing.smooth_3d`;
 - our own render at 640 px with the 2-D low-pass vs with a near-zero one (``EPS2D`` 1e-4, as a viewer without it
-  draws): PSNR between them and the share of "hole" pixels (alpha < 0.5), raw vs smoothed.
+  draws): PSNR between them and the share of "hole" pixels (alpha < 0.5), raw vs smoothed;
+- what the filter costs at the input resolution: PSNR of the smoothed render against the raw one at the input
+  cameras, and the share of splats whose opacity an 8-bit viewer stores as 0 (below 1/510).
 
-    PYTHONPATH=src python benchmarks/ply_footprint.py runs/mine_raw/my_photos
+    python benchmarks/third_party_viewer/ply_footprint.py runs/mine_raw/my_photos
 """
 
 from __future__ import annotations
@@ -48,6 +50,13 @@ def main(folder: str) -> None:
         k[:2] *= width / s.width
         shares = [(footprint(g, w2c[0], k) < 0.016).float().mean().item() for g in (s.gaussians, smooth)]
         print(f"  {width:4d} px: footprint < 0.016 px^2: raw {shares[0]:.1%}, smoothed {shares[1]:.1%}")
+    raw_in = render(s.gaussians, w2c[None], K[None], s.width, s.height).rgb
+    smooth_in = render(smooth, w2c[None], K[None], s.width, s.height).rgb
+    mse = ((raw_in - smooth_in) ** 2).mean().clamp_min(1e-10)
+    print(f"  input {s.width}x{s.height}, all {len(w2c)} cameras: smoothed vs raw PSNR "
+          f"{-10 * torch.log10(mse).item():.2f} dB; opacity < 1/510: raw "
+          f"{(s.gaussians.opacities < 1 / 510).float().mean().item():.1%}, "
+          f"smoothed {(smooth.opacities < 1 / 510).float().mean().item():.1%}")
     width = 640
     height = round(width * s.height / s.width)
     k = K[0].clone()
