@@ -83,6 +83,17 @@ def load_photo(path: Path, hw: tuple[int, int], mode: str = "keep", patch: int =
         rgb, *_ = resize_view(rgb, K, hw, "crop", patch)
     return torch.from_numpy(np.ascontiguousarray(rgb)).permute(2, 0, 1).float() / 255
 
+GENERIC_FOLDERS = {"images", "imgs", "image", "photos", "input", "inputs", "rgb", "jpg", "jpgs"}
+
+
+def scene_name(folder: Path) -> str:
+    """The scene's name for outputs: the folder's own name, or its parent's when the folder has a generic name
+    (``boruszyn_kap/images`` -> ``boruszyn_kap``, as in the COLMAP / nerfstudio layouts)."""
+    folder = Path(folder).resolve()
+    if folder.name.lower() in GENERIC_FOLDERS and folder.parent.name:
+        return folder.parent.name
+    return folder.name
+
 
 class PhotoFolder:
     """The photos of one folder, in capture order, loaded on demand at one common size.
@@ -137,7 +148,7 @@ def load_photo_folder(folder: str | Path, size: tuple[int, int], mode: str = "ke
     """Every photo of ``folder`` (see :class:`PhotoFolder`) at once.
 
     Returns:
-        ``{"images": [V, 3, H, W] float32 in [0, 1], "scene": folder name, "names": file names}``.
+        ``{"images": [V, 3, H, W] float32 in [0, 1], "scene": :func:`scene_name`, "names": file names}``.
     """
     photos = PhotoFolder(folder, size, mode, patch, order)
-    return {"images": photos.load(), "scene": photos.folder.name, "names": photos.names}
+    return {"images": photos.load(), "scene": scene_name(photos.folder), "names": photos.names}

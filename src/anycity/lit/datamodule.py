@@ -17,6 +17,7 @@ import torch
 from lightning.pytorch.utilities import rank_zero_warn
 from torch.utils.data import DataLoader
 
+from anycity.data.photos import scene_name
 from anycity.data.pipeline import SampleBuilder, SkipCounter, collate, make_pipeline, to_float32
 from anycity.data.writer import shard_urls
 from anycity.structures import ViewBatch
@@ -57,7 +58,7 @@ class _PhotoChunks(torch.utils.data.Dataset):
 
     def __getitem__(self, k: int) -> dict:
         views = self.chunks[k]
-        item = {"images": self.photos.load(views), "scene": self.photos.folder.name,
+        item = {"images": self.photos.load(views), "scene": scene_name(self.photos.folder),
                 "names": [self.photos.names[v] for v in views]}
         if len(self.chunks) > 1:
             item["chunk"] = {"index": k, "count": len(self.chunks), "views": views, "plan": self.chunks,

@@ -86,3 +86,10 @@ def test_natural_order_and_capture_time(tmp_path):
     assert by == "time" and [files[i].name for i in order] == ["img1.jpg", "img10.jpg", "img2.jpg"]
     order, by = order_photos(files, "name")
     assert [files[i].name for i in order] == ["img1.jpg", "img2.jpg", "img10.jpg"]
+
+
+def test_scene_name_skips_generic_folder_names(tmp_path):
+    from anycity.data.photos import scene_name
+
+    assert scene_name(tmp_path / "boruszyn_kap" / "images") == "boruszyn_kap"  # COLMAP / nerfstudio layout
+    assert scene_name(tmp_path / "my_flight") == "my_flight"
