@@ -45,7 +45,13 @@ def _cli_class():
             from anycity.lit.keep import keep_previous_run  # earlier runs' logs/checkpoints/exports are kept
 
             out = next((c.out_dir for c in self.trainer.callbacks if isinstance(c, PredictionExport)), None)
-            keep_previous_run(self.trainer, subcommand, self.config[subcommand].get("ckpt_path"), out)
+            photos = getattr(getattr(self.datamodule, "hp", None), "predict_images", None)
+            scene = None
+            if subcommand == "predict" and photos:
+                from anycity.data.photos import scene_name
+
+                scene = scene_name(photos)
+            keep_previous_run(self.trainer, subcommand, self.config[subcommand].get("ckpt_path"), out, scene)
             super()._run_subcommand(subcommand)
 
         def before_predict(self) -> None:

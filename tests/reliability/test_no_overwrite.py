@@ -1,6 +1,8 @@
 """Every command leaves earlier runs' logs, checkpoints and outputs intact (moved aside or refused)."""
 
+import numpy as np
 import pytest
+from PIL import Image
 
 from anycity.cli import build_cli
 from anycity.data.cli import data_main
@@ -48,6 +50,20 @@ def test_fit_validate_test_predict_keep_earlier_runs(tiny_shards, tmp_path):
     build_cli(["predict", *_args(tiny_shards, run), "--ckpt_path", ckpt, "--export.out_dir", str(out)])
     assert (tmp_path / "export.1" / plys[0]).read_bytes() == first_ply  # the first export is kept
     assert (out / plys[0]).is_file()
+
+    # photo folders: each scene has its own folder, so a second scene joins the first; a rerun moves only its own
+    rng = np.random.default_rng(0)
+    for scene in ("farm", "beach"):
+        (tmp_path / scene / "images").mkdir(parents=True)
+        for i in range(3):
+            Image.fromarray(rng.integers(0, 255, (32, 32, 3), dtype=np.uint8)).save(
+                tmp_path / scene / "images" / f"{i}.png")
+    photos = tmp_path / "photos_out"
+    for scene in ("farm", "beach", "farm"):
+        build_cli(["predict", *_args(tiny_shards, run), "--ckpt_path", ckpt, "--export.out_dir", str(photos),
+                   "--data.predict_images", str(tmp_path / scene / "images")])
+    assert sorted(p.name for p in photos.iterdir()) == ["beach", "farm", "farm.1"]
+    assert all((photos / d / "scene.ply").is_file() for d in ("beach", "farm", "farm.1"))
 
 
 def test_data_synth_refuses_to_overwrite_without_the_flag(tmp_path):

@@ -4,7 +4,8 @@ run left where this one will write are moved aside to the first free ``<name>.<N
 - the logger's ``metrics.csv`` / ``hparams.yaml`` and the saved ``config.yaml`` (CSVLogger with ``version: ""``
   reuses one folder, and Lightning would otherwise truncate them);
 - a fresh ``fit``'s ``checkpoints/`` folder (a resume with ``--ckpt_path`` keeps and extends it);
-- ``predict``'s export folder (``--export.out_dir`` or ``<log_dir>/predictions``).
+- ``predict``'s export folder (``--export.out_dir`` or ``<log_dir>/predictions``), or only the scene's folder in
+  it for a photo folder (so several scenes can be predicted into one ``out_dir``).
 """
 
 from __future__ import annotations
@@ -36,8 +37,10 @@ def move_aside(path: Path) -> Path | None:
     return dest
 
 
-def keep_previous_run(trainer, subcommand: str, ckpt_path=None, export_dir: str | None = None) -> list[Path]:
-    """Move aside what an earlier run left where ``subcommand`` will write; returns the moved paths."""
+def keep_previous_run(trainer, subcommand: str, ckpt_path=None, export_dir: str | None = None,
+                      scene: str | None = None) -> list[Path]:
+    """Move aside what an earlier run left where ``subcommand`` will write; returns the moved paths. ``scene``:
+    the one scene a ``predict`` writes (a photo folder's name), when known."""
     if trainer.global_rank != 0:
         return []
     moved = []
@@ -59,5 +62,5 @@ def keep_previous_run(trainer, subcommand: str, ckpt_path=None, export_dir: str 
                 moved.append(move_aside(ckpt_dir))
     if subcommand == "predict":
         out = Path(export_dir) if export_dir else Path(trainer.log_dir or trainer.default_root_dir) / "predictions"
-        moved.append(move_aside(out))
+        moved.append(move_aside(out / scene if scene else out))
     return [m for m in moved if m is not None]
