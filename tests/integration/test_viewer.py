@@ -30,6 +30,15 @@ def drawn_share(img: np.ndarray) -> float:
     return float((np.abs(c - 255).max(-1) > 30).mean())
 
 
+def test_thumbnails_of_a_photo_folder_prediction(tmp_path):
+    """cameras.json names the photos (img_1.jpg ...), the inputs are written as NNN.png: the frustums still get
+    their photos."""
+    from anycity.viewer.scene import load_view_scene
+
+    scene = load_view_scene(tiny_predict_folder(tmp_path, names=["img_1.jpg", "img_2.jpg", "img_3.jpg"]))
+    assert len(scene.thumbs) == 3 and scene.thumbs[2].mean() == 120
+
+
 def test_build_server_loads_scene_and_provenance(tmp_path):
     pytest.importorskip("viser")
     from anycity.viewer.server import build_server

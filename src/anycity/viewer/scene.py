@@ -43,8 +43,10 @@ def load_view_scene(path: str | Path, thumb_side: int = 128) -> ViewScene:
         return ViewScene(g, extras, None, None, 0, 0, folder)
     w2c, K, w, h, names = camera_tensors(cams)
     thumbs = []
-    for n in names:
+    for i, n in enumerate(names):
         f = folder / "inputs" / f"{n}.png"
+        if not f.is_file():  # predict writes inputs/NNN.png in view order; cameras.json names the photos
+            f = folder / "inputs" / f"{i:03d}.png"
         if f.is_file():
             im = Image.open(f).convert("RGB")
             im.thumbnail((thumb_side, thumb_side))
