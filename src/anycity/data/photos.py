@@ -83,6 +83,7 @@ def load_photo(path: Path, hw: tuple[int, int], mode: str = "keep", patch: int =
         rgb, *_ = resize_view(rgb, K, hw, "crop", patch)
     return torch.from_numpy(np.ascontiguousarray(rgb)).permute(2, 0, 1).float() / 255
 
+
 GENERIC_FOLDERS = {"images", "imgs", "image", "photos", "input", "inputs", "rgb", "jpg", "jpgs"}
 
 

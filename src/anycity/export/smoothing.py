@@ -25,6 +25,7 @@ from anycity.render.projection import EPS2D
 from anycity.structures import Gaussians
 
 VARIANCE_PX = 0.2  # Mip-Splatting's 3D filter variance in pixels² of the input cameras
+CHUNK = 1 << 20  # Gaussians per step of the opacity computation
 
 
 def _best_camera(means: Tensor, w2c: Tensor, K: Tensor, width: int, height: int) -> tuple[Tensor, Tensor]:
@@ -75,12 +76,16 @@ def smooth_3d(g: Gaussians, w2c: Tensor, K: Tensor, width: int, height: int,
     nu, cam = _best_camera(means, w2c.float(), K.float(), width, height)
     filt = torch.where(nu > 0, variance_px / nu.clamp_min(1e-12) ** 2, torch.zeros_like(nu))  # [B, N] world²
     var = g.scales.float() ** 2
-    take = cam[..., None, None].expand(-1, -1, 4, 4)
-    T = _footprint_jacobian(means, w2c.float().gather(1, take), K.float().gather(1, take[..., :3, :3]))
-    R = quat_to_rotmat(g.quats.float())
     eye = torch.eye(2, dtype=means.dtype, device=means.device)
-    before = T @ (R * var[..., None, :]) @ R.transpose(-1, -2) @ T.transpose(-1, -2) + EPS2D * eye
-    after = before + filt[..., None, None] * (T @ T.transpose(-1, -2))
-    gain = torch.sqrt(torch.linalg.det(before) / torch.linalg.det(after)).clamp(max=1.0)
+    gains = []
+    for s in range(0, means.shape[1], CHUNK):  # a few 3x3 matrices per Gaussian: bounded for 64-view scenes
+        sl = slice(s, s + CHUNK)
+        take = cam[:, sl, None, None].expand(-1, -1, 4, 4)
+        T = _footprint_jacobian(means[:, sl], w2c.float().gather(1, take), K.float().gather(1, take[..., :3, :3]))
+        R = quat_to_rotmat(g.quats[:, sl].float())
+        before = T @ (R * var[:, sl, None, :]) @ R.transpose(-1, -2) @ T.transpose(-1, -2) + EPS2D * eye
+        after = before + filt[:, sl, None, None] * (T @ T.transpose(-1, -2))
+        gains.append(torch.sqrt(torch.linalg.det(before) / torch.linalg.det(after)).clamp(max=1.0))
+    gain = torch.cat(gains, 1)
     return Gaussians(means=g.means, quats=g.quats, scales=(var + filt[..., None]).sqrt().to(g.scales.dtype),
                      opacities=(g.opacities * gain.to(g.opacities.dtype)), sh=g.sh, valid=g.valid)

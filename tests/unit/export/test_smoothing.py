@@ -50,3 +50,19 @@ def test_render_at_the_input_camera_keeps_each_splats_mass_and_zoom_in_has_no_ho
     zoom[..., :2, :] *= 8
     covered = [(render(x, w2c, zoom, 384, 384).alpha > 0.05).sum().item() for x in (g, s)]
     assert covered[1] > 10 * covered[0], covered
+
+
+def test_chunked_opacity_computation_matches_one_pass(monkeypatch):
+    import anycity.export.smoothing as smoothing
+
+    gen = torch.Generator().manual_seed(0)
+    means = torch.randn(1, 50, 3, generator=gen) * 0.3 + torch.tensor([0.0, 0.0, 5.0])
+    g = Gaussians(means=means, quats=torch.randn(1, 50, 4, generator=gen),
+                  scales=torch.rand(1, 50, 3, generator=gen) * 0.01, opacities=torch.rand(1, 50, generator=gen),
+                  sh=torch.zeros(1, 50, 1, 3))
+    w2c = torch.eye(4)[None, None].repeat(1, 2, 1, 1)
+    w2c[0, 1, 0, 3] = 0.5
+    K = torch.tensor([[40.0, 0, 24], [0, 40.0, 24], [0, 0, 1]]).expand(1, 2, 3, 3)
+    whole = smooth_3d(g, w2c, K, 48, 48)
+    monkeypatch.setattr(smoothing, "CHUNK", 7)
+    torch.testing.assert_close(smooth_3d(g, w2c, K, 48, 48).opacities, whole.opacities)
