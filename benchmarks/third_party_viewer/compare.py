@@ -47,6 +47,48 @@ def browser_camera(w2c: torch.Tensor, K: torch.Tensor, in_w: int, in_h: int, wid
     return Kb, height, cam
 
 
+def compare(folder: str | Path, ply: str | Path | None = None, camera: int = 0, width: int = 640,
+            out: str | Path = "/tmp/third_party", settle: float = 8.0) -> dict:
+    """Render ``ply`` (default ``folder/scene.ply``) in both at camera ``camera`` of ``folder``; returns PSNR (dB),
+    mean values, dark-pixel shares and the mean absolute difference per eighth of the height, and writes
+    ``{out}_{ours,tp,both}.png``."""
+    if not (HERE / "node_modules").is_dir():
+        raise FileNotFoundError(f"compare.py: no {HERE / 'node_modules'}; run `npm install` in {HERE} first")
+    scene = load_view_scene(folder)
+    ply = Path(ply) if ply else Path(folder) / "scene.ply"
+    g, _ = load_scene(ply)
+    K, height, cam = browser_camera(scene.w2c[camera].float(), scene.K[camera].float(), scene.width,
+                                    scene.height, width)
+    ours = render(g, scene.w2c[camera].float()[None, None], K[None, None], width, height, near=cam["near"])
+    o = (ours.rgb[0, 0].clamp(0, 1).permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(o).save(f"{out}_ours.png")
+
+    name = f"_scene_{threading.get_ident()}.ply"
+    shutil.copy(ply, HERE / name)
+    handler = functools.partial(http.server.SimpleHTTPRequestHandler, directory=str(HERE))
+    handler.log_message = lambda *args: None
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        url = (f"http://127.0.0.1:{server.server_address[1]}/index.html?url={name}"
+               f"&cam={urllib.parse.quote(json.dumps(cam))}")
+        asyncio.run(shot(url, f"{out}_tp.png", width, height, settle))
+    finally:
+        server.shutdown()
+        (HERE / name).unlink(missing_ok=True)
+    t = np.asarray(Image.open(f"{out}_tp.png").convert("RGB")).astype(np.float64)
+    f = o.astype(np.float64)
+    mse = ((f - t) ** 2).mean()
+    step = max(height // 8, 1)
+    Image.fromarray(np.concatenate([o, t.astype(np.uint8)], 1)).save(f"{out}_both.png")
+    return {"ply": str(ply), "camera": camera, "width": width, "height": height,
+            "psnr": 10 * math.log10(255 ** 2 / max(mse, 1e-9)), "mean_ours": f.mean(), "mean_tp": t.mean(),
+            "dark_ours": (f.max(-1) < 10).mean(), "dark_tp": (t.max(-1) < 10).mean(),
+            "bands": [float(np.abs(f - t)[i: i + step].mean()) for i in range(0, step * 8, step)]}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("folder", help="a predict output folder (scene.ply + cameras.json)")
@@ -56,41 +98,14 @@ def main() -> None:
     ap.add_argument("--out", default="/tmp/third_party")
     ap.add_argument("--settle", type=float, default=8.0, help="seconds after load before the screenshot")
     a = ap.parse_args()
-    if not (HERE / "node_modules").is_dir():
-        sys.exit(f"compare.py: no {HERE / 'node_modules'}; run `npm install` in {HERE} first")
-    scene = load_view_scene(a.folder)
-    ply = Path(a.ply) if a.ply else Path(a.folder) / "scene.ply"
-    g, _ = load_scene(ply)
-    K, height, cam = browser_camera(scene.w2c[a.camera].float(), scene.K[a.camera].float(), scene.width,
-                                    scene.height, a.width)
-    ours = render(g, scene.w2c[a.camera].float()[None, None], K[None, None], a.width, height, near=cam["near"])
-    o = (ours.rgb[0, 0].clamp(0, 1).permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
-    out = Path(a.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(o).save(f"{out}_ours.png")
-
-    shutil.copy(ply, HERE / "_scene.ply")
-    handler = functools.partial(http.server.SimpleHTTPRequestHandler, directory=str(HERE))
-    handler.log_message = lambda *args: None
-    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
-    threading.Thread(target=server.serve_forever, daemon=True).start()
     try:
-        url = (f"http://127.0.0.1:{server.server_address[1]}/index.html?url=_scene.ply"
-               f"&cam={urllib.parse.quote(json.dumps(cam))}")
-        asyncio.run(shot(url, f"{out}_tp.png", a.width, height, a.settle))
-    finally:
-        server.shutdown()
-        (HERE / "_scene.ply").unlink(missing_ok=True)
-    t = np.asarray(Image.open(f"{out}_tp.png").convert("RGB")).astype(np.float64)
-    f = o.astype(np.float64)
-    mse = ((f - t) ** 2).mean()
-    band = [round(float(np.abs(f - t)[i: i + height // 8].mean()), 1) for i in range(0, height - height // 8 + 1,
-                                                                                   height // 8)]
-    print(f"{ply} at camera {a.camera}, {a.width}x{height}: PSNR ours vs third-party "
-          f"{10 * math.log10(255 ** 2 / max(mse, 1e-9)):.2f} dB; mean value ours {f.mean():.1f}, third-party "
-          f"{t.mean():.1f}; pixels < 10: ours {(f.max(-1) < 10).mean():.1%}, third-party {(t.max(-1) < 10).mean():.1%}")
-    print(f"  mean |difference| per eighth of the height, top to bottom: {band}")
-    Image.fromarray(np.concatenate([o, t.astype(np.uint8)], 1)).save(f"{out}_both.png")
+        r = compare(a.folder, a.ply, a.camera, a.width, a.out, a.settle)
+    except FileNotFoundError as e:
+        sys.exit(str(e))
+    print(f"{r['ply']} at camera {r['camera']}, {r['width']}x{r['height']}: PSNR ours vs third-party "
+          f"{r['psnr']:.2f} dB; mean value ours {r['mean_ours']:.1f}, third-party {r['mean_tp']:.1f}; pixels < 10: "
+          f"ours {r['dark_ours']:.1%}, third-party {r['dark_tp']:.1%}")
+    print(f"  mean |difference| per eighth of the height, top to bottom: {[round(b, 1) for b in r['bands']]}")
 
 
 if __name__ == "__main__":
