@@ -8,11 +8,11 @@ highest sampling rate at which an input camera saw it: ``Σ' = Σ + (variance_px
 
 The opacity is scaled so the Gaussian keeps its 2-D mass (peak alpha × footprint area) in that camera,
 ``o' = o · sqrt(det(Σ₂ + ε I) / det(Σ₂' + ε I))`` with Σ₂ the projected covariance and ε the 0.3 px² low-pass,
-rather than its 3-D density as Mip-Splatting does (``sqrt(det Σ / det Σ')``): our splats are thin and far below a
-pixel, and the 3-D rule multiplies their opacity by ~0.01 (median, ``boruszyn_kap``), leaving 59 % of them below
-1/255: the exported scene renders dark and full of holes in any renderer (43.6 % of pixels below 10/255 at 640 px,
-against 2.7 % with the 2-D rule, which costs 36.8 dB PSNR against the raw render at the input cameras). The 2-D
-rule keeps what the input cameras saw: a sub-pixel splat becomes a ``variance_px + ε`` px² splat of peak ``ε / (variance_px + ε)`` of its
+rather than its 3-D density as Mip-Splatting does (``sqrt(det Σ / det Σ')``). Our splats are thin and far below a
+pixel; the 3-D rule multiplies their opacity by ~0.01 (median, ``boruszyn_kap``) and leaves 59 % of them below
+1/255, so the exported scene renders dark and full of holes in any renderer (43.6 % of pixels below 10/255 at
+640 px, against 2.7 % with the 2-D rule). The 2-D rule keeps what the input cameras saw (36.8 dB against the raw
+render there): a sub-pixel splat becomes a ``variance_px + ε`` px² splat of peak ``ε / (variance_px + ε)`` of its
 opacity.
 """
 
