@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import math
 import shutil
 import subprocess
 
 import numpy as np
 import pytest
+import torch
 from helpers.viewer_scenes import tiny_predict_folder
 from PIL import Image
 
@@ -37,6 +39,27 @@ def test_thumbnails_of_a_photo_folder_prediction(tmp_path):
 
     scene = load_view_scene(tiny_predict_folder(tmp_path, names=["img_1.jpg", "img_2.jpg", "img_3.jpg"]))
     assert len(scene.thumbs) == 3 and scene.thumbs[2].mean() == 120
+
+
+def test_save_render_button_writes_our_render_of_the_current_camera(tmp_path):
+    """What the "Save render" button runs, at a predicted camera: our render of that view, and a second click never
+    overwrites the first."""
+    from anycity.geometry import rotmat_to_quat
+    from anycity.viewer.scene import load_view_scene
+    from anycity.viewer.server import camera_w2c, render_view, save_render
+
+    scene = load_view_scene(tiny_predict_folder(tmp_path))
+    c2w = torch.linalg.inv(scene.w2c[1]).double()
+    wxyz, pos = rotmat_to_quat(c2w[:3, :3]).numpy(), c2w[:3, 3].numpy()
+    fov = 2 * math.atan(0.5 * scene.height / float(scene.K[1, 1, 1]))
+    first = save_render(scene, wxyz, pos, fov, scene.width / scene.height, height=64)
+    second = save_render(scene, wxyz, pos, fov, scene.width / scene.height, height=64)
+    assert first != second and first.parent == tmp_path / "view_renders" and second.is_file()
+    img = np.asarray(Image.open(first))
+    assert img.shape == (64, 96, 3) and img.std() > 5  # the cube, not an empty frame
+    w2c, K = camera_w2c(wxyz, pos, fov, 96, 64)
+    torch.testing.assert_close(w2c[0, 0], scene.w2c[1].float(), atol=1e-5, rtol=0)  # the viewer's camera round trip
+    np.testing.assert_array_equal(img, render_view(scene, w2c, K, 96, 64))
 
 
 def test_build_server_loads_scene_and_provenance(tmp_path):

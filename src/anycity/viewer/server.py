@@ -45,6 +45,21 @@ def render_view(scene: ViewScene, w2c: torch.Tensor, K: torch.Tensor, width: int
     return (out.rgb[0, 0].clamp(0, 1).permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8)
 
 
+def save_render(scene: ViewScene, wxyz, position, fov_y: float, aspect: float, height: int = 480) -> Path:
+    """Our render of the viewer's current camera (as :func:`camera_w2c` takes it) at ``height`` px, written to
+    ``<scene folder>/view_renders/render_<time>[_N].png`` (never over an earlier one); returns the file."""
+    w = max(1, round(height * aspect))
+    w2c, K = camera_w2c(wxyz, position, fov_y, w, height)
+    out = scene.folder / "view_renders"
+    out.mkdir(exist_ok=True)
+    stem = f"render_{time.strftime('%Y%m%d_%H%M%S')}"
+    f, n = out / f"{stem}.png", 1
+    while f.exists():
+        f, n = out / f"{stem}_{n}.png", n + 1
+    Image.fromarray(render_view(scene, w2c, K, w, height)).save(f)
+    return f
+
+
 def build_server(path: str | Path, host: str = "127.0.0.1", port: int = 8080, cameras: bool = True):
     """Start the viewer on ``scene`` at ``path``; returns ``(server, scene)``. ``port=0`` picks a free port;
     ``cameras=False`` hides the camera frustums."""
@@ -92,13 +107,7 @@ def build_server(path: str | Path, host: str = "127.0.0.1", port: int = 8080, ca
     @button.on_click
     def _(event) -> None:
         cam = event.client.camera
-        h = 480
-        w = max(1, round(h * cam.aspect))
-        w2c, K = camera_w2c(cam.wxyz, cam.position, cam.fov, w, h)
-        out = scene.folder / "view_renders"
-        out.mkdir(exist_ok=True)
-        f = out / f"render_{time.strftime('%Y%m%d_%H%M%S')}.png"
-        Image.fromarray(render_view(scene, w2c, K, w, h)).save(f)
+        f = save_render(scene, cam.wxyz, cam.position, cam.fov, cam.aspect)
         info.content = _share_text(scene) + f"\n\nsaved `{f}`"
 
     return server, scene
