@@ -19,7 +19,7 @@ import sys
 import torch
 
 import anycity.render.projection as proj
-from anycity.export.smoothing import smooth_3d
+from anycity.export.smoothing import footprint_jacobian, smooth_3d
 from anycity.geometry import quat_to_rotmat
 from anycity.render import render
 from anycity.viewer.scene import load_view_scene
@@ -27,17 +27,11 @@ from anycity.viewer.scene import load_view_scene
 
 def footprint(g, w2c, K) -> torch.Tensor:
     """``[N]`` sqrt(det) of the projected 2-D covariance in px² (EWA Jacobian, no low-pass)."""
-    R, t = w2c[:3, :3], w2c[:3, 3]
-    p = g.means[0] @ R.T + t
+    n = g.means.shape[1]
+    T = footprint_jacobian(g.means[0], w2c.expand(n, 4, 4), K.expand(n, 3, 3))
     Rg = quat_to_rotmat(g.quats[0])
     cov = Rg @ torch.diag_embed(g.scales[0] ** 2) @ Rg.transpose(-1, -2)
-    cam = R @ cov @ R.T
-    z = p[:, 2].clamp_min(1e-6)
-    J = torch.zeros(len(z), 2, 3)
-    J[:, 0, 0], J[:, 0, 2] = K[0, 0] / z, -K[0, 0] * p[:, 0] / z ** 2
-    J[:, 1, 1], J[:, 1, 2] = K[1, 1] / z, -K[1, 1] * p[:, 1] / z ** 2
-    c2 = J @ cam @ J.transpose(-1, -2)
-    return torch.linalg.det(c2).clamp_min(0).sqrt()
+    return torch.linalg.det(T @ cov @ T.transpose(-1, -2)).clamp_min(0).sqrt()
 
 
 def main(folder: str) -> None:

@@ -7,11 +7,10 @@ from typing import Any
 
 import lightning.pytorch as pl
 import numpy as np
-import torch
 from lightning.pytorch.callbacks import BasePredictionWriter
 from PIL import Image
 
-from anycity.export import load_ply_extras, save_cameras, save_ply
+from anycity.export import save_cameras, save_ply
 from anycity.export.provenance import provenance, summary
 from anycity.export.smoothing import VARIANCE_PX, smooth_3d
 
@@ -64,19 +63,12 @@ class PredictionExport(BasePredictionWriter):
         images, renders = prediction["images"], prediction["renders"]
         h, w = images.shape[-2:]
         scenes = prediction.get("scene") or [f"scene_{batch_idx:04d}_{i}" for i in range(w2c.shape[0])]
-        prov = None
-        if prediction.get("scaffold") is not None and prediction.get("depth") is not None:
-            prov = provenance(g, prediction["scaffold"], prediction["depth"], w2c, K)
-        if self.smooth_3d > 0:
-            g = smooth_3d(g, w2c, K, int(w), int(h), self.smooth_3d)
+        g, prov = self._exported(prediction)
         for i, name in enumerate(scenes):
             folder = self._root(trainer) / f"{name}".replace("/", "_")
             save_ply(g, folder / "scene.ply", index=i, extra=prov)
             if prov is not None:
-                share = summary({k: v[i: i + 1] for k, v in prov.items()},
-                                None if g.valid is None else g.valid[i: i + 1])
-                print(f"{name}: {share['supported']:.0%} of Gaussians observation-supported (>= 2 views, kept), "
-                      f"{share['completed']:.0%} completed by Stage II, {share['unsupported']:.0%} seen by < 2 views")
+                _print_shares(name, _shares(prov, g.valid, slice(i, i + 1), slice(None))[0])
             names = batch.get("names") if isinstance(batch, dict) else None  # a photo folder's file names
             save_cameras(folder / "cameras.json", w2c[i], K[i], int(w), int(h), names[i] if names else None)
             if self.save_renders:
@@ -86,6 +78,18 @@ class PredictionExport(BasePredictionWriter):
                         arr = (img.float().clamp(0, 1).permute(1, 2, 0).cpu().numpy() * 255 + 0.5).astype(np.uint8)
                         Image.fromarray(arr).save(folder / kind / f"{v:03d}.png")
             self.written.append(folder)
+
+    def _exported(self, prediction: dict[str, Any]):
+        """``(gaussians, provenance or None)`` as written: provenance of the predicted Gaussians (when the
+        prediction carries ``scaffold`` and ``depth``), then the 3-D smoothing filter baked in."""
+        g, w2c, K = prediction["gaussians"], prediction["w2c"], prediction["K"]
+        prov = None
+        if prediction.get("scaffold") is not None and prediction.get("depth") is not None:
+            prov = provenance(g, prediction["scaffold"], prediction["depth"], w2c, K)
+        if self.smooth_3d > 0:
+            h, w = prediction["images"].shape[-2:]
+            g = smooth_3d(g, w2c, K, int(w), int(h), self.smooth_3d)
+        return g, prov
 
     def _write_chunk(self, trainer: pl.Trainer, prediction: dict[str, Any], batch: dict) -> None:
         from anycity.city import ChunkedScene
@@ -100,19 +104,22 @@ class PredictionExport(BasePredictionWriter):
             from tqdm.auto import tqdm
 
             self._bar = tqdm(total=info["count"], desc=f"city: chunks of {batch['scene'][0]}", unit="chunk")
+            self._share_sums, self._share_count = None, 0
         city = self._city
         if city is None:
             raise RuntimeError("PredictionExport: a chunked prediction did not start at chunk 0")
-        g, w2c, K = prediction["gaussians"], prediction["w2c"], prediction["K"]
-        prov = None
-        if prediction.get("scaffold") is not None and prediction.get("depth") is not None:
-            prov = provenance(g, prediction["scaffold"], prediction["depth"], w2c, K)  # within this chunk's views
-        if self.smooth_3d > 0:  # Sim(3)-covariant, so filtering in the chunk's own frame is the same as after
-            h, w = prediction["images"].shape[-2:]
-            g = smooth_3d(g, w2c, K, int(w), int(h), self.smooth_3d)
-        city.add(k, g, w2c[0], K[0], prov)
+        # Provenance counts this chunk's views; the filter is Sim(3)-covariant, so baking it in the chunk's own
+        # frame is the same as after alignment.
+        g, prov = self._exported(prediction)
+        city.add(k, g, prediction["w2c"][0], prediction["K"][0], prov)
+        if prov is not None:  # shares over the Gaussians this chunk writes (those of the photos it owns)
+            share, n = _shares(prov, g.valid, slice(0, 1), city.owned_rows(k))
+            sums = {key: v * n for key, v in share.items()}
+            self._share_sums = sums if self._share_sums is None else {
+                key: self._share_sums[key] + v for key, v in sums.items()}
+            self._share_count += n
         if self.save_renders:
-            own = [i for i, v in enumerate(views) if city.owner[v] == k]
+            own = city.owned(k)
             for kind, imgs in (("renders", prediction["renders"].rgb[0]), ("inputs", prediction["images"][0])):
                 (folder / kind).mkdir(parents=True, exist_ok=True)
                 for i in own:
@@ -124,12 +131,10 @@ class PredictionExport(BasePredictionWriter):
             self._city = None
             self.city_report = city.finish(folder)
             rep = self.city_report
-            extras = load_ply_extras(folder / "scene.ply")
-            if extras:
-                share = summary({k: torch.from_numpy(v) for k, v in extras.items()})
-                print(f"{batch['scene'][0]}: {share['supported']:.0%} of Gaussians observation-supported (>= 2 views "
-                      f"of their chunk, kept), {share['completed']:.0%} completed by Stage II, "
-                      f"{share['unsupported']:.0%} seen by < 2 views of their chunk")
+            if self._share_sums is not None:
+                n = max(self._share_count, 1)
+                _print_shares(batch["scene"][0], {key: v / n for key, v in self._share_sums.items()},
+                              " of their chunk")
             worst = max((p["rms_residual"] for p in rep["pairs"]), default=0.0)
             print(f"anycity predict: {rep['num_photos']} photos in {rep['num_chunks']} chunks -> {folder}/scene.ply "
                   f"({rep['gaussians']} Gaussians); worst pairwise rms residual {worst:.4g}, pose graph rms "
@@ -142,3 +147,17 @@ class PredictionExport(BasePredictionWriter):
             self._city = None
         if self._bar is not None:
             self._bar.close()
+
+
+def _shares(prov: dict, valid, scene: slice, rows) -> tuple[dict[str, float], int]:
+    """:func:`anycity.export.provenance.summary` of scene ``scene`` restricted to Gaussians ``rows``, and how many
+    (valid) Gaussians it covers."""
+    keep = None if valid is None else valid[scene][:, rows]
+    share = summary({k: v[scene][:, rows] for k, v in prov.items()}, keep)
+    n = int(keep.sum()) if keep is not None else int(prov["obs_views"][scene][:, rows].numel())
+    return share, n
+
+
+def _print_shares(name: str, share: dict[str, float], views: str = "") -> None:
+    print(f"{name}: {share['supported']:.0%} of Gaussians observation-supported (>= 2 views{views}, kept), "
+          f"{share['completed']:.0%} completed by Stage II, {share['unsupported']:.0%} seen by < 2 views{views}")

@@ -55,6 +55,16 @@ class ChunkedScene:
         self.spilled: dict[int, Path] = {}
         self.global_pass, self.fit = global_pass, fit
 
+    def owned(self, k: int) -> list[int]:
+        """Positions (within chunk ``k``) of the photos chunk ``k`` owns: their Gaussians and cameras are its."""
+        return [i for i, gv in enumerate(self.chunks[k]) if self.owner[gv] == k]
+
+    def owned_rows(self, k: int) -> Tensor:
+        """``[n]`` indices of the owned photos' Gaussians among chunk ``k``'s pixel-aligned ones (N = V*H*W)."""
+        hw = self.hw[0] * self.hw[1]
+        own = self.owned(k)
+        return torch.cat([torch.arange(i * hw, (i + 1) * hw) for i in own]) if own else torch.zeros(0, dtype=torch.long)
+
     def add(self, k: int, gaussians: Gaussians, w2c: Tensor, K: Tensor, extra: dict[str, Tensor] | None = None) -> None:
         """Chunk ``k``'s reconstruction: one-scene ``gaussians`` (N = V*H*W), cameras ``w2c [V, 4, 4]``,
         ``K [V, 3, 3]``; ``extra``: per-Gaussian PLY columns ``{name: [1, N]}`` (provenance), written with them."""
@@ -67,11 +77,11 @@ class ChunkedScene:
         g = gaussians.detach().to("cpu")
         means = g.means[0].reshape(v, h * w, 3)
         self.geometry[k] = ChunkGeometry(list(views), w2c.detach().cpu().double(), means[:, self.pix].double())
-        own = [i for i, gv in enumerate(views) if self.owner[gv] == k]
+        own = self.owned(k)
         for i in own:
             self.K[views[i]] = K[i].detach().cpu().double()
         if own:
-            sel = torch.cat([torch.arange(i * h * w, (i + 1) * h * w) for i in own])
+            sel = self.owned_rows(k)
             part = Gaussians(*(None if t is None else t[:, sel].clone() for t in
                                (g.means, g.quats, g.scales, g.opacities, g.sh, g.valid)))
             path = self.spill / f"chunk_{k:05d}.pt"

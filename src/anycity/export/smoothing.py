@@ -54,9 +54,9 @@ def sampling_rate(means: Tensor, w2c: Tensor, K: Tensor, width: int, height: int
     return _best_camera(means, w2c, K, width, height)[0]
 
 
-def _footprint_jacobian(means: Tensor, w2c: Tensor, K: Tensor) -> Tensor:
-    """``[B, N, 2, 3]`` EWA Jacobian times rotation, world -> pixels, of each centre in its camera
-    (``w2c [B, N, 4, 4]``, ``K [B, N, 3, 3]``: one camera per Gaussian)."""
+def footprint_jacobian(means: Tensor, w2c: Tensor, K: Tensor) -> Tensor:
+    """``[..., 2, 3]`` EWA Jacobian times rotation, world -> pixels, of each centre ``means [..., 3]`` in its camera
+    (``w2c [..., 4, 4]``, ``K [..., 3, 3]``: one camera per Gaussian; ``T Σ Tᵀ`` is its 2-D covariance)."""
     R = w2c[..., :3, :3]
     p = (R @ means[..., None])[..., 0] + w2c[..., :3, 3]
     z = p[..., 2].clamp_min(1e-6)
@@ -82,7 +82,7 @@ def smooth_3d(g: Gaussians, w2c: Tensor, K: Tensor, width: int, height: int,
     for s in range(0, means.shape[1], CHUNK):  # a few 3x3 matrices per Gaussian: bounded for 64-view scenes
         sl = slice(s, s + CHUNK)
         take = cam[:, sl, None, None].expand(-1, -1, 4, 4)
-        T = _footprint_jacobian(means[:, sl], w2c.float().gather(1, take), K.float().gather(1, take[..., :3, :3]))
+        T = footprint_jacobian(means[:, sl], w2c.float().gather(1, take), K.float().gather(1, take[..., :3, :3]))
         R = quat_to_rotmat(g.quats[:, sl].float())
         before = T @ (R * var[:, sl, None, :]) @ R.transpose(-1, -2) @ T.transpose(-1, -2) + EPS2D * eye
         after = before + filt[:, sl, None, None] * (T @ T.transpose(-1, -2))

@@ -12,12 +12,13 @@ from anycity.city import apply_sim3, plan_chunks, w2c_to_world
 from anycity.city.align import sim3_parts
 from anycity.city.oracle import orbit_scene, random_sim3
 from anycity.export import load_ply, load_ply_extras
+from anycity.export.provenance import summary
 from anycity.geometry.projection import unproject_depth
 from anycity.lit.datamodule import AerialDataModule
 from anycity.structures import Gaussians, RenderOutput
 
 
-def test_photo_folder_chunks_merge_into_one_scene(tmp_path):
+def test_photo_folder_chunks_merge_into_one_scene(tmp_path, capsys):
     photos = tmp_path / "city"
     photos.mkdir()
     n, h, w = 10, 8, 8
@@ -64,6 +65,11 @@ def test_photo_folder_chunks_merge_into_one_scene(tmp_path):
     extras = load_ply_extras(out / "scene.ply")
     assert set(extras) == {"obs_views", "completion"} and len(extras["obs_views"]) == n * h * w
     assert extras["obs_views"].min() >= 1 and extras["obs_views"].max() >= 2 and extras["completion"].max() == 0
+    # the printed shares are those of the Gaussians written (each photo's from the chunk that owns it)
+    share = summary({k: torch.from_numpy(v) for k, v in extras.items()})
+    assert (f"city: {share['supported']:.0%} of Gaussians observation-supported (>= 2 views of their chunk, kept), "
+            f"{share['completed']:.0%} completed by Stage II, {share['unsupported']:.0%} seen by < 2 views of their "
+            f"chunk") in capsys.readouterr().out
     merged = load_ply(out / "scene.ply")
     assert merged.scales.min() > 0.01 * min(rep["chunks"][k]["scale_to_world"] for k in range(4)) * (1 - 1e-4)
 
