@@ -114,11 +114,10 @@ def main() -> None:
             return
     import importlib
 
+    from anycity.lit.checkpoint_io import safe_torch_load
     from anycity.lit.datamodule import AerialDataModule
 
-    ckpt = torch.load(args.ckpt, map_location="cpu", weights_only=False, mmap=True)
-    path = ckpt["hyper_parameters"].get("_class_path", "anycity.lit.RefinementModule")
-    del ckpt
+    path = safe_torch_load(args.ckpt)["hyper_parameters"].get("_class_path", "anycity.lit.RefinementModule")
     mod, _, name = path.rpartition(".")
     module = getattr(importlib.import_module(mod), name).load_from_checkpoint(args.ckpt, map_location="cpu").eval()
     dm = AerialDataModule(root=args.data, image_size=(48, 48), patch_size=8, num_context=4, num_targets=2,
