@@ -65,7 +65,7 @@ def headroom(module, dm) -> None:
         scaffold = module.net(ctx.images, refine=False)
         g_cam, w2c_gt = placed_with_gt(module, scaffold, ctx)
         g_geo, _ = placed_with_gt(module, scaffold, ctx, ctx.depth)
-        variants = {"scaffold": (out["scaffold_gaussians"], out["w2c"], out["K"]),
+        variants = {"scaffold": (out["scaffold_gaussians"], *module.variant_cameras(out, "scaffold")),
                     "refined": (out["gaussians"], out["w2c"], out["K"]),
                     "GT cameras": (g_cam, w2c_gt, ctx.K), "GT cameras + depth": (g_geo, w2c_gt, ctx.K)}
         for name, (g, w2c, K) in variants.items():

@@ -124,8 +124,9 @@ class AnyCityModule(pl.LightningModule):
         from anycity.metrics.regions import lpips_or_none
 
         lpips, self.lpips_status = lpips_or_none()  # one line, printed when testing starts
-        self.val_metrics = EvalMetrics(self.variants)
-        self.test_metrics = EvalMetrics(self.variants, lpips)
+        moved = "refined" in self.variants and self.net.cfg.refine_cameras  # the scaffold's cameras are scored too
+        self.val_metrics = EvalMetrics(self.variants, scaffold_pose=moved)
+        self.test_metrics = EvalMetrics(self.variants, lpips, scaffold_pose=moved)
         # Called here, Lightning collects the arguments of every __init__ on the stack: the subclass's own and
         # those it passes on in **base, so checkpoints and LightningCLI see one flat set of hyperparameters.
         self.save_hyperparameters()
@@ -198,6 +199,14 @@ class AnyCityModule(pl.LightningModule):
             variants["refined"] = out["gaussians"]
         return out, variants
 
+    @staticmethod
+    def variant_cameras(out: dict[str, Any], name: str) -> tuple[Tensor, Tensor]:
+        """``(w2c, K)`` that variant ``name``'s Gaussians were placed with: the scaffold's cameras for
+        ``"scaffold"``, the network's final ones (re-placed in Stage II with ``net.refine_cameras``) otherwise."""
+        if name == "scaffold":
+            return out.get("scaffold_w2c", out["w2c"]), out.get("scaffold_K", out["K"])
+        return out["w2c"], out["K"]
+
     @torch.no_grad()
     def evaluate(self, batch: ViewBatch, metrics: EvalMetrics, want_preview: bool, protocols: tuple[str, ...] = (
             "feedforward",)) -> dict[str, Any] | None:
@@ -217,6 +226,8 @@ class AnyCityModule(pl.LightningModule):
         metrics.update("baseline", mean_colour_baseline(ctx.images, tuple(tgt.images.shape)).flatten(0, 1), gt,
                        regions)
         metrics.update_pose(out["w2c"], ctx.w2c)
+        if out.get("scaffold_w2c") is not None and out["scaffold_w2c"] is not out["w2c"]:
+            metrics.update_pose(out["scaffold_w2c"], ctx.w2c, "scaffold")
         if ctx.index is not None and tgt.index is not None and ctx.hw == tgt.hw:
             metrics.update("nearest", nearest_view_reference(ctx.images, ctx.index, tgt.index).flatten(0, 1), gt,
                            regions)
@@ -224,7 +235,7 @@ class AnyCityModule(pl.LightningModule):
         hp = self.hparams
         joint = P.joint(self, ctx, tgt)[0] if "joint" in protocols else None
         for name, g in variants.items():
-            scene = P.Scene(g, out["w2c"], out["K"])
+            scene = P.Scene(g, *self.variant_cameras(out, name))
             r, s = P.feedforward(self, scene, ctx, cams)
             metrics.update(name, r.rgb.flatten(0, 1), gt, regions)
             if tgt.depth is not None:

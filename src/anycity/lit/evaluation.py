@@ -236,14 +236,15 @@ class EvalMetrics(nn.Module):
     ``region_weak`` (the regions' share of target pixels); ``psnr_baseline`` and ``psnr_nearest`` (+ ``_obs`` /
     ``_weak``) of the reference renders; ``abs_rel_<v>``, ``delta1_<v>`` (feed-forward depth); ``rre``, ``rte``,
     ``pose_auc30`` of the network's context cameras over all view pairs (degrees; AUC@30 in [0, 1]) and
-    ``rre_<v>_camrefine`` etc. after the context-camera refinement.
+    ``rre_<v>_camrefine`` etc. after the context-camera refinement; with ``scaffold_pose`` (Stage II re-places the
+    cameras, ``net.refine_cameras``) also ``rre_scaffold`` etc. of the scaffold's own cameras.
 
     ``update(name, pred, target, regions)`` takes ``[M, 3, H, W]`` images (``name`` = ``<v><p>``, ``baseline`` or
     ``nearest``) and optionally the ``(observed, weak)`` masks ``[B, T, 1, H, W]``. ``items()`` yields the metrics
     that were updated, ready for ``LightningModule.log``.
     """
 
-    def __init__(self, variants: tuple[str, ...], lpips=None) -> None:
+    def __init__(self, variants: tuple[str, ...], lpips=None, scaffold_pose: bool = False) -> None:
         super().__init__()
         self.variants = variants
         # torchmetrics LPIPS or None (:func:`anycity.metrics.regions.lpips_or_none`); not registered as a submodule, so
@@ -266,7 +267,7 @@ class EvalMetrics(nn.Module):
         for v in variants:
             m[f"abs_rel_{v}"] = MeanMetric()
             m[f"delta1_{v}"] = MeanMetric()
-        for suffix in ("", *(f"_{v}_camrefine" for v in variants)):
+        for suffix in ("", *(f"_{v}_camrefine" for v in variants), *(("_scaffold",) if scaffold_pose else ())):
             for name in ("rre", "rte", "pose_auc30"):
                 m[f"{name}{suffix}"] = MeanMetric()
         self.metrics = nn.ModuleDict(m)

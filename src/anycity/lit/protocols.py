@@ -104,9 +104,10 @@ def joint(module, context: Views, target: Views) -> tuple[RenderOutput, Tensor]:
         raise ValueError(f"joint protocol: targets {target.hw} must have the context size {context.hw}")
     v = context.num_views
     out, variants = module.predict_variants(torch.cat([context.images, target.images], dim=1))
-    w2c_t, K_t = out["w2c"][:, v:], out["K"][:, v:]
     renders = {}
     for name, g in variants.items():
+        w2c, K = module.variant_cameras(out, name)
+        w2c_t, K_t = w2c[:, v:], K[:, v:]
         if g.valid is not None:
             raise ValueError("joint protocol: needs the network's pixel-aligned Gaussians (net.voxel_size=None) to "
                              "tell the context views' Gaussians from the targets'")

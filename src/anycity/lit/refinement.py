@@ -9,13 +9,15 @@ from __future__ import annotations
 
 from dataclasses import fields, replace
 from pathlib import Path
+from typing import Literal
 
 import torch
 from torch import Tensor
 
 from anycity.geometry import camera_centers
+from anycity.geometry.pose_encoding import extri_intri_to_pose_encoding
 from anycity.lit.base import AnyCityModule
-from anycity.losses import d2s_loss, preservation_loss, regularizer_loss, rgb_loss
+from anycity.losses import camera_loss, d2s_loss, preservation_loss, regularizer_loss, rgb_loss
 from anycity.models.anycity import SCAFFOLD_PREFIXES
 from anycity.structures import RenderOutput, ViewBatch, Views
 
@@ -59,6 +61,9 @@ class RefinementModule(AnyCityModule):
         gate_mode: gate regulariser, "entropy" or "mean".
         d2s_views: beyond the paper (which renders all 12): how many of the dense cameras ``L_d2s`` renders, those
             farthest from every context camera (weak content lives in views far from the context); None = all.
+        camera_weight: beyond the paper (whose Stage II keeps the scaffold's cameras): weight of Stage I's
+            pose-encoding loss on the cameras Stage II re-places (``net.refine_cameras``); 0 = off, the paper's.
+        camera_loss_type: "l1" or "huber", as in Stage I.
         freeze_scaffold: freeze ``net.scaffold_parameters()`` (Stage II default).
         **base: see :class:`anycity.lit.base.AnyCityModule`.
     """
@@ -76,12 +81,17 @@ class RefinementModule(AnyCityModule):
         context_rgb_weight: float = 1.0,
         gate_mode: str = "entropy",
         d2s_views: int | None = None,
+        camera_weight: float = 0.0,
+        camera_loss_type: Literal["l1", "huber"] = "l1",
         freeze_scaffold: bool = True,
         **base,
     ) -> None:
         super().__init__(lr=lr, **base)  # also records every argument, these and the base's, as hparams
         if gate_mode not in ("entropy", "mean"):
             raise ValueError(f"model.gate_mode: expected 'entropy' or 'mean', got {gate_mode!r}")
+        if camera_weight > 0 and not self.net.cfg.refine_cameras:
+            raise ValueError("model.camera_weight: Stage II keeps the scaffold's cameras unless "
+                             "model.net.refine_cameras is true; set it, or camera_weight: 0")
         if freeze_scaffold:
             for p in self.net.scaffold_parameters():
                 p.requires_grad_(False)
@@ -159,10 +169,15 @@ class RefinementModule(AnyCityModule):
                 terms["rgb_ctx"] = rgb_loss(r_ctx.rgb, ctx.images, ssim_weight=hp.ssim_weight)["total"]
                 loss = loss + hp.context_rgb_weight * terms["rgb_ctx"]
             if hp.pres_weight > 0:
-                with torch.no_grad():
-                    r_scaf = self.render(scaffold.detach(), out["w2c"], out["K"], ctx.hw, ctx.images)
+                with torch.no_grad():  # each at its own cameras: both are renders of the context views
+                    r_scaf = self.render(scaffold.detach(), *self.variant_cameras(out, "scaffold"), ctx.hw,
+                                         ctx.images)
                 terms["pres"] = preservation_loss(r_ctx, r_scaf)["total"]
                 loss = loss + hp.pres_weight * terms["pres"]
+        if hp.camera_weight > 0:
+            gt_enc = extri_intri_to_pose_encoding(ctx.w2c, ctx.K, ctx.hw, self.net.cfg.focal_decode)
+            terms["cam"] = camera_loss(out["pose_enc_list"], gt_enc, loss_type=hp.camera_loss_type)["total"]
+            loss = loss + hp.camera_weight * terms["cam"]
         if hp.d2s_weight > 0 and dense is not None:
             dense = far_views(dense, ctx, hp.d2s_views)
             with torch.no_grad():

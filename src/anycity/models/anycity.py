@@ -24,7 +24,9 @@ class AnyCityNet(nn.Module):
 
     Output keys (world frame = first camera, OpenCV, normalised scene units):
         ``pose_enc [B, V, 9]`` (t, quat xyzw, fov_h, fov_w) and ``pose_enc_list`` (one per camera iteration);
-        ``w2c [B, V, 4, 4]``, ``K [B, V, 3, 3]`` (pixels of the input images);
+        ``w2c [B, V, 4, 4]``, ``K [B, V, 3, 3]`` (pixels of the input images): the final cameras, re-placed by
+        Stage II with ``cfg.refine_cameras``; ``scaffold_w2c``, ``scaffold_K``: the scaffold's (the same tensors
+        otherwise);
         ``depth [B, V, 1, H, W]`` (z-depth), ``depth_conf [B, V, 1, H, W]`` (>= 1): decoded from Z_final when
         ``refine_depth`` and refining, else the scaffold's; ``scaffold_depth``: the scaffold's depth;
         ``offset [B, V, 3, H, W]``: the final centre offsets (depth units, camera frame);
@@ -68,7 +70,8 @@ class AnyCityNet(nn.Module):
                 self.video_prior.add_lora(cfg.wan_lora_rank)
             self.completion = CompletionBranch(
                 dim2, cfg.completion_dim, cfg.completion_tokens, cfg.completion_heads, cfg.resolved_inject_layers(),
-                self.head_layers, self.video_prior.out_dim if self.video_prior is not None else None)
+                self.head_layers, self.video_prior.out_dim if self.video_prior is not None else None,
+                camera=cfg.refine_cameras)
 
     # -- parameter groups ------------------------------------------------------------------------------------
     def scaffold_parameters(self) -> Iterator[nn.Parameter]:
@@ -126,20 +129,27 @@ class AnyCityNet(nn.Module):
             means = pixel_centres(depth, K, w2c, offset)
             scaffold = self._gaussians(raw, means, depth, K, images)
             final = dict(gaussians=scaffold, delta=None, gates=None, depth=depth, depth_conf=depth_conf, raw=raw,
-                         offset=offset, pixel_means=means)
+                         offset=offset, pixel_means=means, pose_enc_list=pose_enc_list, w2c=w2c, K=K)
             if refine:
                 # Z_final = Z_geo + dZ goes through the whole decoder: the Gaussian head (attributes and centre
                 # offsets) and, with cfg.refine_depth, the depth head, so Stage II can move geometry
                 vid = self.video_prior(images) if self.video_prior is not None else None
-                delta, gates = self.completion(tokens, psi, vid)
+                delta, gates, camera_delta = self.completion(tokens, psi, vid)
+                pel, w2c_f, K_f = pose_enc_list, w2c, K
+                if camera_delta is not None:  # cfg.refine_cameras: the camera head re-reads the last layer
+                    last = tokens[-1]
+                    last = torch.cat([last[:, :, :1] + camera_delta[:, :, None], last[:, :, 1:]], dim=2)
+                    pel = self.camera_head([*tokens[:-1], last], self.cfg.camera_iterations)
+                    w2c_f, K_f = pose_encoding_to_extri_intri(pel[-1], (h, w), self.cfg.focal_decode)
                 d, dc = depth, depth_conf
                 if self.cfg.refine_depth:
                     d, dc = self.depth_head(tokens, images, psi, delta=delta)
                 r, o = self.gaussian_head(tokens, images, psi, delta=delta)
-                m = pixel_centres(d, K, w2c, o)
-                final = dict(gaussians=self._gaussians(r, m, d, K, images), delta=delta, gates=gates, depth=d,
-                             depth_conf=dc, raw=r, offset=o, pixel_means=m)
-        return {"pose_enc": pose_enc_list[-1], "pose_enc_list": pose_enc_list, "w2c": w2c, "K": K,
+                m = pixel_centres(d, K_f, w2c_f, o)
+                final = dict(gaussians=self._gaussians(r, m, d, K_f, images), delta=delta, gates=gates, depth=d,
+                             depth_conf=dc, raw=r, offset=o, pixel_means=m, pose_enc_list=pel, w2c=w2c_f, K=K_f)
+        return {"pose_enc": final["pose_enc_list"][-1], "pose_enc_list": final["pose_enc_list"], "w2c": final["w2c"],
+                "K": final["K"], "scaffold_w2c": w2c, "scaffold_K": K,
                 "depth": final["depth"], "depth_conf": final["depth_conf"], "scaffold_depth": depth,
                 "offset": final["offset"], "pixel_means": final["pixel_means"], "scaffold_pixel_means": means,
                 "gaussians": final["gaussians"], "scaffold_gaussians": scaffold, "raw_gaussians": final["raw"],

@@ -6,6 +6,9 @@ At each injection layer l (paper {4, 7, 11, 23} of 24):
 ``Z = Z + FFN(Z)``. Then ``P_Δ``: for each head layer j the patch tokens of ``Z_geo^j`` query the completion
 tokens and a zero-initialised linear maps the result to the token width, so ``Z_final = Z_geo + ΔZ`` equals
 ``Z_geo`` at initialisation (Stage II starts exactly at the scaffold).
+
+With ``camera=True`` (beyond the paper) the camera tokens of the last layer query the completion tokens the same
+way and a zero-initialised linear gives their residual ``ΔZ_cam``, so the frozen camera head can re-place the views.
 """
 
 from __future__ import annotations
@@ -23,10 +26,10 @@ def scale_layers(layers: tuple[int, ...], depth: int, ref_depth: int = 24) -> tu
 
 class CompletionBranch(nn.Module):
     """Args: geo_dim (2C of the aggregator), dim, num_tokens M, inject_layers, head_layers (those the Gaussian
-    head reads), video_dim (None: no video cross-attention)."""
+    head reads), video_dim (None: no video cross-attention), camera (also a residual for the camera tokens)."""
 
     def __init__(self, geo_dim: int, dim: int, num_tokens: int, num_heads: int, inject_layers: tuple[int, ...],
-                 head_layers: tuple[int, ...], video_dim: int | None = None):
+                 head_layers: tuple[int, ...], video_dim: int | None = None, camera: bool = False):
         super().__init__()
         self.inject_layers, self.head_layers = tuple(inject_layers), tuple(head_layers)
         self.tokens = nn.Parameter(torch.randn(1, num_tokens, dim) * 0.02)
@@ -39,16 +42,20 @@ class CompletionBranch(nn.Module):
         self.ffn = nn.ModuleList(Mlp(dim, 2 * dim) for _ in range(n))
         self.delta_attn = nn.ModuleList(CrossAttention(geo_dim, dim, dim, num_heads) for _ in self.head_layers)
         self.delta_proj = nn.ModuleList(nn.Linear(dim, geo_dim) for _ in self.head_layers)
-        for lin in self.delta_proj:
+        # built last, so that turning it on leaves every other module's random init unchanged
+        self.camera_attn = CrossAttention(geo_dim, dim, dim, num_heads) if camera else None
+        self.camera_proj = nn.Linear(dim, geo_dim) if camera else None
+        for lin in [*self.delta_proj, *([self.camera_proj] if camera else [])]:
             nn.init.zeros_(lin.weight)
             nn.init.zeros_(lin.bias)
 
     def forward(self, tokens_list: list[Tensor | None], patch_start_idx: int,
-                video_tokens: Tensor | None = None) -> tuple[list[Tensor], list[Tensor] | None]:
+                video_tokens: Tensor | None = None) -> tuple[list[Tensor], list[Tensor] | None, Tensor | None]:
         """``tokens_list``: aggregator outputs ``[B, V, T, 2C]``; ``video_tokens [B, L, D_vid]`` or None.
 
-        Returns ``delta``: one ``[B, V, P, 2C]`` residual per head layer (P patch tokens), and ``gates``: one
-        ``[B, M, 1]`` per injection layer (None without video).
+        Returns ``delta``: one ``[B, V, P, 2C]`` residual per head layer (P patch tokens); ``gates``: one
+        ``[B, M, 1]`` per injection layer (None without video); ``camera_delta [B, V, 2C]``: the residual of the
+        last layer's camera tokens (index 0), or None without ``camera``.
         """
         b = tokens_list[self.head_layers[0]].shape[0]
         z = self.tokens.expand(b, -1, -1)
@@ -66,4 +73,7 @@ class CompletionBranch(nn.Module):
             patches = tokens_list[layer][:, :, patch_start_idx:]
             q = patches.flatten(1, 2)
             delta.append(self.delta_proj[j](self.delta_attn[j](q, z)).view_as(patches))
-        return delta, gates
+        camera_delta = None
+        if self.camera_attn is not None:
+            camera_delta = self.camera_proj(self.camera_attn(tokens_list[-1][:, :, 0], z))
+        return delta, gates, camera_delta

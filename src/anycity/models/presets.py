@@ -74,6 +74,10 @@ class NetConfig:
     # Stage II: the depth head also decodes Z_final = Z_geo + dZ (else only the Gaussian head does, centre offsets
     # included); measured on the quickstart, see README "Stage II"
     refine_depth: bool = True
+    # Beyond the paper (whose cameras stay the scaffold's): the completion residual also reaches the camera token the
+    # frozen camera head reads, so Stage II can re-place the views; train it with RefinementModule(camera_weight>0).
+    # Measured on the quickstart in docs/stage2.md
+    refine_cameras: bool = False
 
     def resolved_head_layers(self) -> tuple[int, ...]:
         return tuple(self.head_layers) if self.head_layers else scale_layers(VGGT_HEAD_LAYERS, self.depth)

@@ -226,3 +226,44 @@ def test_presets_trained_from_scratch_use_a_leaky_head_and_vggt_1b_keeps_relu():
     with torch.device("meta"):
         assert isinstance(build_network("vggt-1b", completion=False).gaussian_head.scratch.output_conv2[1],
                           torch.nn.ReLU)
+
+
+def test_refine_cameras_starts_at_the_scaffold_cameras_and_leaves_every_other_init_unchanged():
+    """``refine_cameras`` (beyond the paper) adds a zero-initialised camera-token residual built after every other
+    module: the same seed gives the same weights elsewhere, and before training the final cameras and Gaussians are
+    the scaffold's."""
+    torch.manual_seed(0)
+    plain = build_network("tiny").state_dict()
+    torch.manual_seed(0)
+    net = build_network("tiny", refine_cameras=True)
+    own = net.state_dict()
+    extra = {k for k in own if k not in plain}
+    assert extra and all(k.startswith(("completion.camera_attn.", "completion.camera_proj.")) for k in extra)
+    assert all(torch.equal(own[k], v) for k, v in plain.items())
+    out = net(torch.rand(1, 3, 3, 32, 32), refine=True)
+    torch.testing.assert_close(out["w2c"], out["scaffold_w2c"])
+    torch.testing.assert_close(out["K"], out["scaffold_K"])
+    torch.testing.assert_close(out["gaussians"].means, out["scaffold_gaussians"].means)
+
+
+def test_camera_residual_re_places_the_views_and_trains_through_the_frozen_camera_head():
+    torch.manual_seed(0)
+    net = build_network("tiny", refine_cameras=True)
+    net.freeze_scaffold()
+    with torch.no_grad():
+        net.completion.camera_proj.bias.normal_(0, 0.5)
+    out = net(torch.rand(1, 3, 3, 32, 32), refine=True)
+    assert (out["w2c"] - out["scaffold_w2c"]).abs().amax() > 1e-4
+    # the refined Gaussians follow the re-placed cameras; the scaffold's keep the scaffold's
+    from anycity.models.gaussians import pixel_centres
+
+    torch.testing.assert_close(out["pixel_means"], pixel_centres(out["depth"], out["K"], out["w2c"], out["offset"]))
+    torch.testing.assert_close(out["scaffold_pixel_means"],
+                               pixel_centres(out["scaffold_depth"], out["scaffold_K"], out["scaffold_w2c"]))
+    out["pose_enc"].sum().backward()
+    assert net.completion.camera_proj.weight.grad.abs().sum() > 0
+    assert all(p.grad is None for p in net.camera_head.parameters())
+    # off (the paper's): the final cameras are the scaffold's tensors, and the branch has no camera residual
+    net = build_network("tiny")
+    out = net(torch.rand(1, 2, 3, 32, 32), refine=True)
+    assert out["w2c"] is out["scaffold_w2c"] and net.completion.camera_proj is None
