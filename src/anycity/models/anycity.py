@@ -71,7 +71,7 @@ class AnyCityNet(nn.Module):
             self.completion = CompletionBranch(
                 dim2, cfg.completion_dim, cfg.completion_tokens, cfg.completion_heads, cfg.resolved_inject_layers(),
                 self.head_layers, self.video_prior.out_dim if self.video_prior is not None else None,
-                camera=cfg.refine_cameras)
+                camera=cfg.refine_cameras, camera_video=cfg.camera_video)
 
     # -- parameter groups ------------------------------------------------------------------------------------
     def scaffold_parameters(self) -> Iterator[nn.Parameter]:

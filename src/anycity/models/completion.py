@@ -9,6 +9,9 @@ tokens and a zero-initialised linear maps the result to the token width, so ``Z_
 
 With ``camera=True`` (beyond the paper) the camera tokens of the last layer query the completion tokens the same
 way and a zero-initialised linear gives their residual ``ΔZ_cam``, so the frozen camera head can re-place the views.
+With ``camera_video=True`` each view's residual also reads that view's own video-prior features (its frame's
+tokens, pooled): a video model knows where a frame sits in the clip, which the scaffold, equivariant over views
+1..V-1, cannot tell, and on a flight path the order carries the relative pose.
 """
 
 from __future__ import annotations
@@ -26,10 +29,12 @@ def scale_layers(layers: tuple[int, ...], depth: int, ref_depth: int = 24) -> tu
 
 class CompletionBranch(nn.Module):
     """Args: geo_dim (2C of the aggregator), dim, num_tokens M, inject_layers, head_layers (those the Gaussian
-    head reads), video_dim (None: no video cross-attention), camera (also a residual for the camera tokens)."""
+    head reads), video_dim (None: no video cross-attention), camera (also a residual for the camera tokens),
+    camera_video (that residual also reads each view's pooled video features; needs camera and video_dim)."""
 
     def __init__(self, geo_dim: int, dim: int, num_tokens: int, num_heads: int, inject_layers: tuple[int, ...],
-                 head_layers: tuple[int, ...], video_dim: int | None = None, camera: bool = False):
+                 head_layers: tuple[int, ...], video_dim: int | None = None, camera: bool = False,
+                 camera_video: bool = False):
         super().__init__()
         self.inject_layers, self.head_layers = tuple(inject_layers), tuple(head_layers)
         self.tokens = nn.Parameter(torch.randn(1, num_tokens, dim) * 0.02)
@@ -45,6 +50,10 @@ class CompletionBranch(nn.Module):
         # built last, so that turning it on leaves every other module's random init unchanged
         self.camera_attn = CrossAttention(geo_dim, dim, dim, num_heads) if camera else None
         self.camera_proj = nn.Linear(dim, geo_dim) if camera else None
+        if camera_video and not (camera and video_dim):
+            raise ValueError("camera_video: the camera residual reads the video prior; it needs refine_cameras and a "
+                             "video prior (video_prior != 'none')")
+        self.camera_vid = nn.Sequential(nn.LayerNorm(dim), Mlp(dim, 2 * dim, dim)) if camera_video else None
         for lin in [*self.delta_proj, *([self.camera_proj] if camera else [])]:
             nn.init.zeros_(lin.weight)
             nn.init.zeros_(lin.bias)
@@ -75,5 +84,11 @@ class CompletionBranch(nn.Module):
             delta.append(self.delta_proj[j](self.delta_attn[j](q, z)).view_as(patches))
         camera_delta = None
         if self.camera_attn is not None:
-            camera_delta = self.camera_proj(self.camera_attn(tokens_list[-1][:, :, 0], z))
+            cam = self.camera_attn(tokens_list[-1][:, :, 0], z)  # [B, V, dim]
+            if self.camera_vid is not None and vid is not None:
+                v = cam.shape[1]
+                if vid.shape[1] % v:
+                    raise ValueError(f"camera_video: {vid.shape[1]} video tokens do not split into {v} frames")
+                cam = cam + self.camera_vid(vid.unflatten(1, (v, -1)).mean(2))  # each view's own frame
+            camera_delta = self.camera_proj(cam)
         return delta, gates, camera_delta

@@ -78,6 +78,9 @@ class NetConfig:
     # frozen camera head reads, so Stage II can re-place the views; train it with RefinementModule(camera_weight>0).
     # Measured on the quickstart in docs/stage2.md
     refine_cameras: bool = False
+    # Beyond the paper, with refine_cameras: the camera residual of each view also reads that view's own video-prior
+    # features, which know the frame's place in the clip (the scaffold is equivariant over views 1..V-1)
+    camera_video: bool = False
 
     def resolved_head_layers(self) -> tuple[int, ...]:
         return tuple(self.head_layers) if self.head_layers else scale_layers(VGGT_HEAD_LAYERS, self.depth)

@@ -267,3 +267,39 @@ def test_camera_residual_re_places_the_views_and_trains_through_the_frozen_camer
     net = build_network("tiny")
     out = net(torch.rand(1, 2, 3, 32, 32), refine=True)
     assert out["w2c"] is out["scaffold_w2c"] and net.completion.camera_proj is None
+
+
+def test_camera_video_gives_each_view_a_residual_that_knows_its_place_in_the_clip():
+    """``camera_video`` (beyond the paper): each view's camera residual also reads its own frame's video-prior
+    features. The scaffold is equivariant over views 1..V-1, which is why its camera head falls back to one mean
+    relative pose: three identical views get three identical cameras. The video prior knows each frame's position
+    in the clip, so the re-placed cameras of those three views differ; without ``camera_video`` they do not."""
+    torch.manual_seed(0)
+    plain = build_network("tiny", refine_cameras=True).state_dict()
+    torch.manual_seed(0)
+    net = build_network("tiny", refine_cameras=True, camera_video=True)
+    own = net.state_dict()
+    assert {k for k in own if k not in plain} and all(k.startswith("completion.camera_vid.") for k in own
+                                                      if k not in plain)
+    assert all(torch.equal(own[k], v) for k, v in plain.items())
+    images = torch.rand(1, 2, 3, 32, 32)[:, [0, 1, 1, 1]]  # views 1, 2 and 3 are the same image
+    out = net(images, refine=True)
+    torch.testing.assert_close(out["w2c"], out["scaffold_w2c"])  # zero-initialised: starts at the scaffold
+
+    def spread(net):  # how far apart the re-placed cameras of the three identical views are
+        with torch.no_grad():
+            net.completion.camera_proj.weight.normal_(0, 0.5)
+        out = net(images, refine=True)
+        same = out["scaffold_w2c"][:, 1:]
+        torch.testing.assert_close(same, same[:, :1].expand_as(same), atol=1e-5, rtol=1e-5)
+        return (out["w2c"][:, 2:] - out["w2c"][:, 1:2]).abs().amax().item(), out
+
+    moved, out = spread(net)
+    assert moved > 1e-3
+    torch.manual_seed(0)
+    assert spread(build_network("tiny", refine_cameras=True))[0] < 1e-5
+    out["pose_enc"].sum().backward()
+    assert net.completion.camera_vid[1].fc2.weight.grad.abs().sum() > 0
+    for bad in ({"camera_video": True}, {"camera_video": True, "refine_cameras": True, "video_prior": "none"}):
+        with pytest.raises(ValueError, match="camera_video"):
+            build_network("tiny", **bad)
