@@ -2,7 +2,8 @@
 
 ``L = L_rgb + w_d2s * L_d2s + w_pres * L_pres + w_reg * L_reg``. The teacher is the same network's scaffold
 path run on the dense views under ``no_grad``; teacher and student render the same (ground-truth) dense
-cameras, each mapped into its own predicted frame, and depths are compared in ground-truth units.
+cameras, each mapped into its own predicted frame, and depths are compared up to a per-scene scale
+(``d2s_depth_scale``).
 """
 
 from __future__ import annotations
@@ -61,6 +62,10 @@ class RefinementModule(AnyCityModule):
         gate_mode: gate regulariser, "entropy" or "mean".
         d2s_views: beyond the paper (which renders all 12): how many of the dense cameras ``L_d2s`` renders, those
             farthest from every context camera (weak content lives in views far from the context); None = all.
+        d2s_depth_scale: how ``L_d2s`` reconciles the teacher's and the student's depth scales (the paper does not
+            say): "median" rescales the teacher's depth per scene by the median student/teacher ratio, so the term
+            teaches shape only; "cameras" converts each to ground-truth units by the scale of its own camera fit
+            (``eval_align``), which with ``sim3`` pulls the student's depth off its cameras (docs/stage2.md).
         camera_weight: beyond the paper (whose Stage II keeps the scaffold's cameras): weight of Stage I's
             pose-encoding loss on the cameras Stage II re-places (``net.refine_cameras``); 0 = off, the paper's.
         camera_loss_type: "l1" or "huber", as in Stage I.
@@ -81,6 +86,7 @@ class RefinementModule(AnyCityModule):
         context_rgb_weight: float = 1.0,
         gate_mode: str = "entropy",
         d2s_views: int | None = None,
+        d2s_depth_scale: Literal["median", "cameras"] = "median",
         camera_weight: float = 0.0,
         camera_loss_type: Literal["l1", "huber"] = "l1",
         freeze_scaffold: bool = True,
@@ -89,6 +95,8 @@ class RefinementModule(AnyCityModule):
         super().__init__(lr=lr, **base)  # also records every argument, these and the base's, as hparams
         if gate_mode not in ("entropy", "mean"):
             raise ValueError(f"model.gate_mode: expected 'entropy' or 'mean', got {gate_mode!r}")
+        if d2s_depth_scale not in ("median", "cameras"):
+            raise ValueError(f"model.d2s_depth_scale: expected 'median' or 'cameras', got {d2s_depth_scale!r}")
         if camera_weight > 0 and not self.net.cfg.refine_cameras:
             raise ValueError("model.camera_weight: Stage II keeps the scaffold's cameras unless "
                              "model.net.refine_cameras is true; set it, or camera_weight: 0")
@@ -187,7 +195,7 @@ class RefinementModule(AnyCityModule):
                 teacher = _scaled(self.render(t_g, w2c_td, dense.K, dense.hw, ctx.images), s_t)
             w2c_sd, s_s = self.target_cameras(out["w2c"], ctx, dense)
             student = _scaled(self.render(final, w2c_sd, dense.K, dense.hw, ctx.images), s_s)
-            terms["d2s"] = d2s_loss(student, teacher)["total"]
+            terms["d2s"] = d2s_loss(student, teacher, scale_align=hp.d2s_depth_scale == "median")["total"]
             loss = loss + hp.d2s_weight * terms["d2s"]
         if hp.reg_weight > 0:
             terms["reg"] = regularizer_loss(out.get("delta"), out.get("gates"), final, scaffold,

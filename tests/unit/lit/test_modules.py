@@ -74,6 +74,26 @@ def test_refinement_rejects_missing_init_and_bad_gate_mode(tmp_path):
         m.setup("fit")
     with pytest.raises(ValueError, match="gate_mode"):
         RefinementModule(gate_mode="max")
+    with pytest.raises(ValueError, match="d2s_depth_scale"):
+        RefinementModule(d2s_depth_scale="gt")
+
+
+@pytest.mark.parametrize("option, aligned", [("median", True), ("cameras", False)])
+def test_d2s_depth_scale_reaches_the_loss(batch, monkeypatch, option, aligned):
+    import anycity.lit.refinement as refinement
+
+    seen = []
+    real = refinement.d2s_loss
+
+    def spy(student, teacher, **kw):
+        seen.append(kw.get("scale_align", True))
+        return real(student, teacher, **kw)
+
+    monkeypatch.setattr(refinement, "d2s_loss", spy)
+    torch.manual_seed(0)
+    m = _no_log(RefinementModule(d2s_depth_scale=option, render_backend="torch"))
+    assert torch.isfinite(m.training_step(batch, 0))
+    assert seen == [aligned]
 
 
 def test_context_mean_background_fills_uncovered_pixels(batch):

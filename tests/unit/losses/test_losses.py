@@ -175,6 +175,24 @@ def test_d2s_depth_only_where_teacher_valid_and_teacher_detached():
     assert teacher.rgb.grad is None and student.rgb.grad is not None
 
 
+def test_d2s_depth_teaches_shape_not_scale():
+    shape = (2, 3, 1, 4, 4)
+    g = torch.Generator().manual_seed(0)
+    t_depth = torch.rand(shape, generator=g) + 1.0
+    teacher = _render(torch.zeros(2, 3, 3, 4, 4), t_depth, torch.ones(shape))
+    scale = torch.tensor([2.0, 0.5]).view(2, 1, 1, 1, 1)  # the student's depth: the teacher's at another scale
+    student = _render(torch.zeros(2, 3, 3, 4, 4), (t_depth * scale).requires_grad_(), torch.ones(shape))
+    aligned = d2s_loss(student, teacher)
+    assert aligned["d2s_depth"].item() == pytest.approx(0.0, abs=1e-6)
+    aligned["total"].backward()
+    assert student.depth.grad.abs().max().item() == 0.0  # no pull on the student's scale
+    assert d2s_loss(student, teacher, scale_align=False)["d2s_depth"].item() > 0.3  # the unaligned term pulls it
+    bumped = t_depth * scale
+    bumped[0, 0, 0, 0, 0] += 1.0  # a shape error is still seen, in the student's units
+    student = _render(torch.zeros(2, 3, 3, 4, 4), bumped, torch.ones(shape))
+    assert d2s_loss(student, teacher)["d2s_depth"].item() == pytest.approx(1.0 / (2 * 3 * 16), rel=1e-5)
+
+
 def test_preservation_loss_known_value():
     shape = (1, 1, 1, 2, 2)
     final = _render(torch.ones(1, 1, 3, 2, 2), torch.full(shape, 3.0), torch.ones(shape))
