@@ -23,7 +23,7 @@ def d2s_loss(student: RenderOutput, teacher: RenderOutput, depth_weight: float =
     Depth is compared only where the teacher is valid (teacher alpha > ``alpha_threshold`` and depth > 0). With
     ``scale_align`` the teacher's depth is first rescaled, per scene, by the median ratio of the student's depth to
     it (no gradient), so the term teaches the depth's shape and never its scale. Teacher and student are separate
-    predictions (12 and 4 views) whose depth-to-camera scales differ; pulling the student's depth to the teacher's
+    predictions (e.g. 12 and 4 views) whose depth-to-camera scales differ; pulling the student's depth to the teacher's
     scale would pull it off its own cameras.
 
     Args:
