@@ -1,0 +1,115 @@
+"""scripts/stage2_tables.py: each row is its own Stage II run with its overrides, the tables come from the test
+figures, finished rows are reused and foreign ones refused."""
+
+import importlib.util
+import json
+import math
+from pathlib import Path
+
+import pytest
+
+from anycity.cli import build_cli
+
+SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "stage2_tables.py"
+
+
+def _script():
+    spec = importlib.util.spec_from_file_location("stage2_tables_script", SCRIPT)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.fixture(autouse=True)
+def _argv(monkeypatch):
+    monkeypatch.setattr("sys.argv", ["stage2_tables.py"])
+
+
+def _tiny(root, tmp_path):
+    every = tmp_path / "ckpt_every_2.yaml"
+    every.write_text("trainer:\n  callbacks:\n  - class_path: lightning.pytorch.callbacks.ModelCheckpoint\n"
+                     "    init_args: {save_last: true, save_top_k: 0, every_n_train_steps: 2}\n")
+    return ["--data.image_size", "[32, 32]", "--data.num_context", "2", "--data.num_targets", "1",
+            "--data.num_dense", "2", "--trainer.val_check_interval", "2", "--trainer.limit_val_batches", "1",
+            "--model.init_args.warmup_steps", "1", "--model.init_args.render_backend", "torch",
+            "--model.init_args.camera_refine_steps", "2", "--model.init_args.eval_pose_align_steps", "0"], every
+
+
+def test_rows_tables_reuse_and_refusal(tiny_shards, tmp_path, capsys):
+    extra, every = _tiny(tiny_shards, tmp_path)
+    s1 = tmp_path / "s1"
+    build_cli(["fit", "-c", "configs/quickstart.yaml", "-c", str(every), "--data.root", str(tiny_shards), *extra,
+               "--trainer.max_steps", "2", "--trainer.default_root_dir", str(s1),
+               "--trainer.logger.init_args.save_dir", str(s1)])
+    ckpt = s1 / "checkpoints" / "last.ckpt"
+    out = tmp_path / "tables"
+    argv = ["--stage1", str(ckpt), "--data", str(tiny_shards), "--out", str(out), "--steps", "2",
+            "--rows", "full,tokens,frozen_all",
+            "--configs", "configs/quickstart.yaml", "configs/quickstart_stage2.yaml", str(every), *extra]
+    mod = _script()
+    assert mod.main(argv) == 0
+
+    # the row's overrides reached its run
+    cfg = (out / "tokens" / "fit" / "config.yaml").read_text()
+    assert "video_prior: none" in cfg and "d2s_weight: 0" in cfg
+    assert "video_prior: none" not in (out / "full" / "fit" / "config.yaml").read_text()
+
+    res = json.loads((out / "tables.json").read_text())
+    assert set(res["rows"]) == {"scaffold", "full", "tokens"}
+    for name, fig in res["rows"].items():
+        for key in ("psnr_obs", "psnr_weak", "psnr_obs_camrefine", "psnr_weak_camrefine"):
+            assert math.isfinite(fig[key]), (name, key)
+    assert set(res["goal"]) == {"full"}
+    assert res["scaffold_spread_db"] == 0.0  # Stage II leaves the frozen scaffold's figures untouched
+    full = json.loads((out / "full" / "metrics.json").read_text())
+    assert res["rows"]["scaffold"] == full["scaffold"] and res["rows"]["full"] == full["refined"]
+    for protocol, sfx in (("feed-forward", ""), ("camrefine", "_camrefine")):
+        g = res["goal"]["full"][protocol]
+        d_weak = full["refined"][f"psnr_weak{sfx}"] - full["scaffold"][f"psnr_weak{sfx}"]
+        d_obs = full["refined"][f"psnr_obs{sfx}"] - full["scaffold"][f"psnr_obs{sfx}"]
+        assert g["weak_gain_db"] == pytest.approx(d_weak) and g["obs_gain_db"] == pytest.approx(d_obs)
+        assert g["reached"] == (d_weak >= 0.5 and d_obs >= -0.2)
+    md = (out / "tables.md").read_text()
+    assert "| + completion tokens (no prior, no D2S) | " in md and "| + D2S | not run: not in --rows |" in md
+    assert "frozen-all (its own Stage I) | not run: pass --frozen_all_stage1" in md
+
+    # a finished row is reused; one made with other settings is refused, naming its directory and the fix
+    stamp = (out / "full" / "metrics.json").stat().st_mtime_ns
+    capsys.readouterr()
+    assert mod.main(argv) == 0
+    assert "full: reusing" in capsys.readouterr().out
+    assert (out / "full" / "metrics.json").stat().st_mtime_ns == stamp
+    with pytest.raises(SystemExit, match=f"{out / 'full'} holds a run made with other settings.*delete"):
+        mod.main([*argv[:argv.index("--steps") + 1], "3", *argv[argv.index("--steps") + 2:]])
+
+
+def test_bad_rows_and_missing_checkpoint(tmp_path, capsys):
+    mod = _script()
+    assert mod.main(["--rows", "full,wo_prior", "--out", str(tmp_path / "o")]) == 2
+    assert "wo_prior" in capsys.readouterr().err
+    assert mod.main(["--rows", "full", "--stage1", str(tmp_path / "none.ckpt"), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "none.ckpt" in err and "--stage1" in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_goal_and_own_scaffold_lines():
+    mod = _script()
+
+    def fig(obs, weak):
+        return {"psnr_obs": obs, "psnr_weak": weak, "psnr_obs_camrefine": obs + 1, "psnr_weak_camrefine": weak + 1}
+
+    scaffold = fig(19.0, 18.0)
+    results = {
+        "full": {"refined": fig(18.85, 18.6), "scaffold": scaffold},     # weak +0.6, observed -0.15: reached
+        "cameras": {"refined": fig(18.7, 18.6), "scaffold": scaffold},   # weak +0.6, observed -0.3: not reached
+        "frozen_all": {"refined": fig(17.0, 16.0), "scaffold": fig(16.5, 15.5)},
+    }
+    md, res = mod.tables(results, scaffold, {"tokens": "not in --rows"})
+    assert res["goal"]["full"]["camrefine"]["reached"] and res["goal"]["full"]["feed-forward"]["reached"]
+    assert not res["goal"]["cameras"]["camrefine"]["reached"]
+    assert res["goal"]["cameras"]["feed-forward"]["obs_gain_db"] == pytest.approx(-0.3)
+    assert "- the frozen-all row's own scaffold: 16.500 / 15.500 feed-forward, 17.500 / 16.500 camrefine" in md
+    assert "| full | 18.850 / 18.600 | 19.850 / 19.600 |" in md  # Table 3 names the full model "full"
+    assert "| scaffold only | 19.000 / 18.000 | 20.000 / 19.000 |" in md
+    assert "- goal, the full model, camrefine: weak +0.60 dB" in md and "NOT reached" in md
