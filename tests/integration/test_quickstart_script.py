@@ -1,17 +1,12 @@
 """scripts/quickstart.py refuses shards made with other settings instead of silently training on them."""
 
-import importlib.util
 import json
-from pathlib import Path
 
-SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "quickstart.py"
+from helpers.scripts import load_script
 
 
 def _quickstart():
-    spec = importlib.util.spec_from_file_location("quickstart_script", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("quickstart")
 
 
 def test_foreign_shards_stop_with_the_fix(tmp_path, capsys, monkeypatch):

@@ -1,23 +1,17 @@
 """scripts/stage2_tables.py: each row is its own Stage II run with its overrides, the tables come from the test
 figures, finished rows are reused and foreign ones refused."""
 
-import importlib.util
 import json
 import math
-from pathlib import Path
 
 import pytest
+from helpers.scripts import load_script
 
 from anycity.cli import build_cli
 
-SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "stage2_tables.py"
-
 
 def _script():
-    spec = importlib.util.spec_from_file_location("stage2_tables_script", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("stage2_tables")
 
 
 @pytest.fixture(autouse=True)
