@@ -212,14 +212,13 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out)
     results = {n: run_row(ROWS[n], ckpts[ROWS[n].stage1], out, common, args.steps) for n in names}
     scaffolds = [r["scaffold"] for n, r in results.items() if ROWS[n].stage1 == "stage1"]
-    if not scaffolds:  # only rows with their own Stage I ran: there is no --stage1 scaffold to show
-        scaffolds = [{k: float("nan") for k in next(iter(results.values()))["scaffold"]}]
-    text, as_json = tables(results, scaffolds[0], missing)
-    # the scaffold is frozen in Stage II, so every row from --stage1 must score it the same
-    spread = max((abs(a[k] - b[k]) for a in scaffolds for b in scaffolds for k in a if not math.isnan(a[k])),
-                 default=0.0)
-    text += f"- the scaffold's figures agree across the rows from {args.stage1} within {spread:.4f} dB\n"
-    as_json["scaffold_spread_db"] = spread
+    nan_scaffold = {k: float("nan") for k in next(iter(results.values()))["scaffold"]}
+    text, as_json = tables(results, scaffolds[0] if scaffolds else nan_scaffold, missing)
+    if scaffolds:  # the scaffold is frozen in Stage II, so every row from --stage1 must score it the same
+        spread = max((abs(a[k] - b[k]) for a in scaffolds for b in scaffolds for k in a if not math.isnan(a[k])),
+                     default=0.0)
+        text += f"- the scaffold's figures agree across the rows from {args.stage1} within {spread:.4f} dB\n"
+        as_json["scaffold_spread_db"] = spread
     out.mkdir(parents=True, exist_ok=True)
     (out / "tables.md").write_text(text)
     (out / "tables.json").write_text(json.dumps(as_json, indent=1) + "\n")
