@@ -191,10 +191,15 @@ def main(argv: list[str] | None = None) -> int:
     flags = {"stage1": ("--stage1", args.stage1)}
     flags.update({n: (flag, getattr(args, flag[2:])) for n, (flag, _) in OWN_STAGE1.items()})
     missing = {n: "not in --rows" for n in ROWS if n not in names}
+    requested = list(names)
     for n, (flag, cfg) in OWN_STAGE1.items():
         if n in names and flags[n][1] is None:
             names.remove(n)
             missing[n] = f"pass {flag} (a Stage I of {cfg})"
+    if not names:
+        print(f"error: --rows {args.rows!r}: no row left to run: {'; '.join(missing[n] for n in requested)}",
+              file=sys.stderr)
+        return 2
     ckpts = {k: Path(v) for k, (_, v) in flags.items() if v is not None}
     for n in names:
         if not ckpts[ROWS[n].stage1].is_file():
@@ -212,8 +217,7 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out)
     results = {n: run_row(ROWS[n], ckpts[ROWS[n].stage1], out, common, args.steps) for n in names}
     scaffolds = [r["scaffold"] for n, r in results.items() if ROWS[n].stage1 == "stage1"]
-    nan_scaffold = {k: float("nan") for k in next(iter(results.values()))["scaffold"]}
-    text, as_json = tables(results, scaffolds[0] if scaffolds else nan_scaffold, missing)
+    text, as_json = tables(results, scaffolds[0] if scaffolds else _figures({}, "scaffold"), missing)
     if scaffolds:  # the scaffold is frozen in Stage II, so every row from --stage1 must score it the same
         spread = max((abs(a[k] - b[k]) for a in scaffolds for b in scaffolds for k in a if not math.isnan(a[k])),
                      default=0.0)

@@ -84,6 +84,8 @@ def test_bad_rows_and_missing_checkpoint(tmp_path, capsys):
     assert mod.main(["--rows", "full", "--stage1", str(tmp_path / "none.ckpt"), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err
     assert "none.ckpt" in err and "--stage1" in err
+    assert mod.main(["--rows", "frozen_aa", "--out", str(tmp_path / "o")]) == 2  # its flag missing: nothing to run
+    assert "pass --frozen_aa_stage1" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
 
 
