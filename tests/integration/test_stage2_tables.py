@@ -19,7 +19,7 @@ def _argv(monkeypatch):
     monkeypatch.setattr("sys.argv", ["stage2_tables.py"])
 
 
-def _tiny(root, tmp_path):
+def _tiny(tmp_path):
     every = tmp_path / "ckpt_every_2.yaml"
     every.write_text("trainer:\n  callbacks:\n  - class_path: lightning.pytorch.callbacks.ModelCheckpoint\n"
                      "    init_args: {save_last: true, save_top_k: 0, every_n_train_steps: 2}\n")
@@ -30,7 +30,7 @@ def _tiny(root, tmp_path):
 
 
 def test_rows_tables_reuse_and_refusal(tiny_shards, tmp_path, capsys):
-    extra, every = _tiny(tiny_shards, tmp_path)
+    extra, every = _tiny(tmp_path)
     s1 = tmp_path / "s1"
     build_cli(["fit", "-c", "configs/quickstart.yaml", "-c", str(every), "--data.root", str(tiny_shards), *extra,
                "--trainer.max_steps", "2", "--trainer.default_root_dir", str(s1),
