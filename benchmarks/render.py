@@ -1,6 +1,7 @@
 """Renderer benchmark: forward and forward+backward wall time and peak memory per backend.
 
     python benchmarks/render.py [--threads 2] [--repeats 5] [--cases 10k,100k,800k] [--backends torch,cpu]
+    python benchmarks/render.py --device cuda [--backends torch,gsplat]    # on a GPU: peak is CUDA memory
 
 Each case runs in its own subprocess so that the peak RSS is that case's alone. Times are the minimum over
 ``--repeats`` runs after one warm-up. Scenes: random anisotropic Gaussians filling the view frustum, sized so that
@@ -50,23 +51,29 @@ def make_scene(n: int, width: int, height: int, seed: int = 0, dtype=torch.float
     return gauss, torch.eye(4, dtype=dtype)[None, None], K
 
 
-def _time(fn, repeats: int) -> float:
+def _time(fn, repeats: int, device: str = "cpu") -> float:
+    sync = torch.cuda.synchronize if device == "cuda" else (lambda: None)
     fn()
     best = float("inf")
     for _ in range(repeats):
+        sync()
         t = time.perf_counter()
         fn()
+        sync()
         best = min(best, time.perf_counter() - t)
     return best * 1e3
 
 
-def run_case(case: str, backend: str, threads: int, repeats: int, queue) -> None:
+def run_case(case: str, backend: str, threads: int, repeats: int, queue, device: str = "cpu") -> None:
     torch.set_num_threads(threads)
     from anycity.render import render
     from anycity.render.projection import project_gaussians
 
     n, w, h = CASES[case] if case in CASES else (500, 64, 64)
     g, w2c, K = make_scene(n, w, h, dtype=torch.float64 if backend == "reference" else torch.float32)
+    if device != "cpu":
+        g = type(g)(*[t.to(device) for t in (g.means, g.quats, g.scales, g.opacities, g.sh)])
+        w2c, K = w2c.to(device), K.to(device)
     params = [g.means, g.quats, g.scales, g.opacities, g.sh]
     for p in params:
         p.requires_grad_(True)
@@ -81,8 +88,8 @@ def run_case(case: str, backend: str, threads: int, repeats: int, queue) -> None
             return render(g, w2c, K, w, h, backend=backend)
 
     with torch.no_grad():
-        proj = project_gaussians(*[p.detach() for p in params], torch.ones(1, n, dtype=torch.bool), w2c, K, w, h,
-                                 0.01, 1e10, False)
+        proj = project_gaussians(*[p.detach() for p in params], torch.ones(1, n, dtype=torch.bool, device=device),
+                                 w2c, K, w, h, 0.01, 1e10, False)
         # Footprint overlaps per pixel: continuous boxes of 2 x 3.33 sigma per axis (as the research notes count
         # them) and the integer boxes the binning actually enumerates.
         conic = proj.conic[proj.visible].double()
@@ -103,9 +110,14 @@ def run_case(case: str, backend: str, threads: int, repeats: int, queue) -> None
             p.grad = None
 
     reps = 1 if backend == "reference" else repeats
-    t_f = _time(fwd_only, reps)
-    t_fb = _time(fwd_bwd, reps)
-    rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    t_f = _time(fwd_only, reps, device)
+    if device == "cuda":
+        torch.cuda.reset_peak_memory_stats()
+    t_fb = _time(fwd_bwd, reps, device)
+    if device == "cuda":  # the GPU's peak, allocated by torch during forward+backward
+        rss_mb = torch.cuda.max_memory_allocated() / 2**20
+    else:
+        rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     queue.put(dict(case=case, backend=backend, n=n, size=f"{w}x{h}", overlaps=overlaps, int_overlaps=int_overlaps,
                    fwd_ms=t_f, fwdbwd_ms=t_fb,
                    peak_rss_mb=rss_mb))
@@ -117,6 +129,7 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--cases", default="10k,100k,800k")
     ap.add_argument("--backends", default="auto-available")
+    ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     ap.add_argument("--json", help="also write the rows to this file")
     args = ap.parse_args()
     sys.path.insert(0, str(ROOT / "src"))
@@ -124,15 +137,18 @@ def main() -> None:
 
     backends = args.backends.split(",") if args.backends != "auto-available" else (
         ["torch"] + (["cpu"] if _cpu_backend_available() else []))
-    jobs = [(c, b) for c in args.cases.split(",") for b in backends] + [("small", "reference"), ("small", "torch")]
+    jobs = [(c, b) for c in args.cases.split(",") for b in backends]
+    if args.device == "cpu":  # the float64 dense reference is a CPU tool
+        jobs += [("small", "reference"), ("small", "torch")]
     ctx = mp.get_context("spawn")
     rows = []
-    print(f"threads={args.threads} repeats={args.repeats} (min of N; peak RSS is the whole process)")
+    peak = "peak MB is CUDA memory allocated in fwd+bwd" if args.device == "cuda" else "peak RSS is the whole process"
+    print(f"device={args.device} threads={args.threads} repeats={args.repeats} (min of N; {peak})")
     print(f"{'case':>6} {'backend':>9} {'N':>8} {'size':>8} {'ovl/px':>7} {'int/px':>7} {'fwd ms':>9} "
           f"{'fwd+bwd ms':>11} {'peak MB':>8}")
     for case, backend in jobs:
         q = ctx.Queue()
-        p = ctx.Process(target=run_case, args=(case, backend, args.threads, args.repeats, q))
+        p = ctx.Process(target=run_case, args=(case, backend, args.threads, args.repeats, q, args.device))
         p.start()
         p.join()
         if p.exitcode != 0:
@@ -144,7 +160,7 @@ def main() -> None:
               f"{r['int_overlaps']:>7.1f} "
               f"{r['fwd_ms']:>9.1f} {r['fwdbwd_ms']:>11.1f} {r['peak_rss_mb']:>8.0f}")
     for r in rows:
-        if r["case"] in PEER_MS:
+        if r["case"] in PEER_MS and args.device == "cpu":
             print(f"{r['case']} {r['backend']}: {PEER_MS[r['case']] / r['fwdbwd_ms']:.1f}x faster fwd+bwd than "
                   f"gsplat-pytorch ({PEER_MS[r['case']]:.0f} ms, research notes); target <= 250 ms (torch backend)")
     if args.json:

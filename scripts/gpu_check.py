@@ -51,12 +51,13 @@ def check_gpu_tests() -> tuple[str, str]:
     return ("pass" if proc.returncode == 0 else "FAIL"), last
 
 
-def check_backends(dev: torch.device) -> str:
+def check_backends(dev: torch.device, n: int = 200_000, size: int = 448) -> str:
+    """gsplat vs the torch backend on one n-Gaussian scene; without gsplat, the torch backend alone."""
     from anycity.render import render
+    from anycity.render.api import _module_available
     from anycity.structures import Gaussians
 
     g = torch.Generator().manual_seed(0)
-    n, size = 200_000, 448
     means = torch.randn(1, n, 3, generator=g) * 0.5 + torch.tensor([0.0, 0.0, 3.0])
     quats = torch.nn.functional.normalize(torch.randn(1, n, 4, generator=g), dim=-1)
     scales = torch.rand(1, n, 3, generator=g) * 0.01 + 0.002
@@ -64,17 +65,27 @@ def check_backends(dev: torch.device) -> str:
     sh = torch.rand(1, n, 1, 3, generator=g)
     w2c = torch.eye(4).expand(1, 4, 4, 4).clone()
     w2c[:, :, 0, 3] = torch.linspace(-0.2, 0.2, 4)
-    K = torch.tensor([[400.0, 0, 224], [0, 400.0, 224], [0, 0, 1]]).expand(1, 4, 3, 3)
+    f = size * 400 / 448
+    K = torch.tensor([[f, 0, size / 2], [0, f, size / 2], [0, 0, 1]]).expand(1, 4, 3, 3)
     out, times = {}, {}
-    for backend in ("gsplat", "torch"):
+    backends = ("gsplat", "torch") if _module_available("gsplat") else ("torch",)
+    for backend in backends:
         params = [t.to(dev).requires_grad_(True) for t in (means, quats, scales, opac, sh)]
-        _sync(dev)
-        t0 = time.perf_counter()
-        r = render(Gaussians(*params), w2c.to(dev), K.to(dev), size, size, backend=backend)
-        (r.rgb.mean() + r.depth.mean()).backward()
-        _sync(dev)
-        times[backend] = time.perf_counter() - t0
+        best = float("inf")
+        for i in range(4):  # the first call loads kernels: min over the three after it
+            for p in params:
+                p.grad = None
+            _sync(dev)
+            t0 = time.perf_counter()
+            r = render(Gaussians(*params), w2c.to(dev), K.to(dev), size, size, backend=backend)
+            (r.rgb.mean() + r.depth.mean()).backward()
+            _sync(dev)
+            if i:
+                best = min(best, time.perf_counter() - t0)
+        times[backend] = best
         out[backend] = r.rgb.detach()
+    if "gsplat" not in out:
+        return f"gsplat NOT INSTALLED; torch backend fwd+bwd {times['torch']:.3f} s ({n} Gaussians, 4 x {size} px)"
     diff = (out["gsplat"] - out["torch"]).abs().max().item()
     return f"max |rgb diff| {diff:.2e}; fwd+bwd gsplat {times['gsplat']:.3f} s, torch {times['torch']:.3f} s"
 
@@ -152,9 +163,13 @@ def train_steps(stage: str, args, data: Path, dev: torch.device, init_from: Path
     cli.trainer.callbacks.append(stats)
     _reset_peak(dev)
     cli.trainer.fit(cli.model, datamodule=cli.datamodule)
-    cli.trainer.save_checkpoint(ckpt_out)
+    cli.trainer.save_checkpoint(ckpt_out, weights_only=True)  # Stage II reads only the weights (not 14 GB of AdamW)
     steady = stats.times[2:] or stats.times
-    return {"step_s": sum(steady) / len(steady), "peak_gb": _peak_gb(dev), "model": cli.model}
+    from anycity.render.api import resolve_backend
+
+    backend = resolve_backend(cli.model.hparams.render_backend, dev)
+    return {"step_s": sum(steady) / len(steady), "peak_gb": _peak_gb(dev), "model": cli.model,
+            "detail": f"renderer {backend}, {len(stats.times)} steps timed"}
 
 
 def inference(model, dev: torch.device, views: int, size: int) -> dict:
@@ -170,6 +185,20 @@ def inference(model, dev: torch.device, views: int, size: int) -> dict:
             net(x, refine=True)
         _sync(dev)
     return {"s": (time.perf_counter() - t0) / 3, "peak_gb": _peak_gb(dev)}
+
+
+def _guarded(rows: list, name: str, fn):
+    """Run one check; a failure becomes a FAIL row (its traceback on stderr) so the other checks still run."""
+    t0 = time.perf_counter()
+    try:
+        return fn()
+    except Exception as e:  # noqa: BLE001 - the table must report every check, whatever broke
+        import traceback
+
+        traceback.print_exc()
+        rows.append((name, "FAIL", f"{type(e).__name__}: {str(e).splitlines()[0][:200] if str(e) else ''}",
+                     f"{time.perf_counter() - t0:.1f} (until it failed)", ""))
+        return None
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -190,8 +219,12 @@ def main(argv: list[str] | None = None) -> int:
         size, views = 448, 32
     rows = []
     if not args.smoke_cpu:
-        rows.append(("tests/gpu", *check_gpu_tests(), "", ""))
-        rows.append(("gsplat vs torch", check_backends(dev), "", "", ""))
+        res = _guarded(rows, "tests/gpu", check_gpu_tests)
+        if res:
+            rows.append(("tests/gpu", *res, "", ""))
+        res = _guarded(rows, "gsplat vs torch", lambda: check_backends(dev))
+        if res:
+            rows.append(("gsplat vs torch", res, "", "", ""))
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         data = Path(args.data) if args.data else tmp / "synth"
@@ -199,14 +232,22 @@ def main(argv: list[str] | None = None) -> int:
             from anycity.data.cli import data_main
 
             data_main(["synth", "--out", str(data), "--scenes", "10", "--views", "24", "--size", f"{size}x{size}"])
-        s1 = train_steps("stage1", args, data, dev, None, tmp / "s1.ckpt")
-        rows.append(("stage1.yaml", f"{args.steps} steps", "", f"{s1['step_s']:.3f}", s1["peak_gb"]))
-        s1.pop("model")
-        s2 = train_steps("stage2", args, data, dev, tmp / "s1.ckpt", tmp / "s2.ckpt")
-        rows.append(("stage2.yaml", f"{args.steps} steps", "", f"{s2['step_s']:.3f}", s2["peak_gb"]))
-        inf = inference(s2["model"], dev, views, size)
-        rows.append((f"inference {views} views", f"{size}x{size}", "", f"{inf['s']:.3f}", inf["peak_gb"]))
-    print(f"\n| check | result | detail | time (s; step or inference) | peak memory (GB) |  [{dev}]")
+        s1 = _guarded(rows, "stage1.yaml", lambda: train_steps("stage1", args, data, dev, None, tmp / "s1.ckpt"))
+        if s1:
+            rows.append(("stage1.yaml", f"{args.steps} steps", s1["detail"], f"{s1['step_s']:.3f}", s1["peak_gb"]))
+            s1.pop("model")
+        s2 = None
+        if s1:
+            s2 = _guarded(rows, "stage2.yaml",
+                          lambda: train_steps("stage2", args, data, dev, tmp / "s1.ckpt", tmp / "s2.ckpt"))
+        if s2:
+            rows.append(("stage2.yaml", f"{args.steps} steps", s2["detail"], f"{s2['step_s']:.3f}", s2["peak_gb"]))
+            inf = _guarded(rows, f"inference {views} views", lambda: inference(s2["model"], dev, views, size))
+            if inf:
+                rows.append((f"inference {views} views", f"{size}x{size}", "", f"{inf['s']:.3f}", inf["peak_gb"]))
+    name = torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu"
+    print(f"\n| check | result | detail | time (s; step or inference) | peak memory (GB) |  [{name}, torch "
+          f"{torch.__version__}]")
     print("|---|---|---|---|---|")
     for name, res, detail, t, mem in rows:
         print(f"| {name} | {res} | {detail} | {t} | {'' if mem is None or mem == '' else f'{mem:.1f}'} |")

@@ -26,3 +26,30 @@ def test_gpu_check_smoke_on_cpu():
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     for row in ("| stage1.yaml |", "| stage2.yaml |", "| inference 4 views |"):
         assert row in proc.stdout
+
+
+def test_a_failing_check_becomes_a_fail_row_and_the_rest_still_run():
+    from helpers.scripts import load_script
+
+    gpu_check = load_script("gpu_check")
+    rows = []
+
+    def broken():
+        raise RuntimeError("CUDA out of memory\nsecond line")
+
+    assert gpu_check._guarded(rows, "stage1.yaml", broken) is None
+    assert gpu_check._guarded(rows, "stage2.yaml", lambda: 7) == 7
+    assert len(rows) == 1
+    name, res, detail, _, _ = rows[0]
+    assert (name, res) == ("stage1.yaml", "FAIL") and detail == "RuntimeError: CUDA out of memory"
+
+
+def test_backend_check_without_gsplat_times_the_torch_renderer(monkeypatch):
+    from helpers.scripts import load_script
+
+    from anycity.render import api
+
+    monkeypatch.setattr(api, "_module_available", lambda name: False if name == "gsplat" else True)
+    gpu_check = load_script("gpu_check")
+    res = gpu_check.check_backends(torch.device("cpu"), n=500, size=32)
+    assert res.startswith("gsplat NOT INSTALLED; torch backend fwd+bwd ") and "(500 Gaussians, 4 x 32 px)" in res

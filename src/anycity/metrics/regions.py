@@ -47,6 +47,7 @@ from __future__ import annotations
 import math
 import os
 from contextlib import contextmanager
+from pathlib import Path
 
 import torch
 import torchmetrics
@@ -214,11 +215,17 @@ def _no_downloads():
                 os.environ[k] = v
 
 
+# torchvision's ImageNet weights behind torchmetrics' LPIPS backbones, as torch.hub caches them
+_LPIPS_BACKBONE_FILES = {"alex": "alexnet-owt-7be5be79.pth", "vgg": "vgg16-397923af.pth",
+                         "squeeze": "squeezenet1_1-b8a52dc0.pth"}
+
+
 def lpips_or_none(net: str = "alex") -> tuple[torch.nn.Module | None, str]:
     """A spatial LPIPS network (torchmetrics' ``_LPIPS``, ``spatial=True``: ``[M, 1, H, W]`` maps) built fully
     offline, or ``(None, reason)`` with one line saying why and how to enable it. Never downloads anything."""
-    how = (f"install torchvision matching your torch and put its ImageNet {net} weights in the torch hub cache "
-           f"({torch.hub.get_dir()}/checkpoints) to score LPIPS per region")
+    cached = Path(torch.hub.get_dir()) / "checkpoints" / _LPIPS_BACKBONE_FILES.get(net, f"{net}.pth")
+    how = (f"install torchvision matching your torch and put its ImageNet {net} weights at {cached} "
+           "to score LPIPS per region")
     try:
         from torchmetrics.functional.image.lpips import _LPIPS
         from torchmetrics.utilities.imports import _TORCHVISION_AVAILABLE
@@ -226,6 +233,8 @@ def lpips_or_none(net: str = "alex") -> tuple[torch.nn.Module | None, str]:
         return None, f"LPIPS per region left out: torchmetrics LPIPS unavailable ({type(e).__name__}); {how}"
     if not _TORCHVISION_AVAILABLE:
         return None, f"LPIPS per region left out: torchvision is not installed; {how}"
+    if not cached.is_file():  # checked first: torch.hub would print "Downloading: ..." before _no_downloads refuses
+        return None, f"LPIPS per region left out: {net} backbone weights are not in the torch hub cache; {how}"
     try:
         with _no_downloads():
             model = _LPIPS(pretrained=True, net=net, spatial=True).eval()

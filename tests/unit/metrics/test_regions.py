@@ -215,7 +215,7 @@ def test_masked_lpips_averages_the_spatial_map_over_the_mask():
     assert torch.isnan(out[1])
 
 
-def test_lpips_absent_is_one_line_without_download(monkeypatch):
+def test_lpips_absent_is_one_line_without_download(monkeypatch, capfd, tmp_path):
     import torch.hub
 
     def no_download(*a, **k):
@@ -231,7 +231,16 @@ def test_lpips_absent_is_one_line_without_download(monkeypatch):
 
     monkeypatch.setattr(tmi, "_TORCHVISION_AVAILABLE", True)
     net, why = lpips_or_none()
-    assert net is None and "\n" not in why and "left out" in why
+    assert net is None and "\n" not in why and "left out" in why and "alexnet-owt-7be5be79.pth" in why
+    # torch.hub prints "Downloading: <url>" before it calls the (refused) download: weights absent from the cache
+    # must not reach it at all (seen on a CUDA machine that has torchvision)
+    assert "Downloading" not in capfd.readouterr().err
+    # A file in the cache that does not build (here: not a checkpoint, or no torchvision) is caught as well.
+    monkeypatch.setattr(torch.hub, "get_dir", lambda: str(tmp_path))
+    (tmp_path / "checkpoints").mkdir()
+    (tmp_path / "checkpoints" / "alexnet-owt-7be5be79.pth").write_bytes(b"not a checkpoint")
+    net, why = lpips_or_none()
+    assert net is None and "\n" not in why and "left out" in why and "not in the torch hub cache" not in why
     with regions._no_downloads():
         with pytest.raises(RuntimeError, match="offline"):
             torch.hub.download_url_to_file("https://example.invalid/w.pth", "/nonexistent")
