@@ -2,7 +2,7 @@
 
     python scripts/gpu_check.py [--vggt /path/model.pt] [--wan-dir /path/Wan2.2-TI2V-5B-Diffusers] [--steps 20]
 
-1. ``pytest tests/gpu`` (the CUDA renderer tests);
+1. ``pytest tests/gpu`` (the CUDA renderer tests, and fit -> test -> predict through the CLI on CUDA);
 2. gsplat vs the pure-PyTorch backend on one scene (max |difference|, forward+backward time of each);
 3. ``steps`` optimiser steps of ``configs/stage1.yaml`` and of ``configs/stage2.yaml`` at the paper's size
    (vggt-1b, 4 context + 12 views at 448x448, bf16-mixed, one GPU), random init unless weights are given; Stage II
@@ -46,7 +46,8 @@ def _reset_peak(dev: torch.device) -> None:
 
 
 def check_gpu_tests() -> tuple[str, str]:
-    proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "tests/gpu"], cwd=ROOT, capture_output=True, text=True)
+    proc = subprocess.run([sys.executable, "-m", "pytest", "tests/gpu", "-p", "no:warnings"], cwd=ROOT,
+                          capture_output=True, text=True)
     last = (proc.stdout.strip().splitlines() or ["(no output)"])[-1]
     return ("pass" if proc.returncode == 0 else "FAIL"), last
 
