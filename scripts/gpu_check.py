@@ -158,7 +158,7 @@ def train_steps(stage: str, args, data: Path, dev: torch.device, init_from: Path
     patch = nullcontext()
     if stage == "stage2" and not args.wan_dir and not args.smoke_cpu:
         patch = mock.patch("anycity.models.anycity.build_video_prior", _random_wan(dev))
-    with patch:
+    with patch, mock.patch.object(sys, "argv", sys.argv[:1]):  # LightningCLI warns when sys.argv has arguments too
         cli = build_cli(a, run=False)
     stats = _StepStats(dev)
     cli.trainer.callbacks.append(stats)
@@ -170,7 +170,7 @@ def train_steps(stage: str, args, data: Path, dev: torch.device, init_from: Path
 
     backend = resolve_backend(cli.model.hparams.render_backend, dev)
     return {"step_s": sum(steady) / len(steady), "peak_gb": _peak_gb(dev), "model": cli.model,
-            "detail": f"renderer {backend}, {len(stats.times)} steps timed"}
+            "detail": f"renderer {backend}; mean of steps {len(stats.times) - len(steady) + 1}-{len(stats.times)}"}
 
 
 def inference(model, dev: torch.device, views: int, size: int) -> dict:
@@ -246,8 +246,8 @@ def main(argv: list[str] | None = None) -> int:
             inf = _guarded(rows, f"inference {views} views", lambda: inference(s2["model"], dev, views, size))
             if inf:
                 rows.append((f"inference {views} views", f"{size}x{size}", "", f"{inf['s']:.3f}", inf["peak_gb"]))
-    name = torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu"
-    print(f"\n| check | result | detail | time (s; step or inference) | peak memory (GB) |  [{name}, torch "
+    device_name = torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu"
+    print(f"\n| check | result | detail | time (s; step or inference) | peak memory (GB) |  [{device_name}, torch "
           f"{torch.__version__}]")
     print("|---|---|---|---|---|")
     for name, res, detail, t, mem in rows:
