@@ -60,6 +60,16 @@ def placed_with_gt(module, scaffold: dict, ctx, depth: torch.Tensor | None = Non
     return module.net._gaussians(scaffold["raw_gaussians"], means, d, ctx.K, ctx.images), w2c
 
 
+def accumulate(sq: dict, n: dict, name: str, rgb: torch.Tensor, images: torch.Tensor, parts: dict,
+               count: bool) -> None:
+    """Add the squared error of render ``rgb`` against ``images`` over each region of ``parts`` to ``sq[name, part]``
+    (for pooled PSNR); with ``count``, add the regions' pixel counts to ``n[part]`` (once per batch)."""
+    err = ((rgb - images) ** 2).mean(2, keepdim=True)
+    for part, mask in parts.items():
+        sq[name, part] = sq.get((name, part), 0.0) + err[mask].sum().item()
+        n[part] = n.get(part, 0) + (mask.sum().item() if count else 0)
+
+
 def headroom(module, dm) -> None:
     from anycity.lit import protocols as P
 
@@ -77,10 +87,7 @@ def headroom(module, dm) -> None:
                     "GT cameras": (g_cam, w2c_gt, ctx.K), "GT cameras + depth": (g_geo, w2c_gt, ctx.K)}
         for name, (g, w2c, K) in variants.items():
             r, _ = P.feedforward(module, P.Scene(g, w2c, K), ctx, P.TargetCameras.of(tgt))
-            err = ((r.rgb - tgt.images) ** 2).mean(2, keepdim=True)
-            for part, mask in parts.items():
-                sq[name, part] = sq.get((name, part), 0.0) + err[mask].sum().item()
-                n[part] = n.get(part, 0) + (mask.sum().item() if name == "scaffold" else 0)
+            accumulate(sq, n, name, r.rgb, tgt.images, parts, count=name == "scaffold")
     total = n["observed"] + n["weak"]
     names = ["scaffold", "refined", "GT cameras", "GT cameras + depth"]
     print("feed-forward PSNR (dB) per region; the GT columns read ground-truth context cameras/depth (ceilings)")
@@ -148,20 +155,19 @@ def perfect_knowledge(module, dm, steps: int) -> None:
     for batch in dm.test_dataloader():
         ctx, tgt, dense = batch.context, batch.target, batch.dense
         obs, weak = module.region_masks(ctx, tgt)
+        parts = {"observed": obs, "weak": weak}
         out = module.net(ctx.images, refine=False)
         scene = P.Scene(out["scaffold_gaussians"], *module.variant_cameras(out, "scaffold"))
-        _, _, scene = P.camrefine(module, scene, ctx, P.TargetCameras.of(tgt), module.hparams.camera_refine_steps)
+        r, _, scene = P.camrefine(module, scene, ctx, P.TargetCameras.of(tgt), module.hparams.camera_refine_steps)
         w2c_d, _ = P.place(module, scene, ctx, P.TargetCameras.of(dense))
         views = {"context": [(scene.w2c, scene.K, ctx.images)]}
         views["dense"] = views["context"] + [(w2c_d, dense.K, dense.images)]
         for name, how in fits.items():
-            g = scene.gaussians if how is None else fit_gaussians(module, scene.gaussians, views[how[0]],
-                                                                  ctx.images, steps, free=how[1], lr_scale=how[2])
-            r, _ = P.feedforward(module, P.Scene(g, scene.w2c, scene.K), ctx, P.TargetCameras.of(tgt))
-            err = ((r.rgb - tgt.images) ** 2).mean(2, keepdim=True)
-            for part, mask in (("observed", obs), ("weak", weak)):
-                sq[name, part] = sq.get((name, part), 0.0) + err[mask].sum().item()
-                n[part] = n.get(part, 0) + (mask.sum().item() if how is None else 0)
+            if how is not None:  # (the first row is the camrefine render itself)
+                g = fit_gaussians(module, scene.gaussians, views[how[0]], ctx.images, steps, free=how[1],
+                                  lr_scale=how[2])
+                r, _ = P.feedforward(module, P.Scene(g, scene.w2c, scene.K), ctx, P.TargetCameras.of(tgt))
+            accumulate(sq, n, name, r.rgb, tgt.images, parts, count=how is None)
     print(f"\nafter camrefine, the scaffold's Gaussians fitted by {steps} Adam steps (pooled PSNR at the targets, dB;"
           " the ceiling rows read the dense views' images, which the protocol does not give)")
     print("| Gaussians | observed | weak |\n|---|---|---|")
@@ -209,14 +215,13 @@ def main() -> None:
     path = safe_torch_load(args.ckpt)["hyper_parameters"].get("_class_path", "anycity.lit.RefinementModule")
     mod, _, name = path.rpartition(".")
     module = getattr(importlib.import_module(mod), name).load_from_checkpoint(args.ckpt, map_location="cpu").eval()
-    dm = AerialDataModule(root=args.data, image_size=(48, 48), patch_size=8, num_context=4, num_targets=2,
-                          num_dense=6, batch_size=1, num_workers=0)
+    settings = dict(root=args.data, image_size=(48, 48), patch_size=8, num_context=4, num_targets=2, batch_size=1,
+                    num_workers=0)
+    dm = AerialDataModule(num_dense=6, **settings)
     headroom(module, dm)
     teacher_vs_student(module, dm, args.teacher_batches)
     if args.fit_steps > 0:
-        dm_fit = AerialDataModule(root=args.data, image_size=(48, 48), patch_size=8, num_context=4, num_targets=2,
-                                  num_dense=args.dense, batch_size=1, num_workers=0)
-        perfect_knowledge(module, dm_fit, args.fit_steps)
+        perfect_knowledge(module, AerialDataModule(num_dense=args.dense, **settings), args.fit_steps)
 
 
 if __name__ == "__main__":
