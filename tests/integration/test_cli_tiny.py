@@ -108,6 +108,22 @@ def test_resume_continues_step_optimizer_and_schedule(tiny_shards, tmp_path):
     assert opt.param_groups[0]["lr"] == pytest.approx(sched.get_last_lr()[0])
 
 
+def test_fit_with_varied_context_counts(tiny_shards, tmp_path, monkeypatch):
+    """``data.train_num_context`` through the CLI: Stage I trains on batches of different context counts."""
+    from anycity.lit import ScaffoldModule
+
+    seen, step = [], ScaffoldModule.training_step
+
+    def record(self, batch, batch_idx):
+        seen.append(batch.context.images.shape[1])
+        return step(self, batch, batch_idx)
+
+    monkeypatch.setattr(ScaffoldModule, "training_step", record)
+    cli = build_cli(["fit", *_tiny_args(tiny_shards, tmp_path / "vc", steps=6,
+                                        extra=["--data.train_num_context", "[1, 3]", "--data.seed", "2"])])
+    assert cli.trainer.global_step == 6 and set(seen) <= {1, 2, 3} and len(set(seen)) >= 2, seen
+
+
 def test_config_typo_fails_at_parse_time_naming_the_key(tmp_path, capsys):
     with pytest.raises(SystemExit):
         build_cli(["-c", "configs/quickstart.yaml", "--model.init_args.depht_weight", "0.1"], run=False)

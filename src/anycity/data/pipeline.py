@@ -83,6 +83,21 @@ def _reduction(h: int, w: int, nh: int, nw: int) -> int:
     return 1
 
 
+def context_count_probs(context_range: tuple[int, int] | list[int] | None,
+                        weighting: str = "uniform") -> tuple[np.ndarray, np.ndarray] | None:
+    """``(counts, probabilities)`` of a training context-count range, or None without one."""
+    if weighting not in ("uniform", "square"):
+        raise ValueError(f"train_context_weighting: expected 'uniform' or 'square', got {weighting!r}")
+    if context_range is None:
+        return None
+    if len(context_range) != 2 or not 1 <= int(context_range[0]) <= int(context_range[1]) <= 64:
+        raise ValueError(f"train_num_context: expected [lo, hi] with 1 <= lo <= hi <= 64 views, got "
+                         f"{list(context_range)!r}")
+    counts = np.arange(int(context_range[0]), int(context_range[1]) + 1)
+    w = counts.astype(np.float64) ** (2 if weighting == "square" else 0)
+    return counts, w / w.sum()
+
+
 class SampleBuilder:
     """Turns a raw webdataset sample (bytes) into per-group tensors for one or more view selections.
 
@@ -99,6 +114,11 @@ class SampleBuilder:
         with_normals: load normals; when the shard stores none, derive them from the (resized) depth (see
             :func:`_normals_from_depth`; zero where a pixel or a 4-neighbour is invalid).
         hold: the llffhold stride for evaluation.
+        context_range: training only: ``(lo, hi)`` draws the context count per batch from ``lo..hi`` instead of
+            ``num_context`` (VGGT and AnySplat train on varied counts); evaluation keeps ``num_context``.
+        context_weighting: how ``context_range`` draws: "uniform", or "square" (probability proportional to the
+            count squared, AnySplat's ``DynamicBatchSampler``).
+        batch_size: samples per batch, so that all samples of a batch (in this worker) draw the same count.
         compact: compact tensors for the trip to the device: images uint8 ``[0, 255]``, depth and normals
             float16 (a third of the bytes; :func:`to_float32` restores the usual batch on the device).
     """
@@ -106,11 +126,15 @@ class SampleBuilder:
     def __init__(self, num_context: int = 4, num_targets: int = 4, num_dense: int = 12,
                  image_size: tuple[int, int] = (448, 448), resize_mode: str = "crop", train: bool = True,
                  window: int | None = None, with_depth: bool = True, with_normals: bool = True, hold: int = 8,
-                 patch: int = 14, seed: int = 0, compact: bool = False) -> None:
+                 patch: int = 14, seed: int = 0, compact: bool = False,
+                 context_range: tuple[int, int] | None = None, context_weighting: str = "uniform",
+                 batch_size: int = 1) -> None:
         if num_context < 1 or num_targets < 1 or num_dense < 0:
             raise ValueError(f"view counts: expected num_context >= 1, num_targets >= 1, num_dense >= 0, got "
                              f"{num_context}, {num_targets}, {num_dense}")
         self.nc, self.nt, self.nd = num_context, num_targets, num_dense
+        self.context_counts = context_count_probs(context_range, context_weighting)
+        self.batch_size, self._built, self._batch_nc = max(1, int(batch_size)), 0, num_context
         self.size, self.mode, self.train, self.window = tuple(image_size), resize_mode, train, window
         self.with_depth, self.with_normals, self.hold, self.patch = with_depth, with_normals, hold, patch
         self.seed, self.compact = seed, compact
@@ -124,9 +148,19 @@ class SampleBuilder:
             self._rng = np.random.default_rng([self.seed, rank, info.id if info else 0])
         return self._rng
 
+    def train_context_count(self) -> int:
+        """The context count of the next training sample: ``num_context``, or with ``context_range`` a draw made
+        once per ``batch_size`` samples (a worker's consecutive samples form its batches)."""
+        if self.context_counts is None:
+            return self.nc
+        if self._built % self.batch_size == 0:  # a sample that fails to build does not count (it is skipped)
+            counts, probs = self.context_counts
+            self._batch_nc = int(self.rng().choice(counts, p=probs))
+        return self._batch_nc
+
     def selections(self, n: int, meta: dict | None = None) -> list[Selection]:
         if self.train:
-            return [select_train(n, self.nc, self.nt, self.nd, self.rng(), self.window)]
+            return [select_train(n, self.train_context_count(), self.nt, self.nd, self.rng(), self.window)]
         views = meta["views"] if meta else None
         index = [v.get("index", i) for i, v in enumerate(views)] if views else None
         own = (meta.get("window") or {}).get("own") if meta else None
@@ -161,9 +195,13 @@ class SampleBuilder:
             if self._in_worker:
                 cv2.setNumThreads(0)  # workers are the parallelism; OpenCV's threads would oversubscribe
         if self._in_worker:
-            return self._build(sample)
-        with single_thread():
-            return self._build(sample)
+            out = self._build(sample)
+        else:
+            with single_thread():
+                out = self._build(sample)
+        check_finite(out, sample_where(sample))  # a NaN camera/depth/image never reaches the loss
+        self._built += 1  # only a sample that reaches a batch counts (see train_context_count)
+        return out
 
     def _build(self, sample: dict) -> list[dict]:
         meta = read_meta(sample)
@@ -183,7 +221,7 @@ class SampleBuilder:
         """Per-view arrays -> per-group tensors, written once into (shared, in a worker) batch-ready buffers:
         images ``[V, 3, H, W]`` float [0, 1], depth float32 in normalised units, mask bool, normals (``compact``:
         uint8 images, float16 depth and normals)."""
-        V, nc = len(vs), self.nc
+        V, nc = len(vs), len(sel.context)
         H, W = vs[0]["image"].shape[:2]
         if any(v["image"].shape[:2] != (H, W) for v in vs):
             raise ValueError(f"scene {meta['scene']}: views resize to different sizes "
@@ -321,6 +359,9 @@ def _collate(samples: list[dict]) -> ViewBatch:
         if g not in samples[0]:
             return None
         grp = [s[g] for s in samples]
+        if len({len(x["images"]) for x in grp}) > 1:
+            raise ValueError(f"collate: the samples of one batch have {sorted(len(x['images']) for x in grp)} "
+                             f"{g} views; a batch needs one count (batch_size 1, or draw counts per batch)")
         opt = lambda k: _stack([x[k] for x in grp]) if all(k in x for x in grp) else None  # noqa: E731
         return Views(images=_stack([x["images"] for x in grp]), w2c=opt("w2c"), K=opt("K"),
                      depth=opt("depth"), mask=opt("mask"), normal=opt("normal"), index=opt("index"))
@@ -390,9 +431,7 @@ def make_pipeline(urls: list[str], builder: SampleBuilder, *, train: bool, resam
 
     def build(sample: dict):
         try:
-            out = builder(sample)
-            check_finite(out, sample_where(sample))  # a NaN camera/depth/image never reaches the loss
-            return out
+            return builder(sample)
         except Exception as e:
             msg = str(e) if "shard" in str(e) else f"{sample_where(sample)}: {e}"
             if skip_corrupt:

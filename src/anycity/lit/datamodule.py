@@ -18,7 +18,7 @@ from lightning.pytorch.utilities import rank_zero_warn
 from torch.utils.data import DataLoader
 
 from anycity.data.photos import scene_name
-from anycity.data.pipeline import SampleBuilder, SkipCounter, collate, make_pipeline, to_float32
+from anycity.data.pipeline import SampleBuilder, SkipCounter, collate, context_count_probs, make_pipeline, to_float32
 from anycity.data.writer import shard_urls
 from anycity.structures import ViewBatch
 
@@ -75,7 +75,13 @@ class AerialDataModule(pl.LightningDataModule):
         train_shards: shard directory, brace pattern (``data/x/train-{000000..000009}.tar``) or list for training.
         val_shards: the same for validation (llffhold targets of held-out scenes).
         test_shards: the same for testing.
-        num_context: context (input) views per sample, 2..64.
+        num_context: context (input) views per sample, 2..64 (evaluation, and training unless
+            ``train_num_context`` is set).
+        train_num_context: ``[lo, hi]``: training draws each batch's context count from ``lo..hi``, as VGGT and
+            AnySplat train (2..24 views), so that training sees the counts inference will get. None: every batch
+            has ``num_context``. Measured at quickstart scale in docs/stage2.md ("More views, a worse scaffold").
+        train_context_weighting: "uniform", or "square" (probability proportional to the count squared, as
+            AnySplat draws its counts).
         num_targets: target views per sample (rendered and scored).
         num_dense: dense teacher views per sample for Stage II distillation; 0 disables the dense set.
         image_size: output ``[H, W]`` in pixels.
@@ -129,10 +135,12 @@ class AerialDataModule(pl.LightningDataModule):
                  seed: int = 0, skip_corrupt: bool = True, pin_memory: bool = False,
                  compact_batches: bool = False, predict_images: str | None = None, predict_chunk_size: int = 16,
                  predict_chunk_overlap: int = 4, predict_order: str = "auto", predict_resize: str = "keep",
-                 predict_loop: bool = False) -> None:
+                 predict_loop: bool = False, train_num_context: tuple[int, int] | None = None,
+                 train_context_weighting: str = "uniform") -> None:
         super().__init__()
         if not 1 <= num_context <= 64:
             raise ValueError(f"num_context: expected 1..64 views, got {num_context}")
+        context_count_probs(train_num_context, train_context_weighting)  # a typo fails here, not in a worker
         if resize_mode not in ("crop", "keep"):
             raise ValueError(f"resize_mode: expected 'crop' or 'keep', got {resize_mode!r}")
         if predict_resize not in ("crop", "keep"):
@@ -157,7 +165,9 @@ class AerialDataModule(pl.LightningDataModule):
     def _builder(self, train: bool) -> SampleBuilder:
         return SampleBuilder(self.hp.num_context, self.hp.num_targets, self.hp.num_dense, tuple(self.hp.image_size),
                              self.hp.resize_mode, train, self.hp.window, self.hp.with_depth, self.hp.with_normals,
-                             self.hp.llffhold, self.hp.patch_size, self.hp.seed, self.hp.compact_batches)
+                             self.hp.llffhold, self.hp.patch_size, self.hp.seed, self.hp.compact_batches,
+                             self.hp.train_num_context if train else None, self.hp.train_context_weighting,
+                             self.hp.batch_size)
 
     def _loader(self, split: str) -> DataLoader:
         train = split == "train"

@@ -3,6 +3,7 @@ import shutil
 
 import pytest
 import torch
+import webdataset as wds
 
 from anycity.data.pipeline import SampleBuilder, make_pipeline
 from anycity.data.writer import read_index, shard_urls
@@ -91,3 +92,65 @@ def test_yaml_config_parses(synth_root, tmp_path):
     assert tuple(dm.hparams.image_size) == (64, 64) and dm.hparams.num_dense == 0
     assert "skip_corrupt" in p.get_defaults().data
     os.environ.pop("RANK", None)
+
+
+@pytest.mark.parametrize("workers", [0, 2])
+def test_train_num_context_varies_per_batch(synth_root, workers):
+    """train_num_context draws one context count per batch (each worker forms its own batches); the normalised
+    frame still starts at the first context view, and evaluation keeps num_context."""
+    dm = _dm(synth_root, num_workers=workers, num_context=2, train_num_context=[1, 4], batch_size=3,
+             epoch_samples=36, num_dense=2)
+    batches = list(dm.train_dataloader())
+    counts = [b.context.images.shape[1] for b in batches]
+    assert len(batches) == 12 and set(counts) <= {1, 2, 3, 4} and len(set(counts)) >= 3
+    for b in batches:
+        b.validate()
+        assert b.target.images.shape[1] == 2 and b.dense.images.shape[1] == 2
+        assert torch.allclose(b.context.w2c[:, 0], torch.eye(4).expand(3, 4, 4), atol=1e-5)
+    assert {b.context.images.shape[1] for b in dm.val_dataloader()} == {2}
+
+
+def test_train_context_weighting_square():
+    from anycity.data.pipeline import context_count_probs
+
+    counts, p = context_count_probs((2, 4), "square")
+    assert counts.tolist() == [2, 3, 4] and p.tolist() == pytest.approx([4 / 29, 9 / 29, 16 / 29])
+    b = SampleBuilder(2, 1, 0, (16, 16), context_range=(2, 4), context_weighting="square", batch_size=1)
+    drawn = [b.train_context_count() for _ in range(1)]
+    for _ in range(2000):
+        b._built += 1
+        drawn.append(b.train_context_count())
+    freq = [drawn.count(c) / len(drawn) for c in (2, 3, 4)]
+    assert freq == pytest.approx(p.tolist(), abs=0.04)
+
+
+def test_train_context_count_survives_a_skipped_sample(synth_root):
+    """A sample that fails to build (skip_corrupt) does not shift the batch boundaries: the next sample keeps the
+    count of the batch it fills."""
+    b = SampleBuilder(2, 1, 0, (16, 16), context_range=(1, 6), batch_size=4, seed=3)
+    sample = next(iter(wds.WebDataset(shard_urls(synth_root, "train")[0], shardshuffle=False)))
+    broken = {k: v for k, v in sample.items() if not k.endswith((".jpg", ".png"))}  # fails after the draw
+    counts = []
+    for i in range(40):
+        if i % 7 == 3:  # corrupt: the builder raises, the handler skips the sample
+            with pytest.raises(ValueError, match="missing key"):
+                b(broken)
+            continue
+        counts.append(len(b(sample)[0]["context"]["images"]))
+    groups = [counts[i:i + 4] for i in range(0, len(counts) - 3, 4)]
+    assert all(len(set(g)) == 1 for g in groups) and len({g[0] for g in groups}) > 1
+
+
+def test_train_num_context_typos_and_mixed_batches(synth_root):
+    with pytest.raises(ValueError, match=r"train_num_context: expected \[lo, hi\]"):
+        _dm(synth_root, train_num_context=[5, 2])
+    with pytest.raises(ValueError, match="train_context_weighting: expected 'uniform' or 'square'"):
+        _dm(synth_root, train_num_context=[2, 5], train_context_weighting="squared")
+    from anycity.data.pipeline import collate
+
+    items = list(make_pipeline(shard_urls(synth_root, "train"), SampleBuilder(2, 1, 0, (16, 16)), train=True,
+                               epoch_samples=1))
+    other = list(make_pipeline(shard_urls(synth_root, "train"), SampleBuilder(3, 1, 0, (16, 16)), train=True,
+                               epoch_samples=1))
+    with pytest.raises(ValueError, match=r"collate: the samples of one batch have \[2, 3\] context views"):
+        collate([items[0], other[0]])
