@@ -194,6 +194,17 @@ def teacher_vs_student(module, dm, batches: int) -> None:
         print(f"  {who}: PSNR {sum(psnr[who]) / batches:.2f} dB, depth L1 {sum(dl1[who]) / batches:.3f}")
 
 
+def load_module(ckpt: str):
+    """The LightningModule (Stage I or Stage II class, from the checkpoint's hyperparameters) in eval mode."""
+    import importlib
+
+    from anycity.lit.checkpoint_io import safe_torch_load
+
+    path = safe_torch_load(ckpt)["hyper_parameters"].get("_class_path", "anycity.lit.RefinementModule")
+    mod, _, name = path.rpartition(".")
+    return getattr(importlib.import_module(mod), name).load_from_checkpoint(ckpt, map_location="cpu").eval()
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("ckpt", nargs="?", default="runs/quickstart/stage2/checkpoints/last.ckpt")
@@ -207,14 +218,9 @@ def main() -> None:
         if not path.is_file():
             print(f"benchmarks/stage2_headroom.py: skipped, no {what} at {path} (make quickstart first, or pass it)")
             return
-    import importlib
-
-    from anycity.lit.checkpoint_io import safe_torch_load
     from anycity.lit.datamodule import AerialDataModule
 
-    path = safe_torch_load(args.ckpt)["hyper_parameters"].get("_class_path", "anycity.lit.RefinementModule")
-    mod, _, name = path.rpartition(".")
-    module = getattr(importlib.import_module(mod), name).load_from_checkpoint(args.ckpt, map_location="cpu").eval()
+    module = load_module(args.ckpt)
     settings = dict(root=args.data, image_size=(48, 48), patch_size=8, num_context=4, num_targets=2, batch_size=1,
                     num_workers=0)
     dm = AerialDataModule(num_dense=6, **settings)

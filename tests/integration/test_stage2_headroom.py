@@ -1,22 +1,16 @@
 """benchmarks/stage2_headroom.py's perfect-knowledge fit starts at the given Gaussians and fits the views it reads."""
 
-import importlib.util
-from pathlib import Path
 from types import SimpleNamespace
 
 import torch
 from helpers.scenes import make_cameras, make_gaussians
+from helpers.scripts import load_script
 
 from anycity.render import render
 
-BENCH = Path(__file__).resolve().parents[2] / "benchmarks" / "stage2_headroom.py"
-
 
 def _bench():
-    spec = importlib.util.spec_from_file_location("stage2_headroom_bench", BENCH)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("stage2_headroom", "benchmarks")
 
 
 def _module():

@@ -1,0 +1,194 @@
+"""Would content-based context cameras lift the scaffold? A lead for issue 12 (docs/stage2.md, "A lead").
+
+    python benchmarks/pose_correlation.py [CKPT] [--data data/quickstart] [--steps 6000] [--batch 8]
+
+The tiny scaffold's camera head predicts nearly one mean relative pose per view position (docs/stage2.md). This
+trains a small pose regressor with an explicit correlation between view pairs, a cue that depends on the images'
+content and not on the view order:
+
+1. ``PairFlowPose``: a 4-layer CNN gives each context view a 12 x 12 grid of unit features; for each view i > 0 the
+   soft-argmax of the feature correlation with view 0 (both ways) gives a flow field, and an MLP shared by all views
+   maps it to view i's rotation (6-D) and translation relative to view 0, in the normalised frame. It reads the
+   context images only. It trains on the training cities' context views and their ground-truth poses (as the
+   network's camera loss does), L1 on the rotation matrix and the translation. Each ``--eval-every`` steps it prints
+   its mean relative rotation error over all context view pairs of the test cities, and that of a constant pose
+   per view position (the training mean), the best an order-only cue gives.
+2. It then scores ``CKPT``'s scaffold (a Stage I or Stage II checkpoint) on the test cities twice: placed with its
+   own predicted cameras, and with the regressor's (the scaffold's depth, offsets and intrinsics unchanged): pooled
+   observed / weak PSNR at the targets, feed-forward and after the context-only camera refinement (the quickstart's
+   protocols; neither reads a target image).
+
+The regressor is not part of the network: this measures what such cameras would be worth, it does not build them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import math
+import time
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+GRID = 12  # feature cells per side at 48 px (two stride-2 convs)
+
+
+def rotation_6d(x: torch.Tensor) -> torch.Tensor:
+    """``[..., 6]`` -> rotation matrices ``[..., 3, 3]`` (Gram-Schmidt on two rows)."""
+    a = F.normalize(x[..., :3], dim=-1)
+    b = F.normalize(x[..., 3:6] - (a * x[..., 3:6]).sum(-1, keepdim=True) * a, dim=-1)
+    return torch.stack([a, b, torch.cross(a, b, dim=-1)], -2)
+
+
+class PairFlowPose(nn.Module):
+    """Context images ``[B, V, 3, 48, 48]`` -> ``R [B, V, 3, 3]``, ``t [B, V, 3]`` of each view's world-to-camera
+    transform in view 0's frame (view 0: identity), from the correlation of each view with view 0."""
+
+    def __init__(self, channels: int = 48) -> None:
+        super().__init__()
+        c = channels
+        self.encoder = nn.Sequential(nn.Conv2d(3, 32, 3, 2, 1), nn.GELU(), nn.Conv2d(32, 48, 3, 1, 1), nn.GELU(),
+                                     nn.Conv2d(48, c, 3, 2, 1), nn.GELU(), nn.Conv2d(c, c, 3, 1, 1))
+        ys, xs = torch.meshgrid(torch.linspace(-1, 1, GRID), torch.linspace(-1, 1, GRID), indexing="ij")
+        self.register_buffer("grid", torch.stack([xs, ys], -1).reshape(-1, 2), persistent=False)
+        self.temperature = nn.Parameter(torch.tensor(10.0))  # /10 in flow(): a slower step
+        self.mlp = nn.Sequential(nn.Linear(GRID * GRID * 10, 256), nn.GELU(), nn.Linear(256, 256), nn.GELU(),
+                                 nn.Linear(256, 9))
+
+    def flow(self, fa: torch.Tensor, fb: torch.Tensor) -> torch.Tensor:
+        """Features ``[B, P, C]`` of two views -> per cell of ``fa``: its displacement, landing point and peak
+        ``[B, P, 5]``."""
+        p = (torch.einsum("bpc,bqc->bpq", fa, fb) * (self.temperature / 10) / math.sqrt(fa.shape[-1])).softmax(-1)
+        land = p @ self.grid
+        return torch.cat([land - self.grid, land, p.amax(-1, keepdim=True)], -1)
+
+    def forward(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        B, V = images.shape[:2]
+        f = self.encoder(images.flatten(0, 1)).flatten(2).transpose(1, 2)
+        f = (F.normalize(f, dim=-1) * math.sqrt(f.shape[-1])).view(B, V, GRID * GRID, -1)
+        x = torch.stack([torch.cat([self.flow(f[:, 0], f[:, i]), self.flow(f[:, i], f[:, 0])], -1).flatten(1)
+                         for i in range(1, V)], 1)
+        o = self.mlp(x)
+        R = rotation_6d(o[..., :6] + o.new_tensor([1, 0, 0, 0, 1, 0]))
+        eye, zero = torch.eye(3, device=o.device).expand(B, 1, 3, 3), o.new_zeros(B, 1, 3)
+        return torch.cat([eye, R], 1), torch.cat([zero, o[..., 6:]], 1)
+
+
+def relative_rotation_error(R: torch.Tensor, R_gt: torch.Tensor) -> torch.Tensor:
+    """Degrees, ``[B, pairs]``: the angle between predicted and true relative rotations of every view pair."""
+    errs = []
+    for i in range(R.shape[1]):
+        for j in range(i + 1, R.shape[1]):
+            a, b = R[:, j] @ R[:, i].mT, R_gt[:, j] @ R_gt[:, i].mT
+            cos = ((a.mT @ b).diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2
+            errs.append(torch.rad2deg(torch.acos(cos.clamp(-1, 1))))
+    return torch.stack(errs, 1)
+
+
+def train_regressor(dm, test: list, steps: int, eval_every: int, lr: float = 1e-3) -> PairFlowPose:
+    net = PairFlowPose()
+    opt = torch.optim.AdamW(net.parameters(), lr, weight_decay=1e-4)
+    sched = torch.optim.lr_scheduler.OneCycleLR(opt, lr, total_steps=max(steps, 1), pct_start=0.05)
+    mean_R, n, t0 = None, 0, time.time()
+
+    def evaluate() -> tuple[float, float]:
+        net.eval()
+        u, _, vh = torch.linalg.svd(mean_R / n)  # the training mean per position, projected onto rotations
+        with torch.no_grad():
+            e = torch.cat([relative_rotation_error(net(b.context.images)[0], b.context.w2c[..., :3, :3]).flatten()
+                           for b in test])
+            e0 = torch.cat([relative_rotation_error((u @ vh).expand_as(b.context.w2c[..., :3, :3]),
+                                                    b.context.w2c[..., :3, :3]).flatten() for b in test])
+        net.train()
+        return e.mean().item(), e0.mean().item()
+
+    for step, batch in enumerate(dm.train_dataloader()):
+        if step >= steps:
+            break
+        R_gt, t_gt = batch.context.w2c[..., :3, :3], batch.context.w2c[..., :3, 3]
+        mean_R = R_gt.sum(0) if mean_R is None else mean_R + R_gt.sum(0)
+        n += R_gt.shape[0]
+        R, t = net(batch.context.images)
+        loss = (R - R_gt)[:, 1:].abs().mean() + (t - t_gt)[:, 1:].abs().mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        sched.step()
+        if (step + 1) % eval_every == 0 or step + 1 == steps:
+            e, e0 = evaluate()
+            print(f"step {step + 1}: loss {loss.item():.4f}; test cities, mean relative rotation error: regressor "
+                  f"{e:.2f} deg, a constant pose per view position {e0:.2f} deg ({time.time() - t0:.0f} s)", flush=True)
+    return net.eval()
+
+
+def score(module, dm, regressor: PairFlowPose) -> dict[tuple[str, str], float]:
+    """Pooled PSNR ``{(row, region): dB}`` of the scaffold placed with its own cameras and with the regressor's."""
+    from anycity.lit import protocols as P
+    from anycity.models.gaussians import pixel_centres
+
+    headroom = _sibling("stage2_headroom")
+    sq, n = {}, {}
+    for batch in dm.test_dataloader():
+        ctx, tgt = batch.context, batch.target
+        obs, weak = module.region_masks(ctx, tgt)
+        parts = {"observed": obs, "weak": weak}
+        out = module.net(ctx.images, refine=False)
+        w2c = out["w2c"].clone()
+        w2c[..., :3, :3], w2c[..., :3, 3] = regressor(ctx.images)
+        means = pixel_centres(out["depth"], out["K"], w2c, out["offset"])
+        rows = {"own cameras": P.Scene(out["scaffold_gaussians"], out["w2c"], out["K"]),
+                "regressor's cameras": P.Scene(module.net._gaussians(out["raw_gaussians"], means, out["depth"],
+                                                                     out["K"], ctx.images), w2c, out["K"])}
+        for name, scene in rows.items():
+            r, _ = P.feedforward(module, scene, ctx, P.TargetCameras.of(tgt))
+            headroom.accumulate(sq, n, f"{name}, feed-forward", r.rgb, tgt.images, parts, count=name == "own cameras")
+            r, _, _ = P.camrefine(module, scene, ctx, P.TargetCameras.of(tgt), module.hparams.camera_refine_steps)
+            headroom.accumulate(sq, n, f"{name}, camrefine", r.rgb, tgt.images, parts, count=False)
+    return {k: -10 * math.log10(v / max(n[k[1]], 1)) for k, v in sq.items()}
+
+
+def _sibling(name: str):
+    spec = importlib.util.spec_from_file_location(f"{name}_bench", Path(__file__).with_name(f"{name}.py"))
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("ckpt", nargs="?", default="runs/quickstart/stage1/checkpoints/last.ckpt")
+    p.add_argument("--data", default="data/quickstart")
+    p.add_argument("--steps", type=int, default=6000)
+    p.add_argument("--batch", type=int, default=8)
+    p.add_argument("--eval-every", type=int, default=500)
+    p.add_argument("--seed", type=int, default=0)
+    args = p.parse_args()
+    for what, path in (("shards", Path(args.data) / "index.json"), ("checkpoint", Path(args.ckpt))):
+        if not path.is_file():
+            print(f"benchmarks/pose_correlation.py: skipped, no {what} at {path} (make quickstart first, or pass it)")
+            return
+    from anycity.lit.datamodule import AerialDataModule
+
+    torch.manual_seed(args.seed)
+    module = _sibling("stage2_headroom").load_module(args.ckpt)
+    settings = dict(root=args.data, image_size=(48, 48), patch_size=8, num_context=4, num_targets=2, num_dense=0,
+                    num_workers=0, seed=args.seed)
+    train_dm = AerialDataModule(batch_size=args.batch, epoch_samples=10 ** 7, with_normals=False, **settings)
+    test_dm = AerialDataModule(batch_size=1, **settings)
+    regressor = train_regressor(train_dm, list(test_dm.test_dataloader()), args.steps, args.eval_every)
+    with torch.no_grad():
+        psnr = score(module, test_dm, regressor)
+    print("\nthe scaffold's Gaussians on the test cities, pooled PSNR at the targets (dB), observed / weak; no target "
+          "image read")
+    print("| context cameras | feed-forward | camrefine |\n|---|---|---|")
+    for name in ("own cameras", "regressor's cameras"):
+        cells = [f"{psnr[f'{name}, {proto}', 'observed']:.2f} / {psnr[f'{name}, {proto}', 'weak']:.2f}"
+                 for proto in ("feed-forward", "camrefine")]
+        print(f"| {name} | " + " | ".join(cells) + " |")
+
+
+if __name__ == "__main__":
+    main()
