@@ -6,7 +6,6 @@ from pathlib import Path
 from types import ModuleType
 
 ROOT = Path(__file__).resolve().parents[2]
-SCRIPTS = ROOT / "scripts"
 
 
 def load_script(name: str, folder: str = "scripts") -> ModuleType:
