@@ -24,7 +24,6 @@ The regressor is not part of the network: this measures what such cameras would 
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import math
 import time
 from pathlib import Path
@@ -77,31 +76,35 @@ class PairFlowPose(nn.Module):
         return torch.cat([eye, R], 1), torch.cat([zero, o[..., 6:]], 1)
 
 
-def relative_rotation_error(R: torch.Tensor, R_gt: torch.Tensor) -> torch.Tensor:
-    """Degrees, ``[B, pairs]``: the angle between predicted and true relative rotations of every view pair."""
-    errs = []
-    for i in range(R.shape[1]):
-        for j in range(i + 1, R.shape[1]):
-            a, b = R[:, j] @ R[:, i].mT, R_gt[:, j] @ R_gt[:, i].mT
-            cos = ((a.mT @ b).diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2
-            errs.append(torch.rad2deg(torch.acos(cos.clamp(-1, 1))))
-    return torch.stack(errs, 1)
+def as_w2c(R: torch.Tensor, t: torch.Tensor | None = None) -> torch.Tensor:
+    """Rotations ``[B, V, 3, 3]`` (and translations ``[B, V, 3]``) -> ``w2c [B, V, 4, 4]`` for
+    :func:`anycity.metrics.pose.relative_pose_errors`."""
+    w2c = torch.eye(4, dtype=R.dtype, device=R.device).repeat(*R.shape[:2], 1, 1)
+    w2c[..., :3, :3] = R
+    if t is not None:
+        w2c[..., :3, 3] = t
+    return w2c
 
 
 def train_regressor(dm, test: list, steps: int, eval_every: int, lr: float = 1e-3) -> PairFlowPose:
+    from anycity.metrics.pose import relative_pose_errors
+
     net = PairFlowPose()
     opt = torch.optim.AdamW(net.parameters(), lr, weight_decay=1e-4)
-    sched = torch.optim.lr_scheduler.OneCycleLR(opt, lr, total_steps=max(steps, 1), pct_start=0.05)
+    steps = max(steps, 4)  # OneCycleLR divides by its warm-up length, which must be >= 1 step
+    sched = torch.optim.lr_scheduler.OneCycleLR(opt, lr, total_steps=steps, pct_start=max(0.05, 2 / steps))
     mean_R, n, t0 = None, 0, time.time()
 
     def evaluate() -> tuple[float, float]:
+        """Mean relative rotation error (all context view pairs, as ``anycity test``'s ``rre``) of the regressor
+        and of the training mean per position, projected onto rotations."""
         net.eval()
-        u, _, vh = torch.linalg.svd(mean_R / n)  # the training mean per position, projected onto rotations
+        u, _, vh = torch.linalg.svd(mean_R / n)
         with torch.no_grad():
-            e = torch.cat([relative_rotation_error(net(b.context.images)[0], b.context.w2c[..., :3, :3]).flatten()
+            e = torch.cat([relative_pose_errors(as_w2c(*net(b.context.images)), b.context.w2c)[0].flatten()
                            for b in test])
-            e0 = torch.cat([relative_rotation_error((u @ vh).expand_as(b.context.w2c[..., :3, :3]),
-                                                    b.context.w2c[..., :3, :3]).flatten() for b in test])
+            e0 = torch.cat([relative_pose_errors(as_w2c((u @ vh).expand(len(b.context.w2c), -1, -1, -1)),
+                                                 b.context.w2c)[0].flatten() for b in test])
         net.train()
         return e.mean().item(), e0.mean().item()
 
@@ -126,10 +129,11 @@ def train_regressor(dm, test: list, steps: int, eval_every: int, lr: float = 1e-
 
 def score(module, dm, regressor: PairFlowPose) -> dict[tuple[str, str], float]:
     """Pooled PSNR ``{(row, region): dB}`` of the scaffold placed with its own cameras and with the regressor's."""
+    import stage2_headroom as headroom  # this script's folder is sys.path[0]
+
     from anycity.lit import protocols as P
     from anycity.models.gaussians import pixel_centres
 
-    headroom = _sibling("stage2_headroom")
     sq, n = {}, {}
     for batch in dm.test_dataloader():
         ctx, tgt = batch.context, batch.target
@@ -150,13 +154,6 @@ def score(module, dm, regressor: PairFlowPose) -> dict[tuple[str, str], float]:
     return {k: -10 * math.log10(v / max(n[k[1]], 1)) for k, v in sq.items()}
 
 
-def _sibling(name: str):
-    spec = importlib.util.spec_from_file_location(f"{name}_bench", Path(__file__).with_name(f"{name}.py"))
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("ckpt", nargs="?", default="runs/quickstart/stage1/checkpoints/last.ckpt")
@@ -170,10 +167,12 @@ def main() -> None:
         if not path.is_file():
             print(f"benchmarks/pose_correlation.py: skipped, no {what} at {path} (make quickstart first, or pass it)")
             return
+    from stage2_headroom import load_module
+
     from anycity.lit.datamodule import AerialDataModule
 
     torch.manual_seed(args.seed)
-    module = _sibling("stage2_headroom").load_module(args.ckpt)
+    module = load_module(args.ckpt)
     settings = dict(root=args.data, image_size=(48, 48), patch_size=8, num_context=4, num_targets=2, num_dense=0,
                     num_workers=0, seed=args.seed)
     train_dm = AerialDataModule(batch_size=args.batch, epoch_samples=10 ** 7, with_normals=False, **settings)
