@@ -6,8 +6,9 @@ The tiny scaffold's camera head predicts nearly one mean relative pose per view 
 trains a small pose regressor with an explicit correlation between view pairs, a cue that depends on the images'
 content and not on the view order:
 
-1. ``PairFlowPose``: a 4-layer CNN gives each context view a 12 x 12 grid of unit features; for each view i > 0 the
-   soft-argmax of the feature correlation with view 0 (both ways) gives a flow field, and an MLP shared by all views
+1. ``PairFlowPose`` (``anycity.models.pose_prior``; ``net.pose_prior`` loads it in Stage II): a 4-layer CNN gives
+   each context view a 12 x 12 grid of unit features; for each view i > 0 the soft-argmax of the feature
+   correlation with view 0 (both ways) gives a flow field, and an MLP shared by all views
    maps it to view i's rotation (6-D) and translation relative to view 0, in the normalised frame. It reads the
    context images only. It trains on the training cities' context views and their ground-truth poses (as the
    network's camera loss does), L1 on the rotation matrix and the translation. Each ``--eval-every`` steps it prints
@@ -18,7 +19,8 @@ content and not on the view order:
    observed / weak PSNR at the targets, feed-forward and after the context-only camera refinement (the quickstart's
    protocols; neither reads a target image).
 
-The regressor is not part of the network: this measures what such cameras would be worth, it does not build them.
+Here the regressor is not part of the network: this measures what its cameras are worth on their own. The Stage II
+option that reads it is ``net.pose_prior`` (pretrained by ``scripts/pose_prior.py``; docs/stage2.md).
 """
 
 from __future__ import annotations
@@ -29,51 +31,8 @@ import time
 from pathlib import Path
 
 import torch
-import torch.nn.functional as F
-from torch import nn
 
-GRID = 12  # feature cells per side at 48 px (two stride-2 convs)
-
-
-def rotation_6d(x: torch.Tensor) -> torch.Tensor:
-    """``[..., 6]`` -> rotation matrices ``[..., 3, 3]`` (Gram-Schmidt on two rows)."""
-    a = F.normalize(x[..., :3], dim=-1)
-    b = F.normalize(x[..., 3:6] - (a * x[..., 3:6]).sum(-1, keepdim=True) * a, dim=-1)
-    return torch.stack([a, b, torch.cross(a, b, dim=-1)], -2)
-
-
-class PairFlowPose(nn.Module):
-    """Context images ``[B, V, 3, 48, 48]`` -> ``R [B, V, 3, 3]``, ``t [B, V, 3]`` of each view's world-to-camera
-    transform in view 0's frame (view 0: identity), from the correlation of each view with view 0."""
-
-    def __init__(self, channels: int = 48) -> None:
-        super().__init__()
-        c = channels
-        self.encoder = nn.Sequential(nn.Conv2d(3, 32, 3, 2, 1), nn.GELU(), nn.Conv2d(32, 48, 3, 1, 1), nn.GELU(),
-                                     nn.Conv2d(48, c, 3, 2, 1), nn.GELU(), nn.Conv2d(c, c, 3, 1, 1))
-        ys, xs = torch.meshgrid(torch.linspace(-1, 1, GRID), torch.linspace(-1, 1, GRID), indexing="ij")
-        self.register_buffer("grid", torch.stack([xs, ys], -1).reshape(-1, 2), persistent=False)
-        self.temperature = nn.Parameter(torch.tensor(10.0))  # /10 in flow(): a slower step
-        self.mlp = nn.Sequential(nn.Linear(GRID * GRID * 10, 256), nn.GELU(), nn.Linear(256, 256), nn.GELU(),
-                                 nn.Linear(256, 9))
-
-    def flow(self, fa: torch.Tensor, fb: torch.Tensor) -> torch.Tensor:
-        """Features ``[B, P, C]`` of two views -> per cell of ``fa``: its displacement, landing point and peak
-        ``[B, P, 5]``."""
-        p = (torch.einsum("bpc,bqc->bpq", fa, fb) * (self.temperature / 10) / math.sqrt(fa.shape[-1])).softmax(-1)
-        land = p @ self.grid
-        return torch.cat([land - self.grid, land, p.amax(-1, keepdim=True)], -1)
-
-    def forward(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        B, V = images.shape[:2]
-        f = self.encoder(images.flatten(0, 1)).flatten(2).transpose(1, 2)
-        f = (F.normalize(f, dim=-1) * math.sqrt(f.shape[-1])).view(B, V, GRID * GRID, -1)
-        x = torch.stack([torch.cat([self.flow(f[:, 0], f[:, i]), self.flow(f[:, i], f[:, 0])], -1).flatten(1)
-                         for i in range(1, V)], 1)
-        o = self.mlp(x)
-        R = rotation_6d(o[..., :6] + o.new_tensor([1, 0, 0, 0, 1, 0]))
-        eye, zero = torch.eye(3, device=o.device).expand(B, 1, 3, 3), o.new_zeros(B, 1, 3)
-        return torch.cat([eye, R], 1), torch.cat([zero, o[..., 6:]], 1)
+from anycity.models.pose_prior import PairFlowPose
 
 
 def as_w2c(R: torch.Tensor, t: torch.Tensor | None = None) -> torch.Tensor:
@@ -101,7 +60,7 @@ def train_regressor(dm, test: list, steps: int, eval_every: int, lr: float = 1e-
         net.eval()
         u, _, vh = torch.linalg.svd(mean_R / n)
         with torch.no_grad():
-            e = torch.cat([relative_pose_errors(as_w2c(*net(b.context.images)), b.context.w2c)[0].flatten()
+            e = torch.cat([relative_pose_errors(net(b.context.images), b.context.w2c)[0].flatten()
                            for b in test])
             e0 = torch.cat([relative_pose_errors(as_w2c((u @ vh).expand(len(b.context.w2c), -1, -1, -1)),
                                                  b.context.w2c)[0].flatten() for b in test])
@@ -114,7 +73,8 @@ def train_regressor(dm, test: list, steps: int, eval_every: int, lr: float = 1e-
         R_gt, t_gt = batch.context.w2c[..., :3, :3], batch.context.w2c[..., :3, 3]
         mean_R = R_gt.sum(0) if mean_R is None else mean_R + R_gt.sum(0)
         n += R_gt.shape[0]
-        R, t = net(batch.context.images)
+        w2c = net(batch.context.images)
+        R, t = w2c[..., :3, :3], w2c[..., :3, 3]
         loss = (R - R_gt)[:, 1:].abs().mean() + (t - t_gt)[:, 1:].abs().mean()
         opt.zero_grad()
         loss.backward()
@@ -141,7 +101,7 @@ def score(module, dm, regressor: PairFlowPose) -> dict[tuple[str, str], float]:
         parts = {"observed": obs, "weak": weak}
         out = module.net(ctx.images, refine=False)
         w2c = out["w2c"].clone()
-        w2c[..., :3, :3], w2c[..., :3, 3] = regressor(ctx.images)
+        w2c[..., :3, :4] = regressor(ctx.images)[..., :3, :4]
         means = pixel_centres(out["depth"], out["K"], w2c, out["offset"])
         rows = {"own cameras": P.Scene(out["scaffold_gaussians"], out["w2c"], out["K"]),
                 "regressor's cameras": P.Scene(module.net._gaussians(out["raw_gaussians"], means, out["depth"],

@@ -16,7 +16,8 @@ feed-forward, and after the context-only camera refinement (``camrefine``, when 
 The "scaffold only" row is the scaffold variant every test also scores (the scaffold is frozen in Stage II).
 The frozen AA and frozen-all rows need their own Stage I (``quickstart.yaml`` or ``stage1.yaml`` with
 ``configs/ablations/frozen_aa.yaml`` / ``frozen_all.yaml``): pass them as ``--frozen_aa_stage1`` /
-``--frozen_all_stage1``; without it a row says so in its table instead of a figure.
+``--frozen_all_stage1``; without it a row says so in its table instead of a figure. The ``prior_cameras`` row (beyond
+the paper) also loads ``net.pose_prior`` from ``--pose_prior FILE`` (``scripts/pose_prior.py``), and says so likewise.
 Unknown ``--x.y`` options go to every ``fit`` and ``test`` call.
 """
 
@@ -41,8 +42,12 @@ class Row(NamedTuple):
     label: str
     overrides: tuple[str, ...] = ()
     stage1: str = "stage1"  # which Stage I checkpoint: "stage1", or the row's own (OWN_STAGE1)
+    pose_prior: bool = False  # also net.pose_prior, the file --pose_prior names (scripts/pose_prior.py)
 
 
+CAMERAS = ("--model.init_args.net.refine_cameras", "true", "--model.init_args.net.camera_video", "true",
+           "--model.init_args.camera_loss_type", "l1", "--model.init_args.camera_weight", "5",
+           "--model.init_args.lr", "5e-3")
 ROWS = {r.name: r for r in (
     Row("tokens", "+ completion tokens (no prior, no D2S)",
         ("--model.init_args.net.video_prior", "none", "--model.init_args.d2s_weight", "0")),
@@ -52,15 +57,13 @@ ROWS = {r.name: r for r in (
     Row("wo_pres", "w/o L_pres", ("--model.init_args.pres_weight", "0")),
     Row("frozen_aa", "frozen AA (its own Stage I)", stage1="frozen_aa"),
     Row("frozen_all", "frozen-all (its own Stage I)", stage1="frozen_all"),
-    Row("cameras", "full + re-placed cameras (beyond the paper)",
-        ("--model.init_args.net.refine_cameras", "true", "--model.init_args.net.camera_video", "true",
-         "--model.init_args.camera_loss_type", "l1", "--model.init_args.camera_weight", "5",
-         "--model.init_args.lr", "5e-3")),
+    Row("cameras", "full + re-placed cameras (beyond the paper)", CAMERAS),
+    Row("prior_cameras", "full + re-placed cameras + pose prior (beyond the paper)", CAMERAS, pose_prior=True),
 )}
 TABLES = {  # title -> its rows; "full" is named for its place in each table
     "Table 2 order (cumulative)": ("scaffold", "tokens", "d2s", "full"),
     "Table 3 order (ablations)": ("full", "wo_lora", "wo_pres", "frozen_aa", "frozen_all"),
-    "Beyond the paper": ("full", "cameras"),
+    "Beyond the paper": ("full", "cameras", "prior_cameras"),
 }
 FULL_LABEL = {"Table 3 order (ablations)": "full", "Beyond the paper": "full (the paper's Stage II)"}
 DEFAULT_ROWS = ("tokens", "d2s", "full", "wo_lora", "wo_pres", "frozen_aa", "frozen_all")
@@ -92,10 +95,11 @@ def _test_metrics(csv_path: Path) -> dict[str, float]:
     return {k[len("test/"):]: float(v) for k, v in rows[-1].items() if k.startswith("test/") and v != ""}
 
 
-def run_row(row: Row, ckpt: Path, out: Path, common: list[str], steps: int) -> dict:
+def run_row(row: Row, ckpt: Path, out: Path, common: list[str], steps: int, pose_prior: str | None = None) -> dict:
     """Fit and test one row (or reuse its finished run). Returns ``{"settings", "refined", "scaffold"}``."""
     d = out / row.name
-    settings = {"stage1": str(ckpt), "steps": steps, "args": [*common, *row.overrides]}
+    overrides = [*row.overrides, *(["--model.init_args.net.pose_prior", pose_prior] if row.pose_prior else [])]
+    settings = {"stage1": str(ckpt), "steps": steps, "args": [*common, *overrides]}
     done = d / "metrics.json"
     if done.is_file():
         saved = json.loads(done.read_text())
@@ -114,9 +118,9 @@ def run_row(row: Row, ckpt: Path, out: Path, common: list[str], steps: int) -> d
 
     print(f"\n=== {row.name}: {row.label}", flush=True)
     _anycity("fit", [*common, *run_dir("fit"), "--model.init_args.init_from", str(ckpt),
-                     "--trainer.max_steps", str(steps), *row.overrides], row.name)
+                     "--trainer.max_steps", str(steps), *overrides], row.name)
     _anycity("test", [*common, *run_dir("test"), "--ckpt_path", str(d / "fit" / "checkpoints" / "last.ckpt"),
-                      *row.overrides], row.name)
+                      *overrides], row.name)
     m = _test_metrics(d / "test" / "metrics.csv")
     result = {"settings": settings, "refined": _figures(m, "refined"), "scaffold": _figures(m, "scaffold")}
     done.write_text(json.dumps(result, indent=1) + "\n")
@@ -157,7 +161,7 @@ def tables(results: dict[str, dict], scaffold: dict[str, float], missing: dict[s
         own = results[n]["scaffold"]
         lines.append(f"- the {labels[n].split(' (')[0]} row's own scaffold: {cell(own, '')} feed-forward, "
                      f"{cell(own, '_camrefine')} camrefine")
-    for n in (n for n in ("full", "cameras") if n in results):  # the goal, against each row's own scaffold
+    for n in (n for n in ("full", "cameras", "prior_cameras") if n in results):  # against each row's own scaffold
         for sfx, name in PROTOCOLS.items():
             d_weak, d_obs, ok = goal(results[n]["refined"], results[n]["scaffold"], sfx)
             if math.isnan(d_weak):
@@ -174,6 +178,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--stage1", default="runs/quickstart/stage1/checkpoints/last.ckpt", help="Stage I checkpoint")
     for n, (flag, cfg) in OWN_STAGE1.items():
         p.add_argument(flag, default=None, help=f"a Stage I trained with {cfg} (the {n} row)")
+    p.add_argument("--pose_prior", default=None, help="a pose prior from scripts/pose_prior.py (the prior_cameras row)")
     p.add_argument("--configs", nargs="+", default=["configs/quickstart.yaml", "configs/quickstart_stage2.yaml"],
                    help="the Stage II config stack, in order")
     p.add_argument("--data", default="data/quickstart", help="shard directory (same as --data.root)")
@@ -196,6 +201,14 @@ def main(argv: list[str] | None = None) -> int:
         if n in names and flags[n][1] is None:
             names.remove(n)
             missing[n] = f"pass {flag} (a Stage I of {cfg})"
+    for n in [n for n in names if ROWS[n].pose_prior]:
+        if args.pose_prior is None:
+            names.remove(n)
+            missing[n] = "pass --pose_prior (a pose prior from scripts/pose_prior.py)"
+        elif not Path(args.pose_prior).is_file():
+            print(f"error: --pose_prior {args.pose_prior}: no such file (row {n}); run scripts/pose_prior.py",
+                  file=sys.stderr)
+            return 2
     if not names:
         print(f"error: --rows {args.rows!r}: no row left to run: {'; '.join(missing[n] for n in requested)}",
               file=sys.stderr)
@@ -215,7 +228,7 @@ def main(argv: list[str] | None = None) -> int:
             args.configs[i] = str(ROOT / c)  # a repository config, run from another directory
     common = [a for c in args.configs for a in ("-c", c)] + ["--data.root", args.data, *extra]
     out = Path(args.out)
-    results = {n: run_row(ROWS[n], ckpts[ROWS[n].stage1], out, common, args.steps) for n in names}
+    results = {n: run_row(ROWS[n], ckpts[ROWS[n].stage1], out, common, args.steps, args.pose_prior) for n in names}
     scaffolds = [r["scaffold"] for n, r in results.items() if ROWS[n].stage1 == "stage1"]
     text, as_json = tables(results, scaffolds[0] if scaffolds else _figures({}, "scaffold"), missing)
     if scaffolds:  # the scaffold is frozen in Stage II, so every row from --stage1 must score it the same

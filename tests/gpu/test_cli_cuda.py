@@ -29,7 +29,9 @@ def _args(root, run_dir, stage2_from=None, steps=4):
     a = ["-c", "configs/quickstart.yaml"]
     if stage2_from:
         a += ["-c", "configs/quickstart_stage2.yaml", "--model.init_args.init_from", str(stage2_from),
-              "--model.init_args.net", '{"camera_trunk_depth": 2, "video_prior": "wan-tiny", "wan_lora_rank": 2}']
+              "--model.init_args.net", '{"camera_trunk_depth": 2, "video_prior": "wan-tiny", "wan_lora_rank": 2, '
+              '"refine_cameras": true, "camera_video": true, "pose_prior": "random"}',  # every Stage II option
+              "--model.init_args.camera_weight", "5"]
     return a + [
         "--data.root", str(root), "--data.image_size", "[32, 32]", "--data.num_context", "2",
         "--data.num_targets", "1", "--data.num_dense", "2",
@@ -56,7 +58,7 @@ def test_fit_test_predict_on_cuda(tiny_shards, tmp_path):
     assert cli.trainer.global_step == 4 and cli.trainer.strategy.root_device.type == "cuda"
     ckpt2 = s2 / "checkpoints" / "last.ckpt"
     state2 = torch.load(ckpt2, map_location="cpu", weights_only=True)["state_dict"]
-    assert any("lora_A" in k for k in state2)
+    assert any("lora_A" in k for k in state2) and any(k.startswith("net.pose_prior.") for k in state2)
     for k in (k for k in state1 if k.startswith("net.aggregator.")):  # the scaffold stays frozen on the GPU too
         torch.testing.assert_close(state2[k], state1[k], msg=k)
 
@@ -65,7 +67,8 @@ def test_fit_test_predict_on_cuda(tiny_shards, tmp_path):
                      "--model.init_args.eval_joint", "true"])
     metrics = cli.trainer.callback_metrics
     for key in ("test/psnr_scaffold", "test/psnr_refined", "test/psnr_refined_camrefine",
-                "test/psnr_refined_targetalign", "test/psnr_refined_joint", "test/rre_refined_camrefine"):
+                "test/psnr_refined_targetalign", "test/psnr_refined_joint", "test/rre_refined_camrefine",
+                "test/rre_scaffold"):
         assert torch.isfinite(metrics[key]), key
 
     p = tmp_path / "pred"

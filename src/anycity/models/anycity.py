@@ -12,6 +12,7 @@ from anycity.models.aggregator import Aggregator
 from anycity.models.completion import CompletionBranch
 from anycity.models.gaussians import pixel_centres, pixel_footprint, raw_to_gaussians
 from anycity.models.heads import CameraHead, DepthHead, GaussianHead
+from anycity.models.pose_prior import load_pose_prior, pose_features
 from anycity.models.presets import NetConfig
 from anycity.models.video_prior import WanVideoPrior, build_video_prior
 
@@ -60,6 +61,7 @@ class AnyCityNet(nn.Module):
             self.gaussian_head.init_sh_residual()
         self.video_prior = None
         self.completion = None
+        self.pose_prior = None
         if cfg.completion:
             self.video_prior = build_video_prior(
                 cfg.video_prior, cfg.prior_dim, cfg.prior_depth, max(1, cfg.prior_dim // 64), cfg.prior_stride,
@@ -71,7 +73,9 @@ class AnyCityNet(nn.Module):
             self.completion = CompletionBranch(
                 dim2, cfg.completion_dim, cfg.completion_tokens, cfg.completion_heads, cfg.resolved_inject_layers(),
                 self.head_layers, self.video_prior.out_dim if self.video_prior is not None else None,
-                camera=cfg.refine_cameras, camera_video=cfg.camera_video)
+                camera=cfg.refine_cameras, camera_video=cfg.camera_video, camera_pose=cfg.pose_prior is not None)
+            if cfg.pose_prior is not None:  # frozen; built after the branch so its random init does not shift
+                self.pose_prior = load_pose_prior(cfg.pose_prior)
 
     # -- parameter groups ------------------------------------------------------------------------------------
     def scaffold_parameters(self) -> Iterator[nn.Parameter]:
@@ -134,7 +138,11 @@ class AnyCityNet(nn.Module):
                 # Z_final = Z_geo + dZ goes through the whole decoder: the Gaussian head (attributes and centre
                 # offsets) and, with cfg.refine_depth, the depth head, so Stage II can move geometry
                 vid = self.video_prior(images) if self.video_prior is not None else None
-                delta, gates, camera_delta = self.completion(tokens, psi, vid)
+                pose = None
+                if self.pose_prior is not None:
+                    with torch.no_grad():
+                        pose = pose_features(self.pose_prior(images))
+                delta, gates, camera_delta = self.completion(tokens, psi, vid, pose)
                 pel, w2c_f, K_f = pose_enc_list, w2c, K
                 if camera_delta is not None:  # cfg.refine_cameras: the camera head re-reads the last layer
                     last = tokens[-1]

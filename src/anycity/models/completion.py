@@ -12,6 +12,8 @@ way and a zero-initialised linear gives their residual ``ΔZ_cam``, so the froze
 With ``camera_video=True`` each view's residual also reads that view's own video-prior features (its frame's
 tokens, pooled): a video model knows where a frame sits in the clip, which the scaffold, equivariant over views
 1..V-1, cannot tell, and on a flight path the order carries the relative pose.
+With ``camera_pose=True`` each view's residual also reads a pose prior's estimate of that view's pose
+(:func:`anycity.models.pose_prior.pose_features`), through a small MLP.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ import torch
 from torch import Tensor, nn
 
 from anycity.models.layers import CrossAttention, Mlp
+from anycity.models.pose_prior import POSE_FEATURES
 
 
 def scale_layers(layers: tuple[int, ...], depth: int, ref_depth: int = 24) -> tuple[int, ...]:
@@ -30,11 +33,12 @@ def scale_layers(layers: tuple[int, ...], depth: int, ref_depth: int = 24) -> tu
 class CompletionBranch(nn.Module):
     """Args: geo_dim (2C of the aggregator), dim, num_tokens M, inject_layers, head_layers (those the Gaussian
     head reads), video_dim (None: no video cross-attention), camera (also a residual for the camera tokens),
-    camera_video (that residual also reads each view's pooled video features; needs camera and video_dim)."""
+    camera_video (that residual also reads each view's pooled video features; needs camera and video_dim),
+    camera_pose (that residual also reads each view's pose-prior features ``[B, V, 9]``; needs camera)."""
 
     def __init__(self, geo_dim: int, dim: int, num_tokens: int, num_heads: int, inject_layers: tuple[int, ...],
                  head_layers: tuple[int, ...], video_dim: int | None = None, camera: bool = False,
-                 camera_video: bool = False):
+                 camera_video: bool = False, camera_pose: bool = False):
         super().__init__()
         self.inject_layers, self.head_layers = tuple(inject_layers), tuple(head_layers)
         self.tokens = nn.Parameter(torch.randn(1, num_tokens, dim) * 0.02)
@@ -54,13 +58,17 @@ class CompletionBranch(nn.Module):
             raise ValueError("camera_video: the camera residual reads the video prior; it needs refine_cameras and a "
                              "video prior (video_prior != 'none')")
         self.camera_vid = nn.Sequential(nn.LayerNorm(dim), Mlp(dim, 2 * dim, dim)) if camera_video else None
+        if camera_pose and not camera:
+            raise ValueError("pose_prior: the camera residual reads the pose prior; it needs refine_cameras: true")
+        self.camera_pose = Mlp(POSE_FEATURES, dim, dim) if camera_pose else None
         for lin in [*self.delta_proj, *([self.camera_proj] if camera else [])]:
             nn.init.zeros_(lin.weight)
             nn.init.zeros_(lin.bias)
 
-    def forward(self, tokens_list: list[Tensor | None], patch_start_idx: int,
-                video_tokens: Tensor | None = None) -> tuple[list[Tensor], list[Tensor] | None, Tensor | None]:
-        """``tokens_list``: aggregator outputs ``[B, V, T, 2C]``; ``video_tokens [B, L, D_vid]`` or None.
+    def forward(self, tokens_list: list[Tensor | None], patch_start_idx: int, video_tokens: Tensor | None = None,
+                pose: Tensor | None = None) -> tuple[list[Tensor], list[Tensor] | None, Tensor | None]:
+        """``tokens_list``: aggregator outputs ``[B, V, T, 2C]``; ``video_tokens [B, L, D_vid]`` or None;
+        ``pose [B, V, 9]``: the pose prior's features (read with ``camera_pose``), or None.
 
         Returns ``delta``: one ``[B, V, P, 2C]`` residual per head layer (P patch tokens); ``gates``: one
         ``[B, M, 1]`` per injection layer (None without video); ``camera_delta [B, V, 2C]``: the residual of the
@@ -90,5 +98,9 @@ class CompletionBranch(nn.Module):
                 if vid.shape[1] % v:
                     raise ValueError(f"camera_video: {vid.shape[1]} video tokens do not split into {v} frames")
                 cam = cam + self.camera_vid(vid.unflatten(1, (v, -1)).mean(2))  # each view's own frame
+            if self.camera_pose is not None:
+                if pose is None:
+                    raise ValueError("camera_pose: the completion branch needs the pose prior's features")
+                cam = cam + self.camera_pose(pose.to(cam.dtype))
             camera_delta = self.camera_proj(cam)
         return delta, gates, camera_delta

@@ -81,6 +81,10 @@ class NetConfig:
     # Beyond the paper, with refine_cameras: the camera residual of each view also reads that view's own video-prior
     # features, which know the frame's place in the clip (the scaffold is equivariant over views 1..V-1)
     camera_video: bool = False
+    # Beyond the paper, with refine_cameras: a frozen pretrained pose prior (models/pose_prior.py; the .pt that
+    # scripts/pose_prior.py writes, or "random" for tests) whose per-view pose each camera residual also reads.
+    # Content-based and order-free, it stands in for the camera motion a pretrained video model knows
+    pose_prior: str | None = None
 
     def resolved_head_layers(self) -> tuple[int, ...]:
         return tuple(self.head_layers) if self.head_layers else scale_layers(VGGT_HEAD_LAYERS, self.depth)

@@ -1,0 +1,91 @@
+"""Pretrain the pair-correlation pose prior that ``net.pose_prior`` (beyond the paper) loads in Stage II.
+
+    python scripts/pose_prior.py --data data/quickstart --out runs/pose_prior.pt    # about 8 min on 2 CPU cores
+
+It trains :class:`anycity.lit.pose_prior.PosePriorModule` (a Lightning ``Trainer``: any accelerator, DDP with
+``--devices``) on the context views of the training split and their ground-truth poses, prints the mean relative
+rotation error on the validation split every ``--val-every`` steps and on the test split once at the end (no
+checkpoint is chosen by it), and writes ``OUT``: ``{"state_dict", "channels", "grid", "image_size", "num_context",
+"data", "steps", "rre_val", "rre_test"}``. Then, in Stage II:
+
+    anycity fit -c configs/quickstart.yaml -c configs/quickstart_stage2.yaml --model.init_args.init_from STAGE1 \\
+        --model.init_args.net.refine_cameras true --model.init_args.net.camera_video true \\
+        --model.init_args.net.pose_prior runs/pose_prior.pt --model.init_args.camera_weight 5 ...
+
+(``scripts/stage2_tables.py --rows prior_cameras --pose_prior runs/pose_prior.pt`` runs that row.)
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--data", default="data/quickstart", help="shard directory (its index.json names the splits)")
+    p.add_argument("--out", default="runs/pose_prior.pt")
+    p.add_argument("--steps", type=int, default=6000)
+    p.add_argument("--batch", type=int, default=8)
+    p.add_argument("--image-size", type=int, nargs=2, default=(48, 48), metavar=("H", "W"))
+    p.add_argument("--patch-size", type=int, default=8, help="the network's (views are cropped to a multiple)")
+    p.add_argument("--num-context", type=int, default=4)
+    p.add_argument("--val-every", type=int, default=1000)
+    p.add_argument("--val-batches", type=int, default=24, help="validation samples per check")
+    p.add_argument("--workers", type=int, default=0)
+    p.add_argument("--accelerator", default="auto")
+    p.add_argument("--devices", default="1")
+    p.add_argument("--seed", type=int, default=0)
+    args = p.parse_args(argv)
+    if not (Path(args.data) / "index.json").is_file():
+        print(f"error: --data {args.data}: no index.json; make the shards first (make quickstart, or anycity data "
+              "synth|convert)", file=sys.stderr)
+        return 2
+    out = Path(args.out)
+    if out.exists():
+        print(f"error: --out {out} exists; delete it or pass another path", file=sys.stderr)
+        return 2
+
+    import lightning as L
+    import torch
+
+    from anycity.lit.datamodule import AerialDataModule
+    from anycity.lit.pose_prior import PosePriorModule
+
+    L.seed_everything(args.seed)
+    # the views as Stage II sees them: the same size, crop and scale normalisation (context depth), so the
+    # translations come in the same units
+    dm = AerialDataModule(root=args.data, image_size=tuple(args.image_size), patch_size=args.patch_size,
+                          num_context=args.num_context, num_targets=1, num_dense=0, batch_size=args.batch,
+                          eval_batch_size=1, num_workers=args.workers, epoch_samples=args.steps * args.batch,
+                          with_normals=False, seed=args.seed)
+    module = PosePriorModule()
+
+    class Report(L.Callback):
+        def on_validation_end(self, trainer, pl_module):
+            if trainer.is_global_zero and not trainer.sanity_checking:
+                print(f"step {trainer.global_step}: validation cities, mean relative rotation error "
+                      f"{trainer.callback_metrics['val/rre']:.2f} deg", flush=True)
+
+    trainer = L.Trainer(max_steps=args.steps, accelerator=args.accelerator, devices=args.devices, logger=False,
+                        enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,
+                        num_sanity_val_steps=0, val_check_interval=min(args.val_every, args.steps),
+                        limit_val_batches=args.val_batches,
+                        check_val_every_n_epoch=None, callbacks=[Report()])
+    trainer.fit(module, datamodule=dm)
+    rre_val = float(trainer.callback_metrics["val/rre"])
+    rre_test = float(trainer.test(module, datamodule=dm, verbose=False)[0]["test/rre"])
+    print(f"test cities, mean relative rotation error {rre_test:.2f} deg (read once, after training)")
+    if trainer.is_global_zero:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        torch.save({"state_dict": module.net.state_dict(), "channels": module.hparams.channels,
+                    "grid": module.hparams.grid, "image_size": list(args.image_size),
+                    "num_context": args.num_context, "data": str(args.data), "steps": args.steps,
+                    "rre_val": rre_val, "rre_test": rre_test}, out)
+        print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,58 @@
+"""scripts/pose_prior.py pretrains the pose prior; Stage II (the prior_cameras row of scripts/stage2_tables.py)
+loads it frozen, trains around it, and its checkpoint tests with it."""
+
+import json
+
+import pytest
+import torch
+from helpers.scripts import load_script
+
+from anycity.cli import build_cli
+
+
+@pytest.fixture(autouse=True)
+def _argv(monkeypatch):
+    monkeypatch.setattr("sys.argv", ["script.py"])
+
+
+def test_pretrain_then_stage2_row(tiny_shards, tmp_path, capsys):
+    pretrain = load_script("pose_prior")
+    prior = tmp_path / "prior.pt"
+    args = ["--data", str(tiny_shards), "--out", str(prior), "--steps", "4", "--val-every", "2", "--val-batches",
+            "1", "--image-size", "32", "32", "--num-context", "2", "--accelerator", "cpu"]
+    assert pretrain.main(args) == 0
+    saved = torch.load(prior, weights_only=True)
+    assert {"state_dict", "channels", "grid", "rre_val", "rre_test"} <= set(saved)
+    assert saved["steps"] == 4 and 0 <= saved["rre_test"] < 180
+    assert "test cities, mean relative rotation error" in capsys.readouterr().out
+    assert pretrain.main(args) == 2 and f"--out {prior} exists" in capsys.readouterr().err  # never overwritten
+    assert pretrain.main([*args[:1], str(tmp_path / "nowhere"), *args[2:]]) == 2
+    assert "no index.json" in capsys.readouterr().err
+
+    extra = ["--data.image_size", "[32, 32]", "--data.num_context", "2", "--data.num_targets", "1",
+             "--data.num_dense", "2", "--trainer.val_check_interval", "2", "--trainer.limit_val_batches", "1",
+             "--model.init_args.warmup_steps", "1", "--model.init_args.render_backend", "torch",
+             "--model.init_args.camera_refine_steps", "2", "--model.init_args.eval_pose_align_steps", "0"]
+    s1 = tmp_path / "s1"
+    build_cli(["fit", "-c", "configs/quickstart.yaml", "--data.root", str(tiny_shards), *extra,
+               "--trainer.max_steps", "2", "--trainer.default_root_dir", str(s1),
+               "--trainer.logger.init_args.save_dir", str(s1)])
+    tables = load_script("stage2_tables")
+    out = tmp_path / "tables"
+    argv = ["--stage1", str(s1 / "checkpoints" / "last.ckpt"), "--data", str(tiny_shards), "--out", str(out),
+            "--steps", "2", "--rows", "prior_cameras", *extra]
+    assert tables.main(argv) == 2  # the row needs its prior
+    assert "pass --pose_prior" in capsys.readouterr().err
+    assert tables.main([*argv, "--pose_prior", str(tmp_path / "none.pt")]) == 2
+    assert "none.pt: no such file" in capsys.readouterr().err
+    assert tables.main([*argv, "--pose_prior", str(prior)]) == 0
+
+    cfg = (out / "prior_cameras" / "fit" / "config.yaml").read_text()
+    assert f"pose_prior: {prior}" in cfg and "refine_cameras: true" in cfg and "camera_video: true" in cfg
+    ckpt = torch.load(out / "prior_cameras" / "fit" / "checkpoints" / "last.ckpt", weights_only=True)["state_dict"]
+    for k, v in saved["state_dict"].items():  # the frozen prior travels in the checkpoint, unchanged
+        torch.testing.assert_close(ckpt[f"net.pose_prior.{k}"], v)
+    assert any(k.startswith("net.completion.camera_pose.") for k in ckpt)
+    res = json.loads((out / "tables.json").read_text())
+    assert set(res["goal"]) == {"prior_cameras"}
+    assert "| full + re-placed cameras + pose prior (beyond the paper) | " in (out / "tables.md").read_text()

@@ -1,0 +1,87 @@
+"""The pair-correlation pose prior (beyond the paper): order-free poses in view 0's frame, loaded frozen, read by
+Stage II's camera residual, which still starts at the scaffold."""
+
+import pytest
+import torch
+
+from anycity.models import build_network
+from anycity.models.pose_prior import PairFlowPose, load_pose_prior, pose_features
+
+
+def test_poses_are_in_view_0s_frame_and_follow_the_views_not_their_order():
+    torch.manual_seed(0)
+    prior = PairFlowPose().eval()
+    with torch.no_grad():
+        prior.mlp[-1].bias.normal_(0, 0.3)  # a non-trivial pose for every view
+    images = torch.rand(2, 4, 3, 48, 48)
+    w2c = prior(images)
+    assert w2c.shape == (2, 4, 4, 4)
+    torch.testing.assert_close(w2c[:, 0], torch.eye(4).expand(2, 4, 4))
+    R = w2c[:, 1:, :3, :3]
+    torch.testing.assert_close(R @ R.transpose(-1, -2), torch.eye(3).expand_as(R), atol=1e-5, rtol=0)
+    assert (w2c[:, 1:] - torch.eye(4)).abs().amax() > 1e-2
+    # reordering views 1..3 reorders their poses and changes nothing else
+    order = [0, 3, 1, 2]
+    torch.testing.assert_close(prior(images[:, order]), w2c[:, order], atol=1e-5, rtol=1e-5)
+    # another image size is pooled to the same grid
+    assert prior(torch.rand(1, 3, 3, 64, 96)).shape == (1, 3, 4, 4)
+    assert torch.equal(prior(images[:, :1]), torch.eye(4).expand(2, 1, 4, 4))
+
+
+def test_pose_features_are_zero_for_the_identity():
+    w2c = torch.eye(4).repeat(1, 2, 1, 1)
+    w2c[0, 1, :3, 3] = torch.tensor([1.0, 2.0, 3.0])
+    f = pose_features(w2c)
+    assert f.shape == (1, 2, 9)
+    assert torch.equal(f[0, 0], torch.zeros(9)) and torch.equal(f[0, 1, 6:], torch.tensor([1.0, 2.0, 3.0]))
+
+
+def test_load_round_trip_is_frozen_and_bad_files_say_what_to_do(tmp_path):
+    torch.manual_seed(1)
+    trained = PairFlowPose(channels=16, grid=6)
+    path = tmp_path / "prior.pt"
+    torch.save({"state_dict": trained.state_dict(), "channels": 16, "grid": 6, "image_size": [48, 48]}, path)
+    loaded = load_pose_prior(str(path))
+    assert not loaded.training and not any(p.requires_grad for p in loaded.parameters())
+    x = torch.rand(1, 3, 3, 48, 48)
+    torch.testing.assert_close(loaded(x), trained(x))
+    with pytest.warns(UserWarning, match="trained on 48x48 views, given 32x64.*--image-size"):
+        loaded(torch.rand(1, 2, 3, 32, 64))
+    with pytest.raises(FileNotFoundError, match="net.pose_prior: .*missing.pt not found; train one with"):
+        load_pose_prior(str(tmp_path / "missing.pt"))
+    torch.save(trained.state_dict(), tmp_path / "bare.pt")
+    with pytest.raises(ValueError, match="not a pose prior written by scripts/pose_prior.py"):
+        load_pose_prior(str(tmp_path / "bare.pt"))
+
+
+def test_stage2_reads_the_frozen_prior_starts_at_the_scaffold_and_trains_only_its_own_mlp():
+    torch.manual_seed(0)
+    plain = build_network("tiny", refine_cameras=True, camera_video=True).state_dict()
+    torch.manual_seed(0)
+    net = build_network("tiny", refine_cameras=True, camera_video=True, pose_prior="random")
+    own = net.state_dict()
+    extra = {k for k in own if k not in plain}
+    assert extra and all(k.startswith(("completion.camera_pose.", "pose_prior.")) for k in extra)
+    assert all(torch.equal(own[k], v) for k, v in plain.items())  # every other init unchanged
+    net.freeze_scaffold()
+    trainable = {id(p) for p in net.refinement_parameters()}
+    assert not any(id(p) in trainable or p.requires_grad for p in net.pose_prior.parameters())
+    assert all(id(p) in trainable for p in net.completion.camera_pose.parameters())
+
+    images = torch.rand(1, 4, 3, 48, 48)
+    out = net(images, refine=True)
+    torch.testing.assert_close(out["w2c"], out["scaffold_w2c"])  # the residual is zero-initialised
+
+    # once trained, the residual depends on the prior's poses: another prior moves the re-placed cameras
+    with torch.no_grad():
+        net.completion.camera_proj.weight.normal_(0, 0.5)
+        net.pose_prior.mlp[-1].bias.normal_(0, 0.3)
+    out = net(images, refine=True)
+    with torch.no_grad():
+        net.pose_prior.mlp[-1].bias.normal_(0, 0.3)
+    assert (net(images, refine=True)["w2c"] - out["w2c"]).abs().amax() > 1e-4
+    out["pose_enc"].sum().backward()
+    assert net.completion.camera_pose.fc1.weight.grad.abs().sum() > 0
+    assert all(p.grad is None for p in net.pose_prior.parameters())
+    with pytest.raises(ValueError, match="pose_prior: .*needs refine_cameras"):
+        build_network("tiny", pose_prior="random")
