@@ -46,9 +46,11 @@ def as_w2c(R: torch.Tensor, t: torch.Tensor | None = None) -> torch.Tensor:
 
 
 def train_regressor(dm, test: list, steps: int, eval_every: int, lr: float = 1e-3) -> PairFlowPose:
+    from anycity.lit.pose_prior import PosePriorModule
     from anycity.metrics.pose import relative_pose_errors
 
-    net = PairFlowPose()
+    trainee = PosePriorModule()  # its loss (scripts/pose_prior.py trains the same recipe with a Lightning Trainer)
+    net = trainee.net
     opt = torch.optim.AdamW(net.parameters(), lr, weight_decay=1e-4)
     steps = max(steps, 4)  # OneCycleLR divides by its warm-up length, which must be >= 1 step
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, lr, total_steps=steps, pct_start=max(0.05, 2 / steps))
@@ -70,12 +72,10 @@ def train_regressor(dm, test: list, steps: int, eval_every: int, lr: float = 1e-
     for step, batch in enumerate(dm.train_dataloader()):
         if step >= steps:
             break
-        R_gt, t_gt = batch.context.w2c[..., :3, :3], batch.context.w2c[..., :3, 3]
+        R_gt = batch.context.w2c[..., :3, :3]
         mean_R = R_gt.sum(0) if mean_R is None else mean_R + R_gt.sum(0)
         n += R_gt.shape[0]
-        w2c = net(batch.context.images)
-        R, t = w2c[..., :3, :3], w2c[..., :3, 3]
-        loss = (R - R_gt)[:, 1:].abs().mean() + (t - t_gt)[:, 1:].abs().mean()
+        loss = trainee.loss(batch)
         opt.zero_grad()
         loss.backward()
         opt.step()
