@@ -3,7 +3,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 PIP := $(PY) -m pip
 
-.PHONY: setup test test-all bench lint quickstart clean docker docker-cpu docker-check gpu-check
+.PHONY: setup test test-all bench lint quickstart stage2-prior clean docker docker-cpu docker-check gpu-check
 
 setup:
 	@test -x $(PY) || python3 -m venv $(VENV)
@@ -20,6 +20,14 @@ test-all:
 
 quickstart:
 	$(PY) scripts/quickstart.py
+
+# Beyond the paper (docs/stage2.md, "Taking the prior's pose"), after `make quickstart`: pretrain the pose prior once
+# (about 8 min), then the prior_mix rows of scripts/stage2_tables.py on the quickstart's Stage I (about 10 min).
+runs/pose_prior.pt:
+	$(PY) scripts/pose_prior.py --data data/quickstart --out $@
+
+stage2-prior: runs/pose_prior.pt
+	$(PY) scripts/stage2_tables.py --rows prior_mix,prior_mix_unordered --pose_prior runs/pose_prior.pt --out runs/stage2_prior
 
 bench:
 	@for f in benchmarks/*.py; do echo "== $$f"; $(PY) $$f || exit 1; done

@@ -16,8 +16,8 @@ feed-forward, and after the context-only camera refinement (``camrefine``, when 
 The "scaffold only" row is the scaffold variant every test also scores (the scaffold is frozen in Stage II).
 The frozen AA and frozen-all rows need their own Stage I (``quickstart.yaml`` or ``stage1.yaml`` with
 ``configs/ablations/frozen_aa.yaml`` / ``frozen_all.yaml``): pass them as ``--frozen_aa_stage1`` /
-``--frozen_all_stage1``; without it a row says so in its table instead of a figure. The ``prior_cameras`` row (beyond
-the paper) also loads ``net.pose_prior`` from ``--pose_prior FILE`` (``scripts/pose_prior.py``), and says so likewise.
+``--frozen_all_stage1``; without it a row says so in its table instead of a figure. The ``prior_*`` rows (beyond the
+paper) also load ``net.pose_prior`` from ``--pose_prior FILE`` (``scripts/pose_prior.py``), and say so likewise.
 Unknown ``--x.y`` options go to every ``fit`` and ``test`` call.
 """
 
@@ -48,6 +48,8 @@ class Row(NamedTuple):
 CAMERAS = ("--model.init_args.net.refine_cameras", "true", "--model.init_args.net.camera_video", "true",
            "--model.init_args.camera_loss_type", "l1", "--model.init_args.camera_weight", "5",
            "--model.init_args.lr", "5e-3")
+UNORDERED = (*CAMERAS[:2], *CAMERAS[4:])  # the same without camera_video: the views' order is not read
+MIX = ("--model.init_args.net.pose_prior_mix", "true")
 ROWS = {r.name: r for r in (
     Row("tokens", "+ completion tokens (no prior, no D2S)",
         ("--model.init_args.net.video_prior", "none", "--model.init_args.d2s_weight", "0")),
@@ -59,11 +61,15 @@ ROWS = {r.name: r for r in (
     Row("frozen_all", "frozen-all (its own Stage I)", stage1="frozen_all"),
     Row("cameras", "full + re-placed cameras (beyond the paper)", CAMERAS),
     Row("prior_cameras", "full + re-placed cameras + pose prior (beyond the paper)", CAMERAS, pose_prior=True),
+    Row("prior_mix", "full + re-placed cameras + pose prior, poses mixed towards it (beyond the paper)",
+        (*CAMERAS, *MIX), pose_prior=True),
+    Row("prior_mix_unordered", "the same, views in any order (no camera_video; beyond the paper)", (*UNORDERED, *MIX),
+        pose_prior=True),
 )}
 TABLES = {  # title -> its rows; "full" is named for its place in each table
     "Table 2 order (cumulative)": ("scaffold", "tokens", "d2s", "full"),
     "Table 3 order (ablations)": ("full", "wo_lora", "wo_pres", "frozen_aa", "frozen_all"),
-    "Beyond the paper": ("full", "cameras", "prior_cameras"),
+    "Beyond the paper": ("full", "cameras", "prior_cameras", "prior_mix", "prior_mix_unordered"),
 }
 FULL_LABEL = {"Table 3 order (ablations)": "full", "Beyond the paper": "full (the paper's Stage II)"}
 DEFAULT_ROWS = ("tokens", "d2s", "full", "wo_lora", "wo_pres", "frozen_aa", "frozen_all")
@@ -161,7 +167,7 @@ def tables(results: dict[str, dict], scaffold: dict[str, float], missing: dict[s
         own = results[n]["scaffold"]
         lines.append(f"- the {labels[n].split(' (')[0]} row's own scaffold: {cell(own, '')} feed-forward, "
                      f"{cell(own, '_camrefine')} camrefine")
-    for n in (n for n in ("full", "cameras", "prior_cameras") if n in results):  # against each row's own scaffold
+    for n in (n for n in ("full", *TABLES["Beyond the paper"][1:]) if n in results):  # against each row's own scaffold
         for sfx, name in PROTOCOLS.items():
             d_weak, d_obs, ok = goal(results[n]["refined"], results[n]["scaffold"], sfx)
             if math.isnan(d_weak):
@@ -178,7 +184,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--stage1", default="runs/quickstart/stage1/checkpoints/last.ckpt", help="Stage I checkpoint")
     for n, (flag, cfg) in OWN_STAGE1.items():
         p.add_argument(flag, default=None, help=f"a Stage I trained with {cfg} (the {n} row)")
-    p.add_argument("--pose_prior", default=None, help="a pose prior from scripts/pose_prior.py (the prior_cameras row)")
+    p.add_argument("--pose_prior", default=None,
+                   help="a pose prior from scripts/pose_prior.py (the prior_* rows)")
     p.add_argument("--configs", nargs="+", default=["configs/quickstart.yaml", "configs/quickstart_stage2.yaml"],
                    help="the Stage II config stack, in order")
     p.add_argument("--data", default="data/quickstart", help="shard directory (same as --data.root)")

@@ -28,9 +28,10 @@ def _argv(monkeypatch):
 def _args(root, run_dir, stage2_from=None, steps=4):
     a = ["-c", "configs/quickstart.yaml"]
     if stage2_from:
+        # every Stage II option
         a += ["-c", "configs/quickstart_stage2.yaml", "--model.init_args.init_from", str(stage2_from),
               "--model.init_args.net", '{"camera_trunk_depth": 2, "video_prior": "wan-tiny", "wan_lora_rank": 2, '
-              '"refine_cameras": true, "camera_video": true, "pose_prior": "random"}',  # every Stage II option
+              '"refine_cameras": true, "camera_video": true, "pose_prior": "random", "pose_prior_mix": true}',
               "--model.init_args.camera_weight", "5"]
     return a + [
         "--data.root", str(root), "--data.image_size", "[32, 32]", "--data.num_context", "2",

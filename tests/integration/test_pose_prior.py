@@ -46,6 +46,8 @@ def test_pretrain_then_stage2_row(tiny_shards, tmp_path, capsys):
     assert tables.main([*argv, "--pose_prior", str(tmp_path / "none.pt")]) == 2
     assert "none.pt: no such file" in capsys.readouterr().err
     assert tables.main([*argv, "--pose_prior", str(prior)]) == 0
+    argv[argv.index("prior_cameras")] = "prior_mix"
+    assert tables.main([*argv, "--pose_prior", str(prior)]) == 0
 
     cfg = (out / "prior_cameras" / "fit" / "config.yaml").read_text()
     assert f"pose_prior: {prior}" in cfg and "refine_cameras: true" in cfg and "camera_video: true" in cfg
@@ -53,6 +55,10 @@ def test_pretrain_then_stage2_row(tiny_shards, tmp_path, capsys):
     for k, v in saved["state_dict"].items():  # the frozen prior travels in the checkpoint, unchanged
         torch.testing.assert_close(ckpt[f"net.pose_prior.{k}"], v)
     assert any(k.startswith("net.completion.camera_pose.") for k in ckpt)
+    assert "pose_prior_mix: true" in (out / "prior_mix" / "fit" / "config.yaml").read_text()
+    mix = torch.load(out / "prior_mix" / "fit" / "checkpoints" / "last.ckpt", weights_only=True)["state_dict"]
+    assert "net.completion.camera_mix.weight" in mix and "net.completion.camera_mix.weight" not in ckpt
     res = json.loads((out / "tables.json").read_text())
-    assert set(res["goal"]) == {"prior_cameras"}
-    assert "| full + re-placed cameras + pose prior (beyond the paper) | " in (out / "tables.md").read_text()
+    assert set(res["goal"]) == {"prior_mix"}  # the tables of this run: its rows only
+    assert "| full + re-placed cameras + pose prior, poses mixed towards it (beyond the paper) | " in (
+        out / "tables.md").read_text()

@@ -77,3 +77,22 @@ def pose_encoding_to_extri_intri(enc: Tensor, image_size_hw: tuple[int, int],
     zero, one = torch.zeros_like(fx), torch.ones_like(fx)
     K = torch.stack([fx, zero, zero + w / 2, zero, fy, zero + h / 2, zero, zero, one], dim=-1)
     return w2c, K.unflatten(-1, (3, 3))
+
+
+def blend_pose_encoding(enc: Tensor, w2c: Tensor, weight: Tensor) -> Tensor:
+    """Move an encoding's translation and rotation towards another pose's, per view.
+
+    ``enc [..., 9]``; ``w2c [..., 4, 4]``: the pose moved towards; ``weight [..., 2]``: how far, for the
+    translation and the rotation (0 keeps ``enc`` exactly, 1 reaches ``w2c``; neither is clamped). The rotation is
+    blended linearly on the quaternion, after ``w2c``'s is given ``enc``'s sign and norm; the fields of view are
+    kept. Gradients reach ``enc`` and ``weight`` (and ``w2c``).
+    """
+    if enc.shape[-1] != POSE_ENCODING_DIM or weight.shape[-1] != 2:
+        raise ValueError(f"blend_pose_encoding: expected enc [..., 9] and weight [..., 2], got "
+                         f"{tuple(enc.shape)} and {tuple(weight.shape)}")
+    t, q = enc[..., :3], enc[..., 3:7]
+    qp = wxyz_to_xyzw(rotmat_to_quat(w2c[..., :3, :3].float()))
+    sign = torch.where((q * qp).sum(-1, keepdim=True) < 0, -1.0, 1.0)
+    qp = qp * sign * q.norm(dim=-1, keepdim=True)
+    a_t, a_r = weight[..., :1], weight[..., 1:]
+    return torch.cat([t + a_t * (w2c[..., :3, 3] - t), q + a_r * (qp - q), enc[..., 7:]], dim=-1)

@@ -7,7 +7,7 @@ from collections.abc import Iterator
 import torch
 from torch import Tensor, nn
 
-from anycity.geometry.pose_encoding import pose_encoding_to_extri_intri
+from anycity.geometry.pose_encoding import blend_pose_encoding, pose_encoding_to_extri_intri
 from anycity.models.aggregator import Aggregator
 from anycity.models.completion import CompletionBranch
 from anycity.models.gaussians import pixel_centres, pixel_footprint, raw_to_gaussians
@@ -73,7 +73,8 @@ class AnyCityNet(nn.Module):
             self.completion = CompletionBranch(
                 dim2, cfg.completion_dim, cfg.completion_tokens, cfg.completion_heads, cfg.resolved_inject_layers(),
                 self.head_layers, self.video_prior.out_dim if self.video_prior is not None else None,
-                camera=cfg.refine_cameras, camera_video=cfg.camera_video, camera_pose=cfg.pose_prior is not None)
+                camera=cfg.refine_cameras, camera_video=cfg.camera_video, camera_pose=cfg.pose_prior is not None,
+                camera_mix=cfg.pose_prior_mix)
             if cfg.pose_prior is not None:  # frozen; built after the branch so its random init does not shift
                 self.pose_prior = load_pose_prior(cfg.pose_prior)
 
@@ -138,16 +139,19 @@ class AnyCityNet(nn.Module):
                 # Z_final = Z_geo + dZ goes through the whole decoder: the Gaussian head (attributes and centre
                 # offsets) and, with cfg.refine_depth, the depth head, so Stage II can move geometry
                 vid = self.video_prior(images) if self.video_prior is not None else None
-                pose = None
+                prior_w2c = pose = None
                 if self.pose_prior is not None:
                     with torch.no_grad():
-                        pose = pose_features(self.pose_prior(images))
-                delta, gates, camera_delta = self.completion(tokens, psi, vid, pose)
+                        prior_w2c = self.pose_prior(images)
+                        pose = pose_features(prior_w2c)
+                delta, gates, camera_delta, camera_mix = self.completion(tokens, psi, vid, pose)
                 pel, w2c_f, K_f = pose_enc_list, w2c, K
                 if camera_delta is not None:  # cfg.refine_cameras: the camera head re-reads the last layer
                     last = tokens[-1]
                     last = torch.cat([last[:, :, :1] + camera_delta[:, :, None], last[:, :, 1:]], dim=2)
                     pel = self.camera_head([*tokens[:-1], last], self.cfg.camera_iterations)
+                    if camera_mix is not None:  # cfg.pose_prior_mix: one more step, towards the prior's pose
+                        pel = [*pel, blend_pose_encoding(pel[-1], prior_w2c, camera_mix)]
                     w2c_f, K_f = pose_encoding_to_extri_intri(pel[-1], (h, w), self.cfg.focal_decode)
                 d, dc = depth, depth_conf
                 if self.cfg.refine_depth:

@@ -13,7 +13,9 @@ With ``camera_video=True`` each view's residual also reads that view's own video
 tokens, pooled): a video model knows where a frame sits in the clip, which the scaffold, equivariant over views
 1..V-1, cannot tell, and on a flight path the order carries the relative pose.
 With ``camera_pose=True`` each view's residual also reads a pose prior's estimate of that view's pose
-(:func:`anycity.models.pose_prior.pose_features`), through a small MLP.
+(:func:`anycity.models.pose_prior.pose_features`), through a small MLP. With ``camera_mix=True`` a zero-initialised
+linear of the same features also gives, per view, how far the re-placed pose moves towards the prior's
+(translation, rotation), so the network can take the prior's pose itself rather than re-derive it.
 """
 
 from __future__ import annotations
@@ -34,11 +36,12 @@ class CompletionBranch(nn.Module):
     """Args: geo_dim (2C of the aggregator), dim, num_tokens M, inject_layers, head_layers (those the Gaussian
     head reads), video_dim (None: no video cross-attention), camera (also a residual for the camera tokens),
     camera_video (that residual also reads each view's pooled video features; needs camera and video_dim),
-    camera_pose (that residual also reads each view's pose-prior features ``[B, V, 9]``; needs camera)."""
+    camera_pose (that residual also reads each view's pose-prior features ``[B, V, 9]``; needs camera),
+    camera_mix (also per-view weights towards the prior's pose; needs camera_pose)."""
 
     def __init__(self, geo_dim: int, dim: int, num_tokens: int, num_heads: int, inject_layers: tuple[int, ...],
                  head_layers: tuple[int, ...], video_dim: int | None = None, camera: bool = False,
-                 camera_video: bool = False, camera_pose: bool = False):
+                 camera_video: bool = False, camera_pose: bool = False, camera_mix: bool = False):
         super().__init__()
         self.inject_layers, self.head_layers = tuple(inject_layers), tuple(head_layers)
         self.tokens = nn.Parameter(torch.randn(1, num_tokens, dim) * 0.02)
@@ -61,18 +64,25 @@ class CompletionBranch(nn.Module):
         if camera_pose and not camera:
             raise ValueError("pose_prior: the camera residual reads the pose prior; it needs refine_cameras: true")
         self.camera_pose = Mlp(POSE_FEATURES, dim, dim) if camera_pose else None
-        for lin in [*self.delta_proj, *([self.camera_proj] if camera else [])]:
+        if camera_mix and not camera_pose:
+            raise ValueError("pose_prior_mix: the re-placed cameras move towards the pose prior's; set net.pose_prior")
+        self.camera_mix = nn.Linear(dim, 2) if camera_mix else None
+        for lin in [*self.delta_proj, self.camera_proj, self.camera_mix]:
+            if lin is None:
+                continue
             nn.init.zeros_(lin.weight)
             nn.init.zeros_(lin.bias)
 
     def forward(self, tokens_list: list[Tensor | None], patch_start_idx: int, video_tokens: Tensor | None = None,
-                pose: Tensor | None = None) -> tuple[list[Tensor], list[Tensor] | None, Tensor | None]:
+                pose: Tensor | None = None
+                ) -> tuple[list[Tensor], list[Tensor] | None, Tensor | None, Tensor | None]:
         """``tokens_list``: aggregator outputs ``[B, V, T, 2C]``; ``video_tokens [B, L, D_vid]`` or None;
         ``pose [B, V, 9]``: the pose prior's features (read with ``camera_pose``), or None.
 
         Returns ``delta``: one ``[B, V, P, 2C]`` residual per head layer (P patch tokens); ``gates``: one
         ``[B, M, 1]`` per injection layer (None without video); ``camera_delta [B, V, 2C]``: the residual of the
-        last layer's camera tokens (index 0), or None without ``camera``.
+        last layer's camera tokens (index 0), or None without ``camera``; ``camera_mix [B, V, 2]``: how far each
+        view's pose moves towards the prior's (translation, rotation; zero at initialisation), or None.
         """
         b = tokens_list[self.head_layers[0]].shape[0]
         z = self.tokens.expand(b, -1, -1)
@@ -90,7 +100,7 @@ class CompletionBranch(nn.Module):
             patches = tokens_list[layer][:, :, patch_start_idx:]
             q = patches.flatten(1, 2)
             delta.append(self.delta_proj[j](self.delta_attn[j](q, z)).view_as(patches))
-        camera_delta = None
+        camera_delta = camera_mix = None
         if self.camera_attn is not None:
             cam = self.camera_attn(tokens_list[-1][:, :, 0], z)  # [B, V, dim]
             if self.camera_vid is not None and vid is not None:
@@ -103,4 +113,6 @@ class CompletionBranch(nn.Module):
                     raise ValueError("camera_pose: the completion branch needs the pose prior's features")
                 cam = cam + self.camera_pose(pose.to(cam.dtype))
             camera_delta = self.camera_proj(cam)
-        return delta, gates, camera_delta
+            if self.camera_mix is not None:
+                camera_mix = self.camera_mix(cam)
+        return delta, gates, camera_delta, camera_mix

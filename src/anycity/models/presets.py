@@ -85,6 +85,9 @@ class NetConfig:
     # scripts/pose_prior.py writes, or "random" for tests) whose per-view pose each camera residual also reads.
     # Content-based and order-free, it stands in for the camera motion a pretrained video model knows
     pose_prior: str | None = None
+    # Beyond the paper, with pose_prior: each re-placed pose also moves towards the prior's own, by per-view amounts
+    # (translation, rotation) a zero-initialised linear of the camera residual's features gives; docs/stage2.md
+    pose_prior_mix: bool = False
 
     def resolved_head_layers(self) -> tuple[int, ...]:
         return tuple(self.head_layers) if self.head_layers else scale_layers(VGGT_HEAD_LAYERS, self.depth)

@@ -4,7 +4,11 @@ import pytest
 import torch
 
 from anycity.geometry import make_intrinsics
-from anycity.geometry.pose_encoding import extri_intri_to_pose_encoding, pose_encoding_to_extri_intri
+from anycity.geometry.pose_encoding import (
+    blend_pose_encoding,
+    extri_intri_to_pose_encoding,
+    pose_encoding_to_extri_intri,
+)
 from anycity.geometry.rotations import quat_to_rotmat
 from anycity.models.layers import DinoViT, RoPE2D, patch_positions
 
@@ -70,3 +74,31 @@ def test_pose_encoding_round_trip():
     with pytest.raises(ValueError, match="last dim 9"):
         pose_encoding_to_extri_intri(enc[..., :8], (96, 128))
     assert math.isclose(float(K2[0, 0, 0, 2]), 64.0)
+
+
+def test_blend_pose_encoding_moves_translation_and_rotation_towards_a_pose():
+    K = make_intrinsics(torch.full((1, 2), 100.0), torch.full((1, 2), 90.0), 64.0, 48.0)
+    start = torch.eye(4).repeat(1, 2, 1, 1)
+    start[..., :3, 3] = torch.tensor([1.0, 0, 0])
+    enc = extri_intri_to_pose_encoding(start, K, (96, 128))
+    enc[..., 3:7] *= -2.0  # the camera head's quaternions: any sign, any norm
+    goal = torch.eye(4).repeat(1, 2, 1, 1)
+    goal[..., :3, :3] = quat_to_rotmat(torch.tensor([math.cos(math.pi / 4), 0, 0, math.sin(math.pi / 4)]))  # 90° z
+    goal[..., :3, 3] = torch.tensor([0.0, 2, 0])
+    assert torch.equal(blend_pose_encoding(enc, goal, torch.zeros(1, 2, 2)), enc)  # weight 0: exactly the start
+    reached, K2 = pose_encoding_to_extri_intri(blend_pose_encoding(enc, goal, torch.ones(1, 2, 2)), (96, 128))
+    torch.testing.assert_close(reached, goal, atol=1e-5, rtol=0)
+    torch.testing.assert_close(K2, K, atol=1e-4, rtol=0)  # the fields of view are kept
+    # per view and per part: view 0 moves half its rotation (45° about z), view 1 half its translation only
+    w = torch.tensor([[[0.0, 0.5], [0.5, 0.0]]], requires_grad=True)
+    half = pose_encoding_to_extri_intri(blend_pose_encoding(enc, goal, w), (96, 128))[0]
+    c, s = math.cos(math.pi / 4), math.sin(math.pi / 4)
+    torch.testing.assert_close(half[0, 0, :3, :3], torch.tensor([[c, -s, 0], [s, c, 0], [0, 0, 1.0]]), atol=1e-5,
+                               rtol=0)
+    torch.testing.assert_close(half[0, 0, :3, 3], torch.tensor([1.0, 0, 0]))
+    torch.testing.assert_close(half[0, 1, :3, :3], torch.eye(3))
+    torch.testing.assert_close(half[0, 1, :3, 3], torch.tensor([0.5, 1, 0]))
+    (half * torch.randn(half.shape, generator=torch.Generator().manual_seed(0))).sum().backward()
+    assert (w.grad.abs() > 0).all()
+    with pytest.raises(ValueError, match="weight \\[..., 2\\]"):
+        blend_pose_encoding(enc, goal, torch.zeros(1, 2, 1))

@@ -85,3 +85,34 @@ def test_stage2_reads_the_frozen_prior_starts_at_the_scaffold_and_trains_only_it
     assert all(p.grad is None for p in net.pose_prior.parameters())
     with pytest.raises(ValueError, match="pose_prior: .*needs refine_cameras"):
         build_network("tiny", pose_prior="random")
+
+
+def test_pose_prior_mix_starts_at_the_scaffold_and_learns_to_reach_the_priors_pose():
+    torch.manual_seed(0)
+    plain = build_network("tiny", refine_cameras=True, camera_video=True, pose_prior="random")
+    torch.manual_seed(0)
+    net = build_network("tiny", refine_cameras=True, camera_video=True, pose_prior="random", pose_prior_mix=True)
+    own, before = net.state_dict(), plain.state_dict()
+    assert {k for k in own if k not in before} == {"completion.camera_mix.weight", "completion.camera_mix.bias"}
+    assert all(torch.equal(own[k], v) for k, v in before.items() if not k.startswith("pose_prior."))
+    net.freeze_scaffold()
+    assert all(id(p) in {id(q) for q in net.refinement_parameters()} for p in net.completion.camera_mix.parameters())
+    with torch.no_grad():
+        net.pose_prior.mlp[-1].bias.normal_(0, 0.3)  # a prior pose away from the scaffold's
+    images = torch.rand(1, 4, 3, 48, 48)
+    out = net(images, refine=True)
+    assert torch.equal(out["w2c"], out["scaffold_w2c"])  # zero-initialised: exactly the scaffold's cameras
+    assert len(out["pose_enc_list"]) == net.cfg.camera_iterations + 1  # the mix is one more step the loss sees
+    out["w2c"].sum().backward()
+    assert net.completion.camera_mix.bias.grad.abs().sum() > 0
+    with torch.no_grad():
+        net.completion.camera_mix.bias.fill_(1.0)  # all the way: the prior's rotations and translations
+        torch.testing.assert_close(net(images, refine=True)["w2c"], net.pose_prior(images), atol=1e-5, rtol=0)
+    net.completion.camera_mix.bias.grad = None
+    with torch.autocast("cpu", dtype=torch.bfloat16):  # the CUDA runs' bf16-mixed: the poses stay float32
+        out = net(images, refine=True)
+    assert out["w2c"].dtype == torch.float32 and torch.isfinite(out["w2c"]).all()
+    out["w2c"].sum().backward()
+    assert net.completion.camera_mix.bias.grad.abs().sum() > 0
+    with pytest.raises(ValueError, match="pose_prior_mix: .*set net.pose_prior"):
+        build_network("tiny", refine_cameras=True, pose_prior_mix=True)
