@@ -63,8 +63,8 @@ ROWS = {r.name: r for r in (
     Row("prior_cameras", "full + re-placed cameras + pose prior (beyond the paper)", CAMERAS, pose_prior=True),
     Row("prior_mix", "full + re-placed cameras + pose prior, poses mixed towards it (beyond the paper)",
         (*CAMERAS, *MIX), pose_prior=True),
-    Row("prior_mix_unordered", "the same, views in any order (no camera_video; beyond the paper)", (*UNORDERED, *MIX),
-        pose_prior=True),
+    Row("prior_mix_unordered", "full + re-placed cameras + pose prior, poses mixed towards it, views in any order "
+        "(no camera_video; beyond the paper)", (*UNORDERED, *MIX), pose_prior=True),
 )}
 TABLES = {  # title -> its rows; "full" is named for its place in each table
     "Table 2 order (cumulative)": ("scaffold", "tokens", "d2s", "full"),
