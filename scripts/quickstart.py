@@ -1,6 +1,6 @@
 """Quickstart: synthetic city shards -> Stage I -> Stage II (tiny preset, CPU) -> evaluation on unseen scenes.
 
-    python scripts/quickstart.py            # what `make quickstart` runs; about 13 minutes on 2 CPU cores
+    python scripts/quickstart.py            # what `make quickstart` runs; 8 to 13 minutes on 2 CPU cores
 
 Writes ``runs/quickstart/metrics.json``, ``runs/quickstart/preview.png`` (context | target | scaffold | refined |
 depth | regions for held-out views of test scenes) and prints two tables. All numbers come from the test split:
@@ -15,7 +15,7 @@ scenes never seen in training. Every figure is named for the images it reads (``
   NoPoSplat's protocol); this reads the target image.
 
 Keys: ``{scaffold,refined}_{psnr,ssim}[_camrefine|_targetalign]``, the region diagnostic's
-``psnr_{obs,weak}_{scaffold,refined,baseline}[_camrefine]`` (and ``ssim_``) with the regions' shares
+``psnr_{obs,weak}_{scaffold,refined}[_camrefine]`` (and ``ssim_``), ``psnr_{obs,weak}_baseline``, the regions' shares
 ``region_{obs,weak}``, ``baseline_psnr`` (every target pixel = the mean context colour), ``nearest_view_psnr`` (the
 context image closest along the trajectory: what a model that learnt no 3D would show), ``abs_rel``/``delta1``
 (feed-forward depth), the context cameras' mean relative rotation / translation-direction errors ``rot_err_deg``,

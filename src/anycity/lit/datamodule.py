@@ -75,7 +75,7 @@ class AerialDataModule(pl.LightningDataModule):
         train_shards: shard directory, brace pattern (``data/x/train-{000000..000009}.tar``) or list for training.
         val_shards: the same for validation (llffhold targets of held-out scenes).
         test_shards: the same for testing.
-        num_context: context (input) views per sample, 2..64 (evaluation, and training unless
+        num_context: context (input) views per sample, 1..64 (evaluation, and training unless
             ``train_num_context`` is set).
         train_num_context: ``[lo, hi]``: training draws each batch's context count from ``lo..hi``, as VGGT and
             AnySplat train (2..24 views), so that training sees the counts inference will get. None: every batch

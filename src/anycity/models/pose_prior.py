@@ -102,7 +102,9 @@ def load_pose_prior(path: str) -> PairFlowPose:
     else:
         if not Path(path).is_file():
             raise FileNotFoundError(f"net.pose_prior: {path} not found; train one with `python scripts/pose_prior.py "
-                                    "--data DATA --out runs/pose_prior.pt`, or leave pose_prior unset")
+                                    "--data DATA --out runs/pose_prior.pt`, or leave pose_prior unset (a Stage II "
+                                    "checkpoint trained with a prior holds its weights but still reads its size from "
+                                    "the file: copy it there, or pass --model.init_args.net.pose_prior COPY)")
         saved = torch.load(path, map_location="cpu", weights_only=True)
         if not isinstance(saved, dict) or "state_dict" not in saved:
             raise ValueError(f"net.pose_prior: {path} is not a pose prior written by scripts/pose_prior.py "
