@@ -1,6 +1,6 @@
 """Pretrain the pair-correlation pose prior that ``net.pose_prior`` (beyond the paper) loads in Stage II.
 
-    python scripts/pose_prior.py --data data/quickstart --out runs/pose_prior.pt    # about 8 min on 2 CPU cores
+    python scripts/pose_prior.py --data data/quickstart --out runs/pose_prior.pt    # about 15 min on 2 CPU cores
 
 It trains :class:`anycity.lit.pose_prior.PosePriorModule` (a Lightning ``Trainer``: any accelerator, DDP with
 ``--devices``) on the context views of the training split and their ground-truth poses, prints the mean relative
@@ -26,7 +26,8 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--data", default="data/quickstart", help="shard directory (its index.json names the splits)")
     p.add_argument("--out", default="runs/pose_prior.pt")
-    p.add_argument("--steps", type=int, default=6000)
+    p.add_argument("--steps", type=int, default=12000,
+                   help="12000: 2.7 deg on the quickstart's test cities, 6000: 4.05 (docs/stage2.md)")
     p.add_argument("--batch", type=int, default=8)
     p.add_argument("--image-size", type=int, nargs=2, default=(48, 48), metavar=("H", "W"))
     p.add_argument("--patch-size", type=int, default=8, help="the network's (views are cropped to a multiple)")
