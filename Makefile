@@ -22,7 +22,7 @@ quickstart:
 	$(PY) scripts/quickstart.py
 
 # Beyond the paper (docs/stage2.md, "Taking the prior's pose"), after `make quickstart`: pretrain the pose prior once
-# (about 15 min), then the prior_mix rows of scripts/stage2_tables.py on the quickstart's Stage I (about 10 min).
+# (about 18 min), then the prior_mix rows of scripts/stage2_tables.py on the quickstart's Stage I (about 10 min).
 runs/pose_prior.pt:
 	$(PY) scripts/pose_prior.py --data data/quickstart --out $@
 

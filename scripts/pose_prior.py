@@ -1,6 +1,6 @@
 """Pretrain the pair-correlation pose prior that ``net.pose_prior`` (beyond the paper) loads in Stage II.
 
-    python scripts/pose_prior.py --data data/quickstart --out runs/pose_prior.pt    # about 15 min on 2 CPU cores
+    python scripts/pose_prior.py --data data/quickstart --out runs/pose_prior.pt    # about 18 min on 2 CPU cores
 
 It trains :class:`anycity.lit.pose_prior.PosePriorModule` (a Lightning ``Trainer``: any accelerator, DDP with
 ``--devices``) on the context views of the training split and their ground-truth poses, prints the mean relative
