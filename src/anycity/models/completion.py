@@ -14,8 +14,9 @@ tokens, pooled): a video model knows where a frame sits in the clip, which the s
 1..V-1, cannot tell, and on a flight path the order carries the relative pose.
 With ``camera_pose=True`` each view's residual also reads a pose prior's estimate of that view's pose
 (:func:`anycity.models.pose_prior.pose_features`), through a small MLP. With ``camera_mix=True`` a zero-initialised
-linear of the same features also gives, per view, how far the re-placed pose moves towards the prior's
-(translation, rotation), so the network can take the prior's pose itself rather than re-derive it.
+linear of the camera residual's features (those the projection reads) also gives, per view, how far the re-placed
+pose moves towards the prior's (translation, rotation), so the network can take the prior's pose itself rather
+than re-derive it.
 """
 
 from __future__ import annotations
