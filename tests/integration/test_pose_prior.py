@@ -1,5 +1,5 @@
 """scripts/pose_prior.py pretrains the pose prior; Stage II (the prior_cameras row of scripts/stage2_tables.py)
-loads it frozen, trains around it, and its checkpoint tests with it."""
+loads it frozen, trains around it, and its checkpoint tests with it, also where the prior's file is gone."""
 
 import json
 
@@ -62,3 +62,17 @@ def test_pretrain_then_stage2_row(tiny_shards, tmp_path, capsys):
     assert set(res["goal"]) == {"prior_mix"}  # the tables of this run: its rows only
     assert "| full + re-placed cameras + pose prior, poses mixed towards it (beyond the paper) | " in (
         out / "tables.md").read_text()
+
+    # another machine: `anycity test` from the checkpoint alone, the prior's file gone, scores the same
+    prior.rename(tmp_path / "moved.pt")
+    elsewhere = tmp_path / "elsewhere"
+    logger = {"class_path": "lightning.pytorch.loggers.CSVLogger",
+              "init_args": {"save_dir": str(elsewhere), "name": "", "version": ""}}
+    build_cli(["test", "-c", "configs/quickstart.yaml", "-c", "configs/quickstart_stage2.yaml", "--data.root",
+               str(tiny_shards), *extra, *tables.ROWS["prior_mix"].overrides, "--model.init_args.net.pose_prior",
+               str(prior), "--trainer.default_root_dir", str(elsewhere), "--trainer.logger", json.dumps(logger),
+               "--ckpt_path", str(out / "prior_mix" / "fit" / "checkpoints" / "last.ckpt")])
+    again = tables._test_metrics(elsewhere / "metrics.csv")
+    row = tables._test_metrics(out / "prior_mix" / "test" / "metrics.csv")
+    assert again["psnr_refined"] == pytest.approx(row["psnr_refined"], abs=1e-6)
+    assert again["rre"] == pytest.approx(row["rre"], abs=1e-6)

@@ -6,11 +6,17 @@ checks that the prior this module was built from has the same content hash, then
 into the state dict, so Lightning's strict loading still catches every other missing or unexpected key. The
 LoRA adapters, the completion branch and the scaffold stay in the checkpoint. Priors not loaded from a folder
 (the small built-in one, the random ``wan-tiny``) are saved as they are.
+
+The small frozen pose prior (``net.pose_prior``, beyond the paper) is the opposite: its weights (2 MB) travel in
+the checkpoint, with ``checkpoint["pose_prior"] = {"file", "image_size"}``, and loading rebuilds it at the size of
+those weights. So ``test`` and ``predict`` from a Stage II checkpoint need neither its file nor its size.
 """
 
 from __future__ import annotations
 
 from torch import nn
+
+from anycity.models.pose_prior import pose_prior_from_state
 
 PREFIX = "net.video_prior."
 FROZEN = (PREFIX + "vae.", PREFIX + "transformer.")
@@ -51,3 +57,26 @@ def restore_frozen_prior(net: nn.Module, checkpoint: dict) -> None:
     for k, v in net.state_dict(prefix="net.", keep_vars=False).items():
         if _is_frozen_prior_key(k) and k not in sd:
             sd[k] = v
+
+
+POSE_PREFIX = "net.pose_prior."
+
+
+def save_pose_prior_meta(net: nn.Module, checkpoint: dict) -> None:
+    prior = getattr(net, "pose_prior", None)
+    if prior is None:
+        return
+    hw = prior.trained_hw
+    checkpoint["pose_prior"] = {"file": net.cfg.pose_prior, "image_size": list(hw) if hw else None}
+
+
+def restore_pose_prior(net: nn.Module, checkpoint: dict) -> None:
+    """Rebuild ``net.pose_prior`` at the size of the checkpoint's weights (which ``load_state_dict`` then fills in),
+    whether or not ``net.pose_prior``'s file was found when the network was built."""
+    old = getattr(net, "pose_prior", None)
+    sd = checkpoint.get("state_dict", {})
+    if old is None or POSE_PREFIX + "mlp.0.weight" not in sd:
+        return
+    meta = checkpoint.get("pose_prior") or {}
+    hw = meta.get("image_size", old.trained_hw if old.missing is None else None)
+    net.pose_prior = pose_prior_from_state(sd, POSE_PREFIX, hw).to(next(old.parameters()).device)

@@ -107,6 +107,8 @@ class RefinementModule(AnyCityModule):
     # ----------------------------------------------------------------------------------------- init
     def setup(self, stage: str) -> None:
         # checked here, not in __init__: test/predict from a Stage II checkpoint never need the Stage I file
+        if stage == "fit" and self.trainer.ckpt_path is None and self.net.pose_prior is not None:
+            self.net.pose_prior.check_loaded()  # training from scratch needs the prior's file; a checkpoint does not
         if stage == "fit" and self.hparams.init_from and self.trainer.ckpt_path is None:
             if not Path(self.hparams.init_from).is_file():
                 raise FileNotFoundError(f"model.init_from: {self.hparams.init_from} not found; pass the Stage I "
@@ -148,14 +150,16 @@ class RefinementModule(AnyCityModule):
 
     # ----------------------------------------------------------------------------------------- checkpoints
     def on_save_checkpoint(self, checkpoint: dict) -> None:
-        from anycity.lit.prior_ckpt import drop_frozen_prior
+        from anycity.lit.prior_ckpt import drop_frozen_prior, save_pose_prior_meta
 
         drop_frozen_prior(self.net, checkpoint)
+        save_pose_prior_meta(self.net, checkpoint)
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
-        from anycity.lit.prior_ckpt import restore_frozen_prior
+        from anycity.lit.prior_ckpt import restore_frozen_prior, restore_pose_prior
 
         restore_frozen_prior(self.net, checkpoint)
+        restore_pose_prior(self.net, checkpoint)
 
     # ----------------------------------------------------------------------------------------- training
     def training_step(self, batch: ViewBatch, batch_idx: int) -> Tensor:

@@ -54,6 +54,8 @@ class PairFlowPose(nn.Module):
         self.mlp = nn.Sequential(nn.Linear(grid * grid * 10, 256), nn.GELU(), nn.Linear(256, 256), nn.GELU(),
                                  nn.Linear(256, 9))
         self.trained_hw: tuple[int, int] | None = None  # set by load_pose_prior; other sizes get one warning
+        self.missing: str | None = None  # the file load_pose_prior did not find, until a checkpoint fills this in
+        self._warned_size = False
 
     def flow(self, fa: Tensor, fb: Tensor) -> Tensor:
         """Unit features ``[B, P, C]`` of two views -> per cell of ``fa``: displacement, landing point (grid
@@ -63,14 +65,21 @@ class PairFlowPose(nn.Module):
         land = prob @ self.grid
         return torch.cat([land - self.grid, land, prob.amax(-1, keepdim=True)], -1)
 
+    def check_loaded(self) -> None:
+        """Raise the one-line ``FileNotFoundError`` if this is :func:`load_pose_prior`'s placeholder for a
+        missing file that no checkpoint has filled in."""
+        if self.missing is not None:
+            raise FileNotFoundError(_missing_message(self.missing))
+
     def forward(self, images: Tensor) -> Tensor:
+        self.check_loaded()
         b, v = images.shape[:2]
-        if self.trained_hw is not None and tuple(images.shape[-2:]) != self.trained_hw:
+        if self.trained_hw is not None and not self._warned_size and tuple(images.shape[-2:]) != self.trained_hw:
             h, w = self.trained_hw
             warnings.warn(f"net.pose_prior: trained on {h}x{w} views, given {images.shape[-2]}x{images.shape[-1]}; "
                           "its poses may be off: retrain it with scripts/pose_prior.py --image-size H W",
                           stacklevel=2)
-            self.trained_hw = None  # once
+            self._warned_size = True
         f = self.encoder(images.flatten(0, 1).float())
         if f.shape[-1] != self.grid_size or f.shape[-2] != self.grid_size:
             f = F.adaptive_avg_pool2d(f, self.grid_size)
@@ -94,17 +103,25 @@ def pose_features(w2c: Tensor) -> Tensor:
     return torch.cat([w2c[..., :2, :3].flatten(-2) - eye, w2c[..., :3, 3]], -1)
 
 
+def _missing_message(path: str) -> str:
+    return (f"net.pose_prior: {path} not found; train one with `python scripts/pose_prior.py --data DATA --out "
+            "runs/pose_prior.pt`, pass the file with --model.init_args.net.pose_prior FILE, or leave pose_prior unset "
+            "(test and predict from a Stage II checkpoint trained with a prior need no file: it holds the prior)")
+
+
 def load_pose_prior(path: str) -> PairFlowPose:
     """A frozen :class:`PairFlowPose` in eval mode from ``path``: the ``.pt`` that ``scripts/pose_prior.py`` writes
-    (``{"state_dict", "channels", "grid", ...}``), or ``"random"`` (random init: tests and smoke runs only)."""
+    (``{"state_dict", "channels", "grid", ...}``), or ``"random"`` (random init: tests and smoke runs only).
+
+    A missing file gives a placeholder (``prior.missing = path``) that raises on use: a Stage II checkpoint holds
+    the prior's weights and :func:`anycity.lit.prior_ckpt.restore_pose_prior` replaces the placeholder, so ``test``
+    and ``predict`` need no file."""
     if path == "random":
         prior = PairFlowPose()
+    elif not Path(path).is_file():
+        prior = PairFlowPose()
+        prior.missing = path
     else:
-        if not Path(path).is_file():
-            raise FileNotFoundError(f"net.pose_prior: {path} not found; train one with `python scripts/pose_prior.py "
-                                    "--data DATA --out runs/pose_prior.pt`, or leave pose_prior unset (a Stage II "
-                                    "checkpoint trained with a prior holds its weights but still reads its size from "
-                                    "the file: copy it there, or pass --model.init_args.net.pose_prior COPY)")
         saved = torch.load(path, map_location="cpu", weights_only=True)
         if not isinstance(saved, dict) or "state_dict" not in saved:
             raise ValueError(f"net.pose_prior: {path} is not a pose prior written by scripts/pose_prior.py "
@@ -113,4 +130,14 @@ def load_pose_prior(path: str) -> PairFlowPose:
         prior.load_state_dict(saved["state_dict"])
         if saved.get("image_size"):
             prior.trained_hw = tuple(saved["image_size"])
+    return prior.eval().requires_grad_(False)
+
+
+def pose_prior_from_state(state: dict[str, Tensor], prefix: str, image_size=None) -> PairFlowPose:
+    """A frozen, randomly initialised :class:`PairFlowPose` of the size the weights ``state[prefix + ...]`` have
+    (channels from the last encoder conv, grid from the MLP's input), ready for ``load_state_dict``."""
+    channels = state[prefix + "encoder.6.weight"].shape[0]
+    grid = math.isqrt(state[prefix + "mlp.0.weight"].shape[1] // 10)
+    prior = PairFlowPose(channels, grid)
+    prior.trained_hw = tuple(image_size) if image_size else None
     return prior.eval().requires_grad_(False)

@@ -47,8 +47,9 @@ def test_load_round_trip_is_frozen_and_bad_files_say_what_to_do(tmp_path):
     torch.testing.assert_close(loaded(x), trained(x))
     with pytest.warns(UserWarning, match="trained on 48x48 views, given 32x64.*--image-size"):
         loaded(torch.rand(1, 2, 3, 32, 64))
+    placeholder = load_pose_prior(str(tmp_path / "missing.pt"))  # a checkpoint may fill it in; on its own, it raises
     with pytest.raises(FileNotFoundError, match="net.pose_prior: .*missing.pt not found; train one with"):
-        load_pose_prior(str(tmp_path / "missing.pt"))
+        placeholder(x)
     torch.save(trained.state_dict(), tmp_path / "bare.pt")
     with pytest.raises(ValueError, match="not a pose prior written by scripts/pose_prior.py"):
         load_pose_prior(str(tmp_path / "bare.pt"))
@@ -116,3 +117,44 @@ def test_pose_prior_mix_starts_at_the_scaffold_and_learns_to_reach_the_priors_po
     assert net.completion.camera_mix.bias.grad.abs().sum() > 0
     with pytest.raises(ValueError, match="pose_prior_mix: .*set net.pose_prior"):
         build_network("tiny", refine_cameras=True, pose_prior_mix=True)
+
+
+def test_a_stage2_checkpoint_holds_its_prior_so_test_and_predict_need_no_file(tmp_path):
+    """The prior's file is read to train; a checkpoint rebuilds the prior at its own size (here not the default)
+    and needs no file, while training from scratch without it fails at once in one line."""
+    from types import SimpleNamespace
+
+    from anycity.lit import RefinementModule
+
+    torch.manual_seed(1)
+    trained = PairFlowPose(channels=16, grid=6)
+    with torch.no_grad():
+        trained.mlp[-1].bias.normal_(0, 0.3)
+    path = tmp_path / "prior.pt"
+    torch.save({"state_dict": trained.state_dict(), "channels": 16, "grid": 6, "image_size": [32, 32]}, path)
+    net = {"refine_cameras": True, "camera_video": True, "pose_prior": str(path), "pose_prior_mix": True}
+    torch.manual_seed(0)
+    m = RefinementModule(net=net)
+    with torch.no_grad():
+        m.net.completion.camera_mix.weight.normal_(0, 0.3)  # the re-placed cameras follow the prior
+    ckpt = {"state_dict": m.state_dict()}
+    m.on_save_checkpoint(ckpt)
+    assert ckpt["pose_prior"] == {"file": str(path), "image_size": [32, 32]}
+    images = torch.rand(1, 3, 3, 32, 32)
+    with torch.no_grad():
+        want = m.net(images, refine=True)["w2c"]
+
+    path.unlink()  # another machine: the config still names the training machine's file
+    fresh = RefinementModule(net=net)
+    fresh._trainer = SimpleNamespace(ckpt_path=None)
+    with pytest.raises(FileNotFoundError, match="net.pose_prior: .*prior.pt not found; train one with"):
+        fresh.setup("fit")
+    with pytest.raises(FileNotFoundError, match="need no file: it holds the prior"):
+        fresh.net(images, refine=True)
+    fresh.on_load_checkpoint(ckpt)
+    fresh.load_state_dict(ckpt["state_dict"])  # strict: every key at its size
+    prior = fresh.net.pose_prior
+    assert prior.trained_hw == (32, 32) and not prior.training and not any(p.requires_grad for p in prior.parameters())
+    with torch.no_grad():
+        torch.testing.assert_close(fresh.net(images, refine=True)["w2c"], want)
+    assert not any(p is q for p in prior.parameters() for q in fresh.net.refinement_parameters())
