@@ -341,6 +341,11 @@ class AnyCityModule(pl.LightningModule):
             images, scene = (ctx.images if isinstance(ctx, Views) else ctx), getattr(batch, "scene", None)
         out, variants = self.predict_variants(images)
         final, scaffold, w2c = variants[list(variants)[-1]], variants["scaffold"], out["w2c"]
+        if final is not scaffold and out["scaffold_w2c"] is not w2c:
+            # net.refine_cameras re-placed the views: the provenance compares content, so the scaffold's decoding
+            # goes at the same cameras, or every Gaussian would count as completed for the camera move alone
+            scaffold = self.net.place_gaussians(out["scaffold_raw_gaussians"], out["scaffold_depth"],
+                                                out["scaffold_offset"], w2c, out["K"], images)
         if self.hparams.camera_refine_steps > 0:
             w2c, A = self.refine_cameras(final, w2c, out["K"], images, self.hparams.camera_refine_steps)
             final, scaffold = transform_gaussians(final, A), transform_gaussians(scaffold, A)

@@ -164,8 +164,18 @@ class AnyCityNet(nn.Module):
                 "K": final["K"], "scaffold_w2c": w2c, "scaffold_K": K,
                 "depth": final["depth"], "depth_conf": final["depth_conf"], "scaffold_depth": depth,
                 "offset": final["offset"], "pixel_means": final["pixel_means"], "scaffold_pixel_means": means,
-                "gaussians": final["gaussians"], "scaffold_gaussians": scaffold, "raw_gaussians": final["raw"],
-                "delta": final["delta"], "gates": final["gates"]}
+                "scaffold_offset": offset, "gaussians": final["gaussians"], "scaffold_gaussians": scaffold,
+                "raw_gaussians": final["raw"], "scaffold_raw_gaussians": raw, "delta": final["delta"],
+                "gates": final["gates"]}
+
+    def place_gaussians(self, raw: Tensor, depth: Tensor, offset: Tensor | None, w2c: Tensor, K: Tensor,
+                        images: Tensor):
+        """The Gaussians of one decoding (``raw`` from the Gaussian head, ``depth [B, V, 1, H, W]``, ``offset``)
+        placed with the cameras ``w2c [B, V, 4, 4]``, ``K [B, V, 3, 3]``: e.g. the scaffold's decoding at Stage
+        II's re-placed cameras, so the two differ only by what Stage II changed in the content."""
+        with torch.autocast(images.device.type, enabled=False):  # float32, as in forward
+            return self._gaussians(raw.float(), pixel_centres(depth, K, w2c, offset), depth.float(), K.float(),
+                                   images.float())
 
     def _gaussians(self, raw: Tensor, means: Tensor, depth: Tensor, K: Tensor, images: Tensor):
         aux = {"rgb": images if self.cfg.color_mode == "pixel" else None,

@@ -144,6 +144,39 @@ def test_test_and_predict_refine_the_context_cameras_when_asked(batch):
     assert pred["gaussians"].means.shape == (1, 2 * H * W, 3)
 
 
+def test_provenance_of_re_placed_cameras_counts_content_changes_only(batch):
+    """With net.refine_cameras Stage II re-places the views. A camera move alone completes nothing, so predict hands
+    the export the scaffold's decoding at the same (re-placed) cameras: the completion score is what it is without
+    the move."""
+    from anycity.export.provenance import completion_score
+
+    torch.manual_seed(0)
+    m = RefinementModule(net={"refine_cameras": True}, render_backend="torch").eval()
+    images = batch.context.images
+
+    def completion():
+        with torch.inference_mode():
+            pred = m.predict_step(images, 0)
+        return completion_score(pred["gaussians"], pred["scaffold"])
+
+    torch.testing.assert_close(completion(), torch.zeros(1, 2 * H * W))  # dZ = 0, cameras kept: nothing
+    with torch.no_grad():
+        m.net.completion.camera_proj.bias.normal_(0, 0.5)  # the cameras move; dZ stays zero
+    with torch.inference_mode():
+        out = m.net(images)
+    assert (out["w2c"] - out["scaffold_w2c"]).abs().amax() > 0.1
+    assert completion_score(out["gaussians"], out["scaffold_gaussians"]).mean() > 0.5  # as placed: all "moved"
+    torch.testing.assert_close(completion(), torch.zeros(1, 2 * H * W), atol=1e-4, rtol=0)
+    with torch.no_grad():
+        for proj in m.net.completion.delta_proj:  # the content changes too
+            proj.bias.normal_(0, 5.0)
+        moved = completion()
+        m.net.completion.camera_proj.bias.zero_()
+    kept = completion()
+    assert kept.mean() > 0.02
+    torch.testing.assert_close(moved, kept, atol=5e-3, rtol=0)  # the same whether the cameras moved or not
+
+
 def test_protocols_that_must_not_read_target_images_cannot(batch):
     """feedforward and camrefine get target cameras only: they run with target images that hold no data at all
     (meta tensors) and give the same renders; targetalign, which reads them, cannot run on such targets."""
