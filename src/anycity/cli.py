@@ -219,7 +219,7 @@ def main(argv: list[str] | None = None) -> int:
         return _dispatch(args, argv is not None)
     try:
         return _dispatch(args, argv is not None)
-    except (ValueError, FileNotFoundError, NotADirectoryError) as e:
+    except (ValueError, FileNotFoundError, FileExistsError, NotADirectoryError) as e:
         print(f"anycity: error: {_one_line(e)}  (--debug for the traceback)", file=sys.stderr)
         return 2
 

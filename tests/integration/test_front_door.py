@@ -49,6 +49,16 @@ def test_worker_error_reaches_the_user_as_one_line(monkeypatch, capsys):
         cli.main(["fit", "--debug"])
 
 
+def test_an_existing_output_is_refused_in_one_line(tmp_path, monkeypatch, capsys):
+    monkeypatch.delenv("ANYCITY_DEBUG", raising=False)
+    argv = ["data", "synth", "--out", str(tmp_path / "d"), "--scenes", "1", "--views", "8", "--size", "16x16"]
+    assert cli.main(argv) == 0
+    capsys.readouterr()
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "already holds a shard set (index.json); pass --overwrite" in err
+
+
 def test_unknown_command_is_one_line(capsys):
     assert cli.main(["frobnicate"]) == 2
     assert capsys.readouterr().err.count("\n") == 1

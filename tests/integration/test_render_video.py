@@ -23,3 +23,16 @@ def test_render_video_frames(tmp_path):
     assert len(frames) == 2 * 3 + 1 + 4  # 3 cameras: 2 segments of 3 + the last camera, then the orbit
     diffs = [np.abs(a - b).mean() for a, b in zip(frames, frames[1:], strict=False)]
     assert min(diffs) > 0.1, diffs
+
+
+def test_render_video_keeps_an_existing_file(tmp_path, capsys):
+    pytest.importorskip("imageio_ffmpeg")
+    (tmp_path / "s").mkdir()
+    folder = tiny_predict_folder(tmp_path / "s", n=50, with_prov=False)
+    out = tmp_path / "fly.mp4"
+    out.write_bytes(b"an earlier video")
+    args = ["render-video", str(folder), "--out", str(out), "--per-segment", "1", "--width", "16"]
+    assert main(args) == 2
+    assert f"{out} exists; pass --overwrite" in capsys.readouterr().err
+    assert out.read_bytes() == b"an earlier video"
+    assert main([*args, "--overwrite"]) == 0 and out.stat().st_size > 100

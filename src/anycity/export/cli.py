@@ -44,8 +44,9 @@ def camera_tensors(cams: dict) -> tuple[torch.Tensor, torch.Tensor, int, int, li
     return w2c, K, int(views[0]["width"]), int(views[0]["height"]), [v["name"] for v in views]
 
 
-def export(src: str | Path, fmt: str, out: str | Path) -> Path:
-    """Write scene ``src`` in format ``fmt`` under ``out``; returns the main file or folder written."""
+def export(src: str | Path, fmt: str, out: str | Path, overwrite: bool = False) -> Path:
+    """Write scene ``src`` in format ``fmt`` under ``out``; returns the main file or folder written. An ``out`` that
+    exists and is not empty is refused unless ``overwrite`` (it may be an earlier export, or the scene itself)."""
     from anycity.export.formats import save_colmap, save_scale, save_splat, save_transforms
     from anycity.export.ply import save_ply
 
@@ -53,6 +54,9 @@ def export(src: str | Path, fmt: str, out: str | Path) -> Path:
         raise ValueError(f"--format: expected one of {', '.join(FORMATS)}, got {fmt!r}")
     g, cams = load_scene(src)
     out = Path(out)
+    if not overwrite and out.is_dir() and any(out.iterdir()):
+        raise FileExistsError(f"anycity export: {out} exists and is not empty; pass --overwrite to write into it, or "
+                              "--out NEW_DIR")
     out.mkdir(parents=True, exist_ok=True)
     scale = cams.get("metres_per_unit") if cams else None
     save_scale(out / "scale.json", scale, fmt)
@@ -86,9 +90,10 @@ def export_main(argv: list[str]) -> int:
     p.add_argument("--from", dest="src", required=True, help="predict scene folder or scene.ply")
     p.add_argument("--format", required=True, choices=FORMATS)
     p.add_argument("--out", default=None, help="output folder (default: <from>/export_<format>)")
+    p.add_argument("--overwrite", action="store_true", help="write into an --out folder that is not empty")
     a = p.parse_args(argv)
     src = Path(a.src)
     out = Path(a.out) if a.out else (src if src.is_dir() else src.parent) / f"export_{a.format}"
-    target = export(src, a.format, out)
+    target = export(src, a.format, out, a.overwrite)
     print(f"wrote {target}")
     return 0

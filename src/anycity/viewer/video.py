@@ -127,9 +127,12 @@ def render_video_main(argv: list[str]) -> int:
     p.add_argument("--orbit", type=int, default=0, help="frames of an orbit around the scene centre (0: none)")
     p.add_argument("--width", type=int, default=None, help="frame width (default: the input width)")
     p.add_argument("--fps", type=int, default=24)
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     a = p.parse_args(argv)
     src = Path(a.path)
     out = Path(a.out) if a.out else (src if src.is_dir() else src.parent) / "flythrough.mp4"
+    if out.exists() and not a.overwrite:
+        raise FileExistsError(f"anycity render-video: {out} exists; pass --overwrite to replace it, or --out NEW.mp4")
     n = render_video(src, out, a.per_segment, a.orbit, a.width, a.fps)
     print(f"wrote {out} ({n} frames)")
     return 0

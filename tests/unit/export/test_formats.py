@@ -115,6 +115,14 @@ def test_ply_export_and_errors(tmp_path, capsys):
     back = load_ply(tmp_path / "o" / "scene.ply")
     torch.testing.assert_close(back.means, g.means)
     assert "scene.ply" in capsys.readouterr().out
+    # never silently over an earlier export or the scene itself: --overwrite writes into a folder that is not empty
+    with pytest.raises(FileExistsError, match="o exists and is not empty; pass --overwrite"):
+        export_main(["--from", str(d / "scene.ply"), "--format", "ply", "--out", str(tmp_path / "o")])
+    with pytest.raises(FileExistsError, match="pass --overwrite"):
+        export(d, "ply", d)  # the predict folder: its scene.ply holds the provenance columns
+    assert export_main(["--from", str(d / "scene.ply"), "--format", "splat", "--out", str(tmp_path / "o"),
+                        "--overwrite"]) == 0
+    assert (tmp_path / "o" / "scene.splat").is_file() and (tmp_path / "o" / "scene.ply").is_file()
     (d / "cameras.json").unlink()
     with pytest.raises(ValueError, match="cameras.json"):
         export(d, "colmap", tmp_path / "o2")
