@@ -8,6 +8,7 @@ as one line; ``--debug`` or ``ANYCITY_DEBUG=1`` shows the traceback.
 
 from __future__ import annotations
 
+import pickle
 import sys
 
 # Test-time settings: taken from the config files and the command line even when --ckpt_path holds other values
@@ -37,7 +38,13 @@ def _cli_class():
             sub = self.config.get("subcommand")
             init = self.config.get(f"{sub}.model.init_args") if sub else None
             keep = {k: init[k] for k in TEST_TIME_KEYS if init is not None and k in init}
-            super()._parse_ckpt_path()
+            try:  # Lightning reads the checkpoint's hyperparameters with a bare torch.load
+                super()._parse_ckpt_path()
+            except (pickle.UnpicklingError, RuntimeError, EOFError):
+                from anycity.safe_load import safe_torch_load
+
+                safe_torch_load(self.config[sub].get("ckpt_path"), what="--ckpt_path")  # the one-line reason
+                raise
             for k, v in keep.items():
                 self.config[f"{sub}.model.init_args.{k}"] = v
 

@@ -2,6 +2,7 @@
 
 import errno
 import os
+from pathlib import Path
 
 import pytest
 import torch
@@ -90,3 +91,33 @@ def test_atomic_write_replaces_whole_file(tmp_path):
     atomic_write_bytes(p, b"old" * 10)
     atomic_write_bytes(p, b"new")
     assert p.read_bytes() == b"new"
+
+
+def test_every_torch_file_a_user_passes_is_read_as_data_in_one_line(tmp_path, monkeypatch, capsys):
+    """--ckpt_path (Lightning reads its hyperparameters with a bare torch.load first), model.init_from,
+    net.pose_prior and pretrained weights: a payload is refused and runs nothing, garbage is named, each in one
+    line that names the option."""
+    from anycity import cli
+    from anycity.lit import RefinementModule
+    from anycity.models.pose_prior import load_pose_prior
+    from anycity.models.pretrained import read_state_dict
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv("ANYCITY_DEBUG", raising=False)
+    evil, junk = tmp_path / "evil.ckpt", tmp_path / "junk.ckpt"
+    torch.save({"state_dict": {"w": torch.zeros(2)}, "payload": _Evil()}, evil)
+    junk.write_text("not a checkpoint\n")
+    config = str(Path(__file__).parents[2] / "configs" / "quickstart.yaml")
+    for path, reason in ((evil, "refusing to load --ckpt_path"), (junk, "cannot read --ckpt_path")):
+        assert cli.main(["test", "-c", config, "--ckpt_path", str(path), "--data.root", str(tmp_path)]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and f"anycity: error: {reason} {path}" in err
+    m = RefinementModule()
+    for load, what in ((m.load_stage1, "model.init_from"), (load_pose_prior, "net.pose_prior"),
+                       (read_state_dict, "pretrained weights")):
+        with pytest.raises(ValueError, match=f"refusing to load {what} .*evil.ckpt") as e:
+            load(str(evil))
+        assert "\n" not in str(e.value)
+        with pytest.raises(ValueError, match=f"cannot read {what} .*junk.ckpt: .*not a torch file"):
+            load(str(junk))
+    assert not (tmp_path / "PWNED_BY_CHECKPOINT").exists()

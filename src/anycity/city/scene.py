@@ -7,6 +7,7 @@ stay in memory; the Gaussians of the views it owns (:func:`anycity.city.plan.own
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -86,7 +87,8 @@ class ChunkedScene:
                                (g.means, g.quats, g.scales, g.opacities, g.sh, g.valid)))
             path = self.spill / f"chunk_{k:05d}.pt"
             cols = {name: t.detach().cpu()[:, sel].clone() for name, t in (extra or {}).items()}
-            torch.save({"gaussians": part, "views": [views[i] for i in own], "extra": cols,
+            fields = {f.name: getattr(part, f.name) for f in dataclasses.fields(part)}  # tensors: read as data
+            torch.save({"gaussians": fields, "views": [views[i] for i in own], "extra": cols,
                         "w2c": w2c[own].detach().cpu().double()}, path)
             self.spilled[k] = path
 
@@ -107,8 +109,8 @@ class ChunkedScene:
             ply = PlyStream(folder / "scene.ply")
             try:
                 for k, path in sorted(self.spilled.items()):
-                    piece = torch.load(path, weights_only=False)
-                    ply.write(sim3_gaussians(piece["gaussians"], S[k]), piece["extra"] or None)
+                    piece = torch.load(path, weights_only=True)
+                    ply.write(sim3_gaussians(Gaussians(**piece["gaussians"]), S[k]), piece["extra"] or None)
                     for v, cam in zip(piece["views"], piece["w2c"]):
                         w2c[v] = w2c_to_world(cam, S[k])
                     del piece

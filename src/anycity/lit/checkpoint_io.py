@@ -6,16 +6,15 @@
   flushed and fsynced, then ``os.replace``d over the target (atomic on POSIX) and the directory fsynced.
   A SIGKILL or power loss mid-write leaves the previous checkpoint intact; a full disk (``ENOSPC``) raises
   a one-line ``OSError`` naming the path and the bytes needed, and the partial temp file is removed.
-- **load**: ``torch.load(weights_only=True)`` with an allow-list of the few non-tensor types a Lightning
-  checkpoint holds, so a checkpoint crafted to run code on unpickling is refused with a one-line
-  ``ValueError`` instead of being executed.
+- **load**: :func:`anycity.safe_load.safe_torch_load`, ``torch.load(weights_only=True)`` with an allow-list of
+  the few non-tensor types a Lightning checkpoint holds, so a checkpoint crafted to run code on unpickling is
+  refused with a one-line ``ValueError`` instead of being executed.
 """
 
 from __future__ import annotations
 
 import io
 import os
-import pickle
 from pathlib import Path
 from typing import Any
 
@@ -23,47 +22,9 @@ import torch
 from lightning.pytorch.plugins.io import TorchCheckpointIO
 
 from anycity.atomic import atomic_write_bytes
+from anycity.safe_load import safe_torch_load
 
-
-def _safe_globals() -> list:
-    """Types a Lightning/anycity checkpoint legitimately pickles besides tensors and builtins."""
-    import collections
-    import pathlib
-
-    allowed: list = [collections.defaultdict, collections.OrderedDict, pathlib.PosixPath, pathlib.WindowsPath,
-                     pathlib.Path, dict, list, tuple, set, frozenset]
-    try:  # LightningCLI stores the parsed config (hyper_parameters) as jsonargparse Namespaces
-        from jsonargparse import Namespace
-
-        allowed.append(Namespace)
-    except ImportError:  # pragma: no cover
-        pass
-    try:
-        from lightning.fabric.utilities.data import AttributeDict
-
-        allowed.append(AttributeDict)
-    except ImportError:  # pragma: no cover
-        pass
-    return allowed
-
-
-def safe_torch_load(path: str | os.PathLike, map_location: Any = "cpu") -> Any:
-    """``torch.load(path, weights_only=True)`` with the checkpoint allow-list; a file that tries to construct
-    anything else (e.g. call ``os.system`` on unpickling) raises a one-line ``ValueError``."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"checkpoint not found: {path}")
-    try:
-        with torch.serialization.safe_globals(_safe_globals()):
-            return torch.load(path, map_location=map_location, weights_only=True)
-    except pickle.UnpicklingError as e:
-        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        raise ValueError(f"refusing to load {path}: it holds objects other than tensors and plain data ({first}); "
-                         "only load checkpoints from a source you trust, or re-save it as a plain state_dict") from None
-    except (RuntimeError, EOFError) as e:  # truncated / not a torch file
-        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        raise ValueError(f"cannot read checkpoint {path}: {first}; the file is truncated or not a torch "
-                         "checkpoint (use the previous checkpoint or rerun)") from None
+__all__ = ["SafeCheckpointIO", "atomic_write_bytes", "safe_torch_load"]
 
 
 _saves = 0

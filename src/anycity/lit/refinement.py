@@ -20,6 +20,7 @@ from anycity.geometry.pose_encoding import extri_intri_to_pose_encoding
 from anycity.lit.base import AnyCityModule
 from anycity.losses import camera_loss, d2s_loss, preservation_loss, regularizer_loss, rgb_loss
 from anycity.models.anycity import SCAFFOLD_PREFIXES
+from anycity.safe_load import safe_torch_load
 from anycity.structures import RenderOutput, ViewBatch, Views
 
 
@@ -121,7 +122,7 @@ class RefinementModule(AnyCityModule):
         lacks are an error; a completion branch an older Stage I checkpoint may hold (untrained) is not copied, so
         Stage II may use another video prior, or none."""
         # memory-mapped, tensors only: the weights are read on use and the optimiser state (2x the weights) never is
-        ckpt = torch.load(path, map_location="cpu", mmap=True, weights_only=True)
+        ckpt = safe_torch_load(path, mmap=True, what="model.init_from")
         state = ckpt.get("state_dict", ckpt)
         decode = ((ckpt.get("hyper_parameters") or {}).get("net") or {}).get("focal_decode", "vggt")
         del ckpt

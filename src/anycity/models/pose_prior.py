@@ -24,6 +24,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from anycity.safe_load import safe_torch_load
+
 POSE_FEATURES = 9  # 6-D rotation minus the identity's, and the translation
 
 
@@ -122,7 +124,7 @@ def load_pose_prior(path: str) -> PairFlowPose:
         prior = PairFlowPose()
         prior.missing = path
     else:
-        saved = torch.load(path, map_location="cpu", weights_only=True)
+        saved = safe_torch_load(path, what="net.pose_prior")
         if not isinstance(saved, dict) or "state_dict" not in saved:
             raise ValueError(f"net.pose_prior: {path} is not a pose prior written by scripts/pose_prior.py "
                              "(no 'state_dict'); retrain it with that script")

@@ -17,8 +17,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-import torch
 from torch import Tensor, nn
+
+from anycity.safe_load import safe_torch_load
 
 KINDS = ("vggt", "anysplat")
 
@@ -57,10 +58,7 @@ def read_state_dict(path: str | Path) -> dict[str, Tensor]:
         from safetensors.torch import load_file
 
         return load_file(str(path))
-    try:  # mmap keeps a 5 GB checkpoint out of RAM; legacy (non-zip) files cannot be mapped
-        obj = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
-    except RuntimeError:
-        obj = torch.load(path, map_location="cpu", weights_only=True)
+    obj = safe_torch_load(path, mmap=True, what="pretrained weights")  # mmap keeps a 5 GB file out of RAM
     if isinstance(obj, dict) and isinstance(obj.get("state_dict"), dict):
         obj = obj["state_dict"]
     elif isinstance(obj, dict) and isinstance(obj.get("model"), dict):

@@ -1,0 +1,73 @@
+"""Reading torch files a user hands us (checkpoints, pretrained weights, a pose prior) as data only.
+
+``torch.load(weights_only=True)`` with an allow-list of the few non-tensor types a Lightning checkpoint holds: a
+file crafted to run code on unpickling is refused, and a truncated or foreign file is reported, each in one line
+that names the file. Lightning-free, so ``models/`` reads its weight files the same way ``lit/`` reads checkpoints.
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+from pathlib import Path
+from typing import Any
+
+import torch
+
+
+def _safe_globals() -> list:
+    """Types a Lightning/anycity checkpoint legitimately pickles besides tensors and builtins."""
+    import collections
+    import pathlib
+
+    allowed: list = [collections.defaultdict, collections.OrderedDict, pathlib.PosixPath, pathlib.WindowsPath,
+                     pathlib.Path, dict, list, tuple, set, frozenset]
+    try:  # LightningCLI stores the parsed config (hyper_parameters) as jsonargparse Namespaces
+        from jsonargparse import Namespace
+
+        allowed.append(Namespace)
+    except ImportError:  # pragma: no cover
+        pass
+    try:
+        from lightning.fabric.utilities.data import AttributeDict
+
+        allowed.append(AttributeDict)
+    except ImportError:  # pragma: no cover
+        pass
+    return allowed
+
+
+def _first_line(e: BaseException) -> str:
+    text = str(e).strip()
+    lines = [ln for ln in text.splitlines() if "GLOBAL" in ln or ln.strip().startswith("Unsupported")]
+    return (lines[0] if lines else text.splitlines()[0]).strip() if text else type(e).__name__
+
+
+def safe_torch_load(path: str | os.PathLike, map_location: Any = "cpu", *, mmap: bool = False,
+                    what: str = "checkpoint") -> Any:
+    """``torch.load(path, weights_only=True)`` with the checkpoint allow-list (``mmap``: memory-mapped when the
+    file allows it, so a 5 GB file stays out of RAM). A file that tries to construct anything else (e.g. call
+    ``os.system`` on unpickling) raises a one-line ``ValueError``, as does one that is truncated or not a torch
+    file. ``what`` names the file in the messages (e.g. ``"net.pose_prior"``)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{what} not found: {path}")
+    try:
+        with torch.serialization.safe_globals(_safe_globals()):
+            if mmap:
+                try:
+                    return torch.load(path, map_location=map_location, weights_only=True, mmap=True)
+                except RuntimeError as e:  # a legacy (non-zip) file cannot be mapped
+                    if "mmap" not in str(e):
+                        raise
+            return torch.load(path, map_location=map_location, weights_only=True)
+    except pickle.UnpicklingError as e:
+        if "GLOBAL" not in str(e):  # no object construction asked for: garbage, not a payload
+            raise ValueError(f"cannot read {what} {path}: {_first_line(e)}; the file is truncated or not a torch "
+                             "file (use the previous one or rerun)") from None
+        raise ValueError(f"refusing to load {what} {path}: it holds objects other than tensors and plain data "
+                         f"({_first_line(e)}); only load files from a source you trust, or re-save it as a plain "
+                         "state_dict") from None
+    except (RuntimeError, EOFError) as e:  # truncated / not a torch file
+        raise ValueError(f"cannot read {what} {path}: {_first_line(e)}; the file is truncated or not a torch "
+                         "file (use the previous one or rerun)") from None
