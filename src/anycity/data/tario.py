@@ -72,19 +72,52 @@ def local_members(url: str) -> Iterator[dict]:
             yield {"fname": m.name, "data": data, "__url__": url}
 
 
-def tar_samples(src: Iterable[dict], handler: Callable[[BaseException], bool]) -> Iterator[dict]:
-    """webdataset stage: shard dicts (``{"url": ...}``) -> samples, lazily for local files."""
+class NoSampleGuard:
+    """Stops a stream whose every shard fails. A shard fails when it is unreadable or empty, or when every sample
+    built from it was skipped as corrupt; once each of the split's shards has failed and none has given a sample,
+    :meth:`check` raises. Without it a resampled training stream with ``skip_corrupt`` draws them forever."""
+
+    def __init__(self, urls: Iterable[str]) -> None:
+        self.urls, self.failed, self.ok = set(urls), {}, False
+
+    def good(self) -> None:
+        self.ok = True
+
+    def bad(self, url: str, why: str) -> None:
+        if not self.ok:
+            self.failed.setdefault(url, why)
+
+    def check(self) -> None:
+        if not self.ok and self.urls and self.failed.keys() >= self.urls:
+            url, why = next(iter(self.failed.items()))
+            raise ValueError(f"shards: none of the {len(self.urls)} shard(s) gives a sample (e.g. {url}: {why}); "
+                             "point --data.root at shards written by `anycity data synth` or `anycity data convert`")
+
+
+def tar_samples(src: Iterable[dict], handler: Callable[[BaseException], bool],
+                guard: NoSampleGuard | None = None) -> Iterator[dict]:
+    """webdataset stage: shard dicts (``{"url": ...}``) -> samples, lazily for local files. ``guard`` hears of
+    unreadable and empty local shards and is checked before each shard."""
 
     def files() -> Iterator[dict]:
         for d in src:
             url = d["url"]
+            if guard is not None:
+                guard.check()
             if not is_local(url):
                 yield from tariterators.tar_file_expander(tariterators.url_opener([d], handler=handler),
                                                           handler=handler)
                 continue
+            n = 0
             try:
-                yield from local_members(url)
+                for m in local_members(url):
+                    n += 1
+                    yield m
+                if n == 0 and guard is not None:
+                    guard.bad(url, "an empty tar")
             except (tarfile.TarError, OSError, ValueError) as e:
+                if guard is not None:
+                    guard.bad(url, f"unreadable tar ({e})")
                 if not handler(ValueError(f"shard {url}: unreadable tar ({e})")):
                     return
             yield {}  # end of shard: a sample never spans two shards (a resampled shard may come twice in a row)

@@ -1,5 +1,6 @@
 import os
 import shutil
+import tarfile
 
 import pytest
 import torch
@@ -80,6 +81,33 @@ def test_missing_and_corrupt_shards(synth_root, tmp_path):
     out = list(dm.train_dataloader())
     assert dm.num_skipped >= 1 and len(out) >= 1
     assert "train-000000.tar" in dm.skip_counter.records()[0]["where"]
+
+
+@pytest.mark.timeout(60)
+def test_a_stream_whose_every_shard_fails_stops_with_one_line(synth_root, tmp_path):
+    """With skip_corrupt, a resampled training stream drew unreadable, empty or all-corrupt shards forever (a
+    --data.root at a file that is not a shard hung `anycity fit`); now it stops once every shard has failed, and a
+    split with one good shard still streams."""
+    urls = shard_urls(synth_root, "train")
+    junk, empty = tmp_path / "junk.tar", tmp_path / "empty.tar"
+    junk.write_bytes(b"not a tar" * 100)
+    with tarfile.open(empty, "w"):
+        pass
+    broken = tmp_path / "broken.tar"  # a readable tar whose samples all fail to build
+    with tarfile.open(urls[0]) as src, tarfile.open(broken, "w") as dst:
+        for m in src.getmembers():
+            if m.isfile() and not m.name.endswith("cameras.json"):
+                dst.addfile(m, src.extractfile(m))
+    for shards, why in (([junk], "unreadable tar"), ([empty], "an empty tar"), ([junk, empty], "(junk|empty).tar"),
+                        ([broken], "every sample corrupt")):
+        pipe = make_pipeline([str(u) for u in shards], SampleBuilder(2, 1, 0, (16, 16)), train=True,
+                             epoch_samples=4, skip_corrupt=True)
+        with pytest.raises(ValueError, match=f"none of the {len(shards)} shard\\(s\\) gives a sample .*{why}") as e:
+            next(iter(pipe))
+        assert "\n" not in str(e.value)
+    mixed = make_pipeline([str(junk), *urls], SampleBuilder(2, 1, 0, (16, 16)), train=True, epoch_samples=20,
+                          skip_corrupt=True)
+    assert len(list(mixed)) == 20
 
 
 def test_yaml_config_parses(synth_root, tmp_path):
