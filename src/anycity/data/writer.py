@@ -162,7 +162,13 @@ def read_index(root: str | Path) -> dict:
     p = Path(root) / "index.json"
     if not p.exists():
         raise FileNotFoundError(f"{p}: no index.json; point to a directory written by `anycity data synth|convert`")
-    index = json.loads(p.read_text())
+    try:
+        index = json.loads(p.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ValueError(f"{p}: not JSON ({e}); re-create the shard set with `anycity data synth|convert`") from None
+    if not isinstance(index, dict):
+        raise ValueError(f"{p}: not a shard index (a {type(index).__name__}); re-create the shard set with "
+                         "`anycity data synth|convert`")
     if index.get("schema_version") != SCHEMA_VERSION:
         raise ValueError(f"{p}: written with shard schema_version {index.get('schema_version')}, but this anycity "
                          f"reads schema_version {SCHEMA_VERSION}; re-create the shards with this version")

@@ -34,3 +34,36 @@ def save_cameras(path: str | Path, w2c: Tensor, K: Tensor, width: int, height: i
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_bytes(path, json.dumps(cameras_to_dict(w2c, K, width, height, names, scale), indent=1).encode())
+
+
+def load_cameras(path: str | Path) -> dict:
+    """Read and check a ``cameras.json``: a ``views`` list, each with ``name``, ``w2c`` (4x4), ``K`` (3x3) and a
+    positive ``width`` / ``height``. A file that is not that raises a one-line ``ValueError`` naming it."""
+    path = Path(path)
+
+    def bad(what: str) -> ValueError:
+        return ValueError(f"{path}: {what}; it is not a cameras.json written by `anycity predict` (re-run predict, "
+                          "or remove it to export the Gaussians alone)")
+
+    try:
+        cams = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise bad(f"not JSON ({e})") from None
+    views = cams.get("views") if isinstance(cams, dict) else None
+    if not isinstance(views, list) or not views:
+        raise bad("no 'views' list")
+    for i, v in enumerate(views):
+        if not isinstance(v, dict):
+            raise bad(f"view {i} is a {type(v).__name__}, not an object")
+        for key, shape in (("w2c", (4, 4)), ("K", (3, 3))):
+            m = v.get(key)
+            ok = isinstance(m, list) and len(m) == shape[0] and all(
+                isinstance(r, list) and len(r) == shape[1] and all(isinstance(x, (int, float)) for x in r) for r in m)
+            if not ok:
+                raise bad(f"view {i} has no {shape[0]}x{shape[1]} numeric '{key}'")
+        for key in ("width", "height"):
+            if not isinstance(v.get(key), int) or v[key] <= 0:
+                raise bad(f"view {i} has no positive integer '{key}'")
+        if not isinstance(v.get("name", ""), str):
+            raise bad(f"view {i}'s 'name' is not a string")
+    return cams

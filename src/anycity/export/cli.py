@@ -7,7 +7,6 @@ Gaussian formats can be written). No Lightning import: this runs in a second.
 from __future__ import annotations
 
 import argparse
-import json
 import shutil
 from pathlib import Path
 
@@ -19,6 +18,7 @@ FORMATS = ("splat", "colmap", "nerfstudio", "ply")
 def load_scene(path: str | Path):
     """``(gaussians, cameras)`` of a predict folder or a ``scene.ply``; ``cameras`` is the ``cameras.json`` dict
     or None."""
+    from anycity.export.cameras import load_cameras
     from anycity.export.ply import load_ply
 
     path = Path(path)
@@ -28,12 +28,11 @@ def load_scene(path: str | Path):
             raise FileNotFoundError(f"{path}: no scene.ply inside; pass a folder written by `anycity predict` "
                                     "(predictions/<scene>/) or a .ply file")
         cam_file = path / "cameras.json"
-        cams = json.loads(cam_file.read_text()) if cam_file.is_file() else None
-        return load_ply(ply), cams
+        return load_ply(ply), (load_cameras(cam_file) if cam_file.is_file() else None)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: does not exist; pass a predict scene folder or a scene.ply")
-    cams_file = path.parent / "cameras.json"
-    return load_ply(path), (json.loads(cams_file.read_text()) if cams_file.is_file() else None)
+    cam_file = path.parent / "cameras.json"
+    return load_ply(path), (load_cameras(cam_file) if cam_file.is_file() else None)
 
 
 def camera_tensors(cams: dict) -> tuple[torch.Tensor, torch.Tensor, int, int, list[str]]:

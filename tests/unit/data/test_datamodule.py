@@ -110,6 +110,13 @@ def test_a_stream_whose_every_shard_fails_stops_with_one_line(synth_root, tmp_pa
     assert len(list(mixed)) == 20
 
 
+def test_a_corrupt_index_json_is_one_line_naming_it(tmp_path):
+    for text, what in (("garbage{", "not JSON"), ("[1, 2]", "not a shard index")):
+        (tmp_path / "index.json").write_text(text)
+        with pytest.raises(ValueError, match=f"index.json: {what}.*anycity data synth"):
+            read_index(tmp_path)
+
+
 def test_yaml_config_parses(synth_root, tmp_path):
     from jsonargparse import ArgumentParser
 

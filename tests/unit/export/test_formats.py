@@ -128,3 +128,16 @@ def test_ply_export_and_errors(tmp_path, capsys):
         export(d, "colmap", tmp_path / "o2")
     with pytest.raises(FileNotFoundError, match="scene.ply"):
         export(tmp_path, "splat", tmp_path / "o3")
+
+
+def test_a_malformed_cameras_json_is_one_line_naming_it(tmp_path):
+    d, _, _, _ = _predict_dir(tmp_path)
+    cams = json.loads((d / "cameras.json").read_text())
+    for broken, what in (("garbage{", "not JSON"), ('{"views": []}', "no 'views' list"),
+                         (json.dumps({"views": [{**cams["views"][0], "w2c": [[1, 0, 0]]}]}), "no 4x4 numeric 'w2c'"),
+                         (json.dumps({"views": [{**cams["views"][0], "K": None}]}), "no 3x3 numeric 'K'"),
+                         (json.dumps({"views": [{**cams["views"][0], "width": 0}]}), "positive integer 'width'")):
+        (d / "cameras.json").write_text(broken)
+        with pytest.raises(ValueError, match=f"cameras.json: .*{what}.*not a cameras.json written by") as e:
+            export(d, "colmap", tmp_path / "o")
+        assert "\n" not in str(e.value)
