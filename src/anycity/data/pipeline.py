@@ -429,21 +429,16 @@ def make_pipeline(urls: list[str], builder: SampleBuilder, *, train: bool, resam
             raise exn
         raise ValueError(f"corrupt or unreadable shard: {exn}") from exn
 
-    guard = NoSampleGuard(urls)
-
     def build(sample: dict):
         try:
-            out = builder(sample)
+            return builder(sample)
         except Exception as e:
             msg = str(e) if "shard" in str(e) else f"{sample_where(sample)}: {e}"
             if skip_corrupt:
                 if counter is not None:
                     counter.add(sample_where(sample), e)
-                guard.bad(str(sample.get("__url__", "?")), f"every sample corrupt (e.g. {msg[:200]})")
                 return None
             raise ValueError(msg) from e
-        guard.good()
-        return out
 
     if train and resampled:
         stages = [wds.ResampledShards(urls, seed=seed, deterministic=True)]
@@ -453,7 +448,7 @@ def make_pipeline(urls: list[str], builder: SampleBuilder, *, train: bool, resam
                   wds.split_by_node, wds.split_by_worker]
     else:
         stages = [wds.SimpleShardList(urls)]
-    stages.append(functools.partial(tar_samples, handler=handler, guard=guard))
+    stages.append(functools.partial(tar_samples, handler=handler, guard=NoSampleGuard(urls)))
     if not train:
         stages.append(_eval_shard)
     elif shuffle > 1:

@@ -73,31 +73,36 @@ def local_members(url: str) -> Iterator[dict]:
 
 
 class NoSampleGuard:
-    """Stops a stream whose every shard fails. A shard fails when it is unreadable or empty, or when every sample
-    built from it was skipped as corrupt; once each of the split's shards has failed and none has given a sample,
-    :meth:`check` raises. Without it a resampled training stream with ``skip_corrupt`` draws them forever."""
+    """Stops a stream whose every shard is unreadable, empty, or holds no webdataset sample: once each of the
+    split's shards has been seen to fail so (which :func:`tar_samples` decides within the shard, so nothing buffered
+    downstream can change it), :meth:`check` raises. Without it a resampled training stream with ``skip_corrupt``
+    draws them forever."""
 
     def __init__(self, urls: Iterable[str]) -> None:
-        self.urls, self.failed, self.ok = set(urls), {}, False
+        self.urls = set(urls)
+        self.why: dict[str, str] = {}
+        self.read: dict[str, int] = {}
 
-    def good(self) -> None:
-        self.ok = True
+    def failed(self, url: str, why: str) -> None:
+        self.why.setdefault(url, why)
 
-    def bad(self, url: str, why: str) -> None:
-        if not self.ok:
-            self.failed.setdefault(url, why)
+    def sample_read(self, url: str) -> None:
+        self.read[url] = self.read.get(url, 0) + 1
 
     def check(self) -> None:
-        if not self.ok and self.urls and self.failed.keys() >= self.urls:
-            url, why = next(iter(self.failed.items()))
-            raise ValueError(f"shards: none of the {len(self.urls)} shard(s) gives a sample (e.g. {url}: {why}); "
-                             "point --data.root at shards written by `anycity data synth` or `anycity data convert`")
+        if not self.urls or not self.why.keys() >= self.urls:
+            return
+        url = next(iter(self.why))
+        raise ValueError(f"shards: none of the {len(self.urls)} shard(s) gives a sample (e.g. {url}: "
+                         f"{self.why[url]}); point --data.root at shards written by `anycity data synth` or "
+                         "`anycity data convert`")
 
 
 def tar_samples(src: Iterable[dict], handler: Callable[[BaseException], bool],
                 guard: NoSampleGuard | None = None) -> Iterator[dict]:
     """webdataset stage: shard dicts (``{"url": ...}``) -> samples, lazily for local files. ``guard`` hears of
-    unreadable and empty local shards and is checked before each shard."""
+    each local shard visit that gave no sample (unreadable, empty, no keyed members) and is checked before each
+    shard."""
 
     def files() -> Iterator[dict]:
         for d in src:
@@ -108,18 +113,29 @@ def tar_samples(src: Iterable[dict], handler: Callable[[BaseException], bool],
                 yield from tariterators.tar_file_expander(tariterators.url_opener([d], handler=handler),
                                                           handler=handler)
                 continue
-            n = 0
+            n, why = 0, None
+            before = guard.read.get(url, 0) if guard is not None else 0
             try:
                 for m in local_members(url):
                     n += 1
                     yield m
-                if n == 0 and guard is not None:
-                    guard.bad(url, "an empty tar")
             except (tarfile.TarError, OSError, ValueError) as e:
-                if guard is not None:
-                    guard.bad(url, f"unreadable tar ({e})")
-                if not handler(ValueError(f"shard {url}: unreadable tar ({e})")):
+                why = f"unreadable tar ({e})"
+                if not handler(ValueError(f"shard {url}: {why}")):
                     return
             yield {}  # end of shard: a sample never spans two shards (a resampled shard may come twice in a row)
+            # resumed after the shard's last sample went downstream, so every sample read from it is counted
+            if guard is not None and guard.read.get(url, 0) == before:
+                guard.failed(url, why or ("an empty tar" if n == 0 else
+                                          "no webdataset samples (members sharing a key) in it"))
 
-    return tariterators.group_by_keys(files(), handler=handler)
+    samples = tariterators.group_by_keys(files(), handler=handler)
+    if guard is None:
+        return samples
+    return _counted(samples, guard)
+
+
+def _counted(samples: Iterator[dict], guard: NoSampleGuard) -> Iterator[dict]:
+    for s in samples:
+        guard.sample_read(s["__url__"])
+        yield s

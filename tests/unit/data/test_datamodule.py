@@ -1,6 +1,8 @@
+import io
 import os
 import shutil
 import tarfile
+from pathlib import Path
 
 import pytest
 import torch
@@ -85,21 +87,21 @@ def test_missing_and_corrupt_shards(synth_root, tmp_path):
 
 @pytest.mark.timeout(60)
 def test_a_stream_whose_every_shard_fails_stops_with_one_line(synth_root, tmp_path):
-    """With skip_corrupt, a resampled training stream drew unreadable, empty or all-corrupt shards forever (a
-    --data.root at a file that is not a shard hung `anycity fit`); now it stops once every shard has failed, and a
-    split with one good shard still streams."""
+    """With skip_corrupt, a resampled training stream drew unreadable, empty or sample-less shards forever (a
+    --data.root at a file that is not a shard hung `anycity fit`); now it stops once every shard has failed so, and a
+    split with one shard that gives samples still streams."""
     urls = shard_urls(synth_root, "train")
     junk, empty = tmp_path / "junk.tar", tmp_path / "empty.tar"
     junk.write_bytes(b"not a tar" * 100)
     with tarfile.open(empty, "w"):
         pass
-    broken = tmp_path / "broken.tar"  # a readable tar whose samples all fail to build
-    with tarfile.open(urls[0]) as src, tarfile.open(broken, "w") as dst:
-        for m in src.getmembers():
-            if m.isfile() and not m.name.endswith("cameras.json"):
-                dst.addfile(m, src.extractfile(m))
+    keyless = tmp_path / "keyless.tar"  # members, but none with a key.extension name: no sample
+    with tarfile.open(keyless, "w") as dst:
+        info = tarfile.TarInfo("README")
+        info.size = 2
+        dst.addfile(info, io.BytesIO(b"hi"))
     for shards, why in (([junk], "unreadable tar"), ([empty], "an empty tar"), ([junk, empty], "(junk|empty).tar"),
-                        ([broken], "every sample corrupt")):
+                        ([keyless], "no webdataset samples")):
         pipe = make_pipeline([str(u) for u in shards], SampleBuilder(2, 1, 0, (16, 16)), train=True,
                              epoch_samples=4, skip_corrupt=True)
         with pytest.raises(ValueError, match=f"none of the {len(shards)} shard\\(s\\) gives a sample .*{why}") as e:
@@ -108,6 +110,13 @@ def test_a_stream_whose_every_shard_fails_stops_with_one_line(synth_root, tmp_pa
     mixed = make_pipeline([str(junk), *urls], SampleBuilder(2, 1, 0, (16, 16)), train=True, epoch_samples=20,
                           skip_corrupt=True)
     assert len(list(mixed)) == 20
+    # a truncated shard is not a failed one when samples came out of it before the cut
+    cut = tmp_path / "cut.tar"
+    cut.write_bytes(Path(urls[0]).read_bytes()[:-3000])
+    for seed in range(3):
+        pipe = make_pipeline([str(cut), str(junk)], SampleBuilder(2, 1, 0, (16, 16)), train=True, epoch_samples=6,
+                             skip_corrupt=True, seed=seed)
+        assert len(list(pipe)) == 6
 
 
 def test_a_corrupt_index_json_is_one_line_naming_it(tmp_path):
