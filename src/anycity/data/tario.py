@@ -128,6 +128,8 @@ def tar_samples(src: Iterable[dict], handler: Callable[[BaseException], bool],
             if guard is not None and guard.read.get(url, 0) == before:
                 guard.failed(url, why or ("an empty tar" if n == 0 else
                                           "no webdataset samples (members sharing a key) in it"))
+        if guard is not None:  # the end of a finite (evaluation) stream
+            guard.check()
 
     samples = tariterators.group_by_keys(files(), handler=handler)
     if guard is None:

@@ -107,6 +107,9 @@ def test_a_stream_whose_every_shard_fails_stops_with_one_line(synth_root, tmp_pa
         with pytest.raises(ValueError, match=f"none of the {len(shards)} shard\\(s\\) gives a sample .*{why}") as e:
             next(iter(pipe))
         assert "\n" not in str(e.value)
+    with pytest.raises(ValueError, match="none of the 2 shard\\(s\\) gives a sample"):  # a finite evaluation stream
+        list(make_pipeline([str(junk), str(empty)], SampleBuilder(2, 1, 0, (16, 16), train=False), train=False,
+                           skip_corrupt=True))
     mixed = make_pipeline([str(junk), *urls], SampleBuilder(2, 1, 0, (16, 16)), train=True, epoch_samples=20,
                           skip_corrupt=True)
     assert len(list(mixed)) == 20
