@@ -52,6 +52,11 @@ def safe_torch_load(path: str | os.PathLike, map_location: Any = "cpu", *, mmap:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{what} not found: {path}")
+
+    def unreadable(e: BaseException) -> ValueError:
+        return ValueError(f"cannot read {what} {path}: {_first_line(e)}; the file is truncated or not a torch file "
+                          "(use the previous one or rerun)")
+
     try:
         with torch.serialization.safe_globals(_safe_globals()):
             if mmap:
@@ -63,11 +68,9 @@ def safe_torch_load(path: str | os.PathLike, map_location: Any = "cpu", *, mmap:
             return torch.load(path, map_location=map_location, weights_only=True)
     except pickle.UnpicklingError as e:
         if "GLOBAL" not in str(e):  # no object construction asked for: garbage, not a payload
-            raise ValueError(f"cannot read {what} {path}: {_first_line(e)}; the file is truncated or not a torch "
-                             "file (use the previous one or rerun)") from None
+            raise unreadable(e) from None
         raise ValueError(f"refusing to load {what} {path}: it holds objects other than tensors and plain data "
                          f"({_first_line(e)}); only load files from a source you trust, or re-save it as a plain "
                          "state_dict") from None
     except (RuntimeError, EOFError) as e:  # truncated / not a torch file
-        raise ValueError(f"cannot read {what} {path}: {_first_line(e)}; the file is truncated or not a torch "
-                         "file (use the previous one or rerun)") from None
+        raise unreadable(e) from None

@@ -22,17 +22,14 @@ def load_scene(path: str | Path):
     from anycity.export.ply import load_ply
 
     path = Path(path)
-    if path.is_dir():
-        ply = path / "scene.ply"
-        if not ply.is_file():
-            raise FileNotFoundError(f"{path}: no scene.ply inside; pass a folder written by `anycity predict` "
-                                    "(predictions/<scene>/) or a .ply file")
-        cam_file = path / "cameras.json"
-        return load_ply(ply), (load_cameras(cam_file) if cam_file.is_file() else None)
-    if not path.is_file():
+    ply = path / "scene.ply" if path.is_dir() else path
+    if path.is_dir() and not ply.is_file():
+        raise FileNotFoundError(f"{path}: no scene.ply inside; pass a folder written by `anycity predict` "
+                                "(predictions/<scene>/) or a .ply file")
+    if not ply.is_file():
         raise FileNotFoundError(f"{path}: does not exist; pass a predict scene folder or a scene.ply")
-    cam_file = path.parent / "cameras.json"
-    return load_ply(path), (load_cameras(cam_file) if cam_file.is_file() else None)
+    cam_file = ply.parent / "cameras.json"
+    return load_ply(ply), (load_cameras(cam_file) if cam_file.is_file() else None)
 
 
 def camera_tensors(cams: dict) -> tuple[torch.Tensor, torch.Tensor, int, int, list[str]]:
@@ -51,11 +48,11 @@ def export(src: str | Path, fmt: str, out: str | Path, overwrite: bool = False) 
 
     if fmt not in FORMATS:
         raise ValueError(f"--format: expected one of {', '.join(FORMATS)}, got {fmt!r}")
-    g, cams = load_scene(src)
     out = Path(out)
-    if not overwrite and out.is_dir() and any(out.iterdir()):
+    if not overwrite and out.is_dir() and any(out.iterdir()):  # before reading the scene: a refusal costs nothing
         raise FileExistsError(f"anycity export: {out} exists and is not empty; pass --overwrite to write into it, or "
                               "--out NEW_DIR")
+    g, cams = load_scene(src)
     out.mkdir(parents=True, exist_ok=True)
     scale = cams.get("metres_per_unit") if cams else None
     save_scale(out / "scale.json", scale, fmt)

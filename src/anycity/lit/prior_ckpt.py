@@ -8,7 +8,7 @@ LoRA adapters, the completion branch and the scaffold stay in the checkpoint. Pr
 (the small built-in one, the random ``wan-tiny``) are saved as they are.
 
 The small frozen pose prior (``net.pose_prior``, beyond the paper) is the opposite: its weights (2 MB) travel in
-the checkpoint, with ``checkpoint["pose_prior"] = {"file", "image_size"}``, and loading rebuilds it at the size of
+the checkpoint, with ``checkpoint["pose_prior"] = {"image_size"}``, and loading rebuilds it at the size of
 those weights. So ``test`` and ``predict`` from a Stage II checkpoint need neither its file nor its size.
 """
 
@@ -66,8 +66,8 @@ def save_pose_prior_meta(net: nn.Module, checkpoint: dict) -> None:
     prior = getattr(net, "pose_prior", None)
     if prior is None:
         return
-    hw = prior.trained_hw
-    checkpoint["pose_prior"] = {"file": net.cfg.pose_prior, "image_size": list(hw) if hw else None}
+    hw = prior.trained_hw  # its file is in hyper_parameters; its size is that of its weights
+    checkpoint["pose_prior"] = {"image_size": list(hw) if hw else None}
 
 
 def restore_pose_prior(net: nn.Module, checkpoint: dict) -> None:
