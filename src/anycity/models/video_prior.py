@@ -27,6 +27,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from anycity.models.layers import Block
+from anycity.safe_load import safe_torch_load
 
 LORA_TARGETS = ("attn1.to_q", "attn1.to_k", "attn1.to_v", "attn1.to_out.0")
 EMPTY_PROMPT_FILE = "empty_prompt.pt"
@@ -180,7 +181,7 @@ class WanVideoPrior(nn.Module):
             if not Path(empty_prompt_path).is_file():
                 raise FileNotFoundError(f"empty_prompt_path: {empty_prompt_path} not found; precompute the umT5 "
                                         "embedding of '' as a [1, L, text_dim] tensor or pass None for zeros")
-            prompt = torch.load(empty_prompt_path, map_location="cpu", weights_only=True)
+            prompt = safe_torch_load(empty_prompt_path, what="empty_prompt_path")
         prior = cls(vae, tr, empty_prompt=prompt, **kwargs)
         prior.source = {"dir": str(root), "subfolders": (subfolder, vae_subfolder)}
         return prior
