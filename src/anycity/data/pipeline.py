@@ -429,16 +429,21 @@ def make_pipeline(urls: list[str], builder: SampleBuilder, *, train: bool, resam
             raise exn
         raise ValueError(f"corrupt or unreadable shard: {exn}") from exn
 
+    guard = NoSampleGuard(urls)
+
     def build(sample: dict):
         try:
-            return builder(sample)
+            out = builder(sample)
         except Exception as e:
             msg = str(e) if "shard" in str(e) else f"{sample_where(sample)}: {e}"
             if skip_corrupt:
                 if counter is not None:
                     counter.add(sample_where(sample), e)
+                guard.sample_failed(sample.get("__url__", "?"), sample.get("__key__", "?"), msg)
                 return None
             raise ValueError(msg) from e
+        guard.sample_built()
+        return out
 
     if train and resampled:
         stages = [wds.ResampledShards(urls, seed=seed, deterministic=True)]
@@ -448,7 +453,7 @@ def make_pipeline(urls: list[str], builder: SampleBuilder, *, train: bool, resam
                   wds.split_by_node, wds.split_by_worker]
     else:
         stages = [wds.SimpleShardList(urls)]
-    stages.append(functools.partial(tar_samples, handler=handler, guard=NoSampleGuard(urls)))
+    stages.append(functools.partial(tar_samples, handler=handler, guard=guard))
     if not train:
         stages.append(_eval_shard)
     elif shuffle > 1:

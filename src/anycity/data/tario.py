@@ -73,36 +73,67 @@ def local_members(url: str) -> Iterator[dict]:
 
 
 class NoSampleGuard:
-    """Stops a stream whose every shard is unreadable, empty, or holds no webdataset sample: once each of the
-    split's shards has been seen to fail so (which :func:`tar_samples` decides within the shard, so nothing buffered
-    downstream can change it), :meth:`check` raises. Without it a resampled training stream with ``skip_corrupt``
-    draws them forever."""
+    """Stops a stream that can never give a sample, which a resampled training stream with ``skip_corrupt``
+    would otherwise draw forever. :meth:`check` raises once
 
-    def __init__(self, urls: Iterable[str]) -> None:
-        self.urls = set(urls)
+    - each of the split's shards has been seen to be unreadable, empty, or to hold no webdataset sample (which
+      :func:`tar_samples` decides within the shard, so nothing buffered downstream can change it), or
+    - no sample has ever built, every shard has been read to its end, and every sample read has failed to build
+      at least ``attempts`` times. A sample still in the shuffle buffer has not failed yet, so the rule cannot
+      race it; ``attempts`` > 1 because a training sample picks random views, and a sample with one bad view
+      fails only when that view is picked.
+    """
+
+    def __init__(self, urls: Iterable[str], attempts: int = 3) -> None:
+        self.urls, self.attempts = set(urls), attempts
         self.why: dict[str, str] = {}
         self.read: dict[str, int] = {}
+        self.visited: set[str] = set()
+        self.built = 0
+        self.build_fails: dict[tuple[str, str], int] = {}  # (url, key) -> failures; emptied by the first build
+        self.build_why = ""
 
     def failed(self, url: str, why: str) -> None:
         self.why.setdefault(url, why)
 
-    def sample_read(self, url: str) -> None:
+    def sample_read(self, url: str, key: str) -> None:
         self.read[url] = self.read.get(url, 0) + 1
+        if not self.built:
+            self.build_fails.setdefault((url, key), 0)
 
-    def check(self) -> None:
-        if not self.urls or not self.why.keys() >= self.urls:
+    def sample_built(self) -> None:
+        self.built += 1
+        self.build_fails.clear()
+
+    def sample_failed(self, url: str, key: str, why: str) -> None:
+        if not self.built:
+            self.build_fails[(url, key)] = self.build_fails.get((url, key), 0) + 1
+            self.build_why = self.build_why or why
+
+    def check(self, attempts: int | None = None) -> None:
+        """Raise if the stream can give no sample; ``attempts`` overrides the build failures asked of each sample
+        (1 at the end of a finite stream, whose samples were each drawn once)."""
+        if not self.urls:
             return
-        url = next(iter(self.why))
-        raise ValueError(f"shards: none of the {len(self.urls)} shard(s) gives a sample (e.g. {url}: "
-                         f"{self.why[url]}); point --data.root at shards written by `anycity data synth` or "
-                         "`anycity data convert`")
+        if self.why.keys() >= self.urls:
+            url = next(iter(self.why))
+            raise ValueError(f"shards: none of the {len(self.urls)} shard(s) gives a sample (e.g. {url}: "
+                             f"{self.why[url]}); point --data.root at shards written by `anycity data synth` or "
+                             "`anycity data convert`")
+        need = self.attempts if attempts is None else attempts
+        if (self.built or not self.build_fails or not (self.visited | self.why.keys()) >= self.urls
+                or min(self.build_fails.values()) < need):
+            return
+        raise ValueError(f"shards: none of the {len(self.build_fails)} sample(s) in the {len(self.urls)} shard(s) "
+                         f"builds, tried {need} time(s) each (skip_corrupt skipped them all); the first failure: "
+                         f"{self.build_why}")
 
 
 def tar_samples(src: Iterable[dict], handler: Callable[[BaseException], bool],
                 guard: NoSampleGuard | None = None) -> Iterator[dict]:
     """webdataset stage: shard dicts (``{"url": ...}``) -> samples, lazily for local files. ``guard`` hears of
-    each local shard visit that gave no sample (unreadable, empty, no keyed members) and is checked before each
-    shard."""
+    each local shard visit that gave no sample (unreadable, empty, no keyed members) or was read to its end, and
+    of each sample read; it is checked before each shard and at the end of a finite stream."""
 
     def files() -> Iterator[dict]:
         for d in src:
@@ -128,8 +159,10 @@ def tar_samples(src: Iterable[dict], handler: Callable[[BaseException], bool],
             if guard is not None and guard.read.get(url, 0) == before:
                 guard.failed(url, why or ("an empty tar" if n == 0 else
                                           "no webdataset samples (members sharing a key) in it"))
+            elif guard is not None:  # read as far as it goes (a truncated shard too)
+                guard.visited.add(url)
         if guard is not None:  # the end of a finite (evaluation) stream
-            guard.check()
+            guard.check(attempts=1)
 
     samples = tariterators.group_by_keys(files(), handler=handler)
     if guard is None:
@@ -139,5 +172,5 @@ def tar_samples(src: Iterable[dict], handler: Callable[[BaseException], bool],
 
 def _counted(samples: Iterator[dict], guard: NoSampleGuard) -> Iterator[dict]:
     for s in samples:
-        guard.sample_read(s["__url__"])
+        guard.sample_read(s["__url__"], s.get("__key__", ""))
         yield s

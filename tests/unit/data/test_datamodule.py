@@ -122,6 +122,47 @@ def test_a_stream_whose_every_shard_fails_stops_with_one_line(synth_root, tmp_pa
         assert len(list(pipe)) == 6
 
 
+def _rewrite(src: Path, dst: Path, edit) -> Path:
+    """Copy a shard, passing each member's ``(name, bytes)`` through ``edit`` (which returns the new bytes)."""
+    with tarfile.open(src) as a, tarfile.open(dst, "w") as b:
+        for m in a.getmembers():
+            data = edit(m.name, a.extractfile(m).read())
+            m.size = len(data)
+            b.addfile(m, io.BytesIO(data))
+    return dst
+
+
+@pytest.mark.timeout(60)
+def test_a_stream_whose_every_sample_fails_to_build_stops_with_one_line(synth_root, tmp_path):
+    """Readable shards whose every sample fails to build (here: a cameras.json of another schema) streamed nothing
+    forever with skip_corrupt; now they stop once every sample has failed 3 times (once, at the end of a finite
+    stream). A sample that fails only for some view picks, and a split with one good shard, still stream."""
+    good = shard_urls(synth_root, "train")
+    bad = [_rewrite(Path(u), tmp_path / f"bad{i}.tar",
+                    lambda n, b: b'{"scene": "x"}' if n.endswith("cameras.json") else b) for i, u in enumerate(good)]
+    n = sum(1 for u in bad for m in tarfile.open(u).getnames() if m.endswith("cameras.json"))
+    pipe = make_pipeline([str(u) for u in bad], SampleBuilder(2, 1, 0, (16, 16)), train=True, epoch_samples=4,
+                         skip_corrupt=True)
+    with pytest.raises(ValueError, match=f"none of the {n} sample\\(s\\) in the {len(bad)} shard\\(s\\) builds, "
+                                         "tried 3 time\\(s\\) each .*schema_version") as e:
+        next(iter(pipe))
+    assert "\n" not in str(e.value)
+    with pytest.raises(ValueError, match="builds, tried 1 time\\(s\\) each"):  # a finite evaluation stream
+        list(make_pipeline([str(u) for u in bad], SampleBuilder(2, 1, 0, (16, 16), train=False), train=False,
+                           skip_corrupt=True))
+    mixed = make_pipeline([*map(str, bad), good[0]], SampleBuilder(2, 1, 0, (16, 16)), train=True,
+                          epoch_samples=12, skip_corrupt=True)
+    assert len(list(mixed)) == 12
+    # one view of every sample is garbage: a sample builds whenever its picks miss that view
+    one_bad = [_rewrite(Path(u), tmp_path / f"one_bad{i}.tar",
+                        lambda n, b: b"garbage" if n.endswith(".003.jpg") else b)
+               for i, u in enumerate(good)]
+    assert any(b"garbage" in Path(u).read_bytes() for u in one_bad)
+    pipe = make_pipeline([str(u) for u in one_bad], SampleBuilder(2, 1, 0, (16, 16)), train=True, epoch_samples=12,
+                         skip_corrupt=True)
+    assert len(list(pipe)) == 12
+
+
 def test_a_corrupt_index_json_is_one_line_naming_it(tmp_path):
     for text, what in (("garbage{", "not JSON"), ("[1, 2]", "not a shard index")):
         (tmp_path / "index.json").write_text(text)
