@@ -23,6 +23,10 @@ from anycity.models.anycity import SCAFFOLD_PREFIXES
 from anycity.safe_load import safe_torch_load
 from anycity.structures import RenderOutput, ViewBatch, Views
 
+# scaffold weights a Stage I checkpoint may lack: the centre offset came later, and its zero init is what an older
+# Stage I decoded
+OPTIONAL_SCAFFOLD_PREFIXES = ("gaussian_head.offset_conv.",)
+
 
 def far_views(views: Views, context: Views, k: int | None) -> Views:
     """The ``k`` views of ``views`` whose camera centres are farthest from their nearest context camera (per scene,
@@ -118,9 +122,11 @@ class RefinementModule(AnyCityModule):
 
     def load_stage1(self, path: str) -> None:
         """Copy the scaffold weights (``net.{aggregator,camera_head,depth_head,gaussian_head}.*``) of a Stage I
-        checkpoint; layers wrapped by LoRA map ``x.weight`` to ``x.base_layer.weight``. Scaffold keys the network
-        lacks are an error; a completion branch an older Stage I checkpoint may hold (untrained) is not copied, so
-        Stage II may use another video prior, or none."""
+        checkpoint. They must fit this network's scaffold key for key and shape for shape: a scaffold built with
+        other options (a deeper trunk, another SH degree) would otherwise keep random, frozen blocks. The one
+        exception is the zero-initialised centre offset, which Stage I checkpoints from before it lack. A completion
+        branch an older Stage I checkpoint may hold (untrained) is not copied, so Stage II may use another video
+        prior, or none."""
         # memory-mapped, tensors only: the weights are read on use and the optimiser state (2x the weights) never is
         ckpt = safe_torch_load(path, mmap=True, what="model.init_from")
         state = ckpt.get("state_dict", ckpt)
@@ -130,24 +136,29 @@ class RefinementModule(AnyCityModule):
             self.net.cfg = replace(self.net.cfg, focal_decode=decode)
             self.hparams.net = {**(self.hparams.net or {}), "focal_decode": decode}
         own = self.net.state_dict()
-        loaded, unexpected = {}, []
-        for k, v in state.items():
-            if not k.startswith("net.") or not k[len("net."):].startswith(SCAFFOLD_PREFIXES):
-                continue
-            k = k[len("net."):]
-            if k not in own:
-                head, _, leaf = k.rpartition(".")
-                k = f"{head}.base_layer.{leaf}" if f"{head}.base_layer.{leaf}" in own else k
-            if k in own:
-                loaded[k] = v
-            else:
-                unexpected.append(k)
+        theirs = {k[len("net."):]: v for k, v in state.items()
+                  if k.startswith("net.") and k[len("net."):].startswith(SCAFFOLD_PREFIXES)}
+        if not theirs:
+            raise ValueError(f"model.init_from: {path} holds no 'net.*' scaffold weights; pass a ScaffoldModule "
+                             "checkpoint")
+        problems = []
+        unexpected = sorted(k for k in theirs if k not in own)
         if unexpected:
-            raise ValueError(f"model.init_from: {len(unexpected)} checkpoint keys do not exist in this network "
-                             f"(e.g. {unexpected[:3]}); was it trained with another preset?")
-        if not loaded:
-            raise ValueError(f"model.init_from: {path} holds no 'net.*' weights; pass a ScaffoldModule checkpoint")
-        self.net.load_state_dict(loaded, strict=False)
+            problems.append(f"{len(unexpected)} of its keys are not in this network (e.g. {unexpected[0]})")
+        missing = sorted(k for k in own if k.startswith(SCAFFOLD_PREFIXES) and k not in theirs
+                         and not k.startswith(OPTIONAL_SCAFFOLD_PREFIXES))
+        if missing:
+            problems.append(f"{len(missing)} scaffold weights of this network are not in it (e.g. {missing[0]})")
+        shapes = [k for k in theirs if k in own and theirs[k].shape != own[k].shape]
+        if shapes:
+            k = shapes[0]
+            problems.append(f"{len(shapes)} shapes differ (e.g. {k}: {list(theirs[k].shape)} there, "
+                            f"{list(own[k].shape)} here)")
+        if problems:
+            raise ValueError(f"model.init_from: {path} does not fit this network's scaffold: {'; '.join(problems)}; "
+                             "give Stage II the Stage I config's model.preset and model.net (e.g. -c the Stage I "
+                             "config -c the Stage II config)")
+        self.net.load_state_dict(theirs, strict=False)
 
     # ----------------------------------------------------------------------------------------- checkpoints
     def on_save_checkpoint(self, checkpoint: dict) -> None:

@@ -119,6 +119,28 @@ def test_stage1_checkpoint_is_read_memory_mapped_tensors_only(tmp_path, monkeypa
     assert s2.net.cfg.focal_decode == "anysplat" and s2.hparams.net["focal_decode"] == "anysplat"
 
 
+def test_a_stage1_checkpoint_that_does_not_fit_the_scaffold_is_one_line_not_random_frozen_blocks(tmp_path):
+    """Stage II with a deeper scaffold than its Stage I checkpoint loaded the checkpoint with strict=False and kept
+    the extra blocks random (and frozen); another SH degree gave a many-line size-mismatch traceback. Now any
+    missing, unexpected or misshapen scaffold weight is one line; only the later centre offset may be absent."""
+    s1 = ScaffoldModule(preset="tiny")
+    path = tmp_path / "s1.ckpt"
+    torch.save({"state_dict": s1.state_dict()}, path)
+    for net, what in (({"camera_trunk_depth": 2}, "scaffold weights of this network are not in it .*camera_head.trunk.1"),
+                      ({"depth": 2}, "of its keys are not in this network .*aggregator.frame_blocks.2"),
+                      ({"sh_degree": 2}, "shapes differ .*gaussian_head.scratch.output_conv2.2.weight: \\[21, ")):
+        with pytest.raises(ValueError, match=f"model.init_from: .*s1.ckpt does not fit .*{what}") as e:
+            RefinementModule(preset="tiny", net=net).load_stage1(str(path))
+        assert "\n" not in str(e.value)
+    # a Stage I checkpoint from before the centre offset: loads, and the offset stays zero (what it decoded)
+    old = {k: v for k, v in s1.state_dict().items() if ".offset_conv." not in k}
+    torch.save({"state_dict": old}, path)
+    s2 = RefinementModule(preset="tiny")
+    s2.load_stage1(str(path))
+    torch.testing.assert_close(s2.net.depth_head.state_dict(), s1.net.depth_head.state_dict())
+    assert not s2.net.gaussian_head.offset_conv.weight.any() and not s2.net.gaussian_head.offset_conv.bias.any()
+
+
 def test_stage1_builds_no_completion_branch():
     m = ScaffoldModule(preset="tiny")
     assert m.net.completion is None and m.net.video_prior is None
