@@ -15,6 +15,7 @@ from typing import Any, Literal, TypedDict
 
 import lightning.pytorch as pl
 import torch
+from lightning.pytorch.utilities import rank_zero_info
 from torch import Tensor
 
 from anycity.lit.evaluation import (
@@ -120,7 +121,9 @@ class AnyCityModule(pl.LightningModule):
         if pretrained:
             from anycity.models.pretrained import load_pretrained
 
-            load_pretrained(self.net, pretrained, kind=pretrained_kind)
+            report = load_pretrained(self.net, pretrained, kind=pretrained_kind)
+            report.require_backbone(pretrained)
+            rank_zero_info(f"model.pretrained {pretrained}: {report}")
         from anycity.metrics.regions import lpips_or_none
 
         lpips, self.lpips_status = lpips_or_none()  # one line, printed when testing starts

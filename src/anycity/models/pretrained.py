@@ -10,6 +10,7 @@ Key map (documented, nothing else is renamed):
   reported as unexpected. bf16 tensors are cast to the network's dtype.
 
 Tensors whose shape differs from the network's are skipped and listed (a mismatch never breaks the net).
+:meth:`LoadReport.require_backbone` (which the Lightning modules call) then insists on the whole aggregator.
 """
 
 from __future__ import annotations
@@ -46,6 +47,23 @@ class LoadReport:
                 f"{top(self.unexpected)}; shape mismatches: {len(self.mismatched)}")
 
     __str__ = summary
+
+    def require_backbone(self, source: str | Path) -> None:
+        """Raise one line unless every ``aggregator.*`` weight loaded. Heads may legitimately differ (VGGT has no
+        Gaussian head; another SH degree reshapes its last conv), but weights made for another preset would leave
+        the whole backbone random while training went on as if pretrained."""
+        shapes = [m for m in self.mismatched if m[0].startswith("aggregator.")]
+        absent = [k for k in self.missing if k.startswith("aggregator.") and k not in {m[0] for m in shapes}]
+        if not (shapes or absent):
+            return
+        parts = []
+        if absent:
+            parts.append(f"{len(absent)} aggregator weights are not in it (e.g. {absent[0]})")
+        if shapes:
+            k, theirs, ours = shapes[0]
+            parts.append(f"{len(shapes)} aggregator shapes differ (e.g. {k}: {list(theirs)} there, {list(ours)} here)")
+        raise ValueError(f"model.pretrained: {source} does not fit this network's backbone: {'; '.join(parts)}; "
+                         "build the preset the weights were made for (model.preset: vggt-1b for VGGT-1B and AnySplat)")
 
 
 def read_state_dict(path: str | Path) -> dict[str, Tensor]:

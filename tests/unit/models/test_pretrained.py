@@ -99,3 +99,31 @@ def test_load_errors(tmp_path):
         load_pretrained(net, tmp_path / "missing.pt")
     with pytest.raises(ValueError, match="kind"):
         load_pretrained(net, {}, kind="dust3r")
+
+
+def test_weights_for_another_preset_are_one_line_not_a_random_backbone(tmp_path, caplog):
+    """The Lightning modules dropped the load report: VGGT weights given to another preset skipped every mismatched
+    tensor and trained a random backbone with nothing said. Now the whole aggregator must load (heads may differ),
+    and the report is printed."""
+    from anycity.lit import ScaffoldModule
+
+    torch.manual_seed(0)
+    path = tmp_path / "model.pt"
+    torch.save(build_network("tiny", completion=False, embed_dim=32, num_heads=2).state_dict(), path)
+    with pytest.raises(ValueError, match="model.pretrained: .*model.pt does not fit this network's backbone: .*"
+                                         "aggregator shapes differ \\(e.g. aggregator.camera_token: \\[1, 2, 1, 32\\] "
+                                         "there, \\[1, 2, 1, 64\\] here\\).*model.preset") as e:
+        ScaffoldModule(preset="tiny", pretrained=str(path))
+    assert "\n" not in str(e.value)
+    shallow = {k: v for k, v in build_network("tiny", completion=False).state_dict().items()
+               if not k.startswith("aggregator.global_blocks.3.")}
+    torch.save(shallow, path)
+    with pytest.raises(ValueError, match="aggregator weights are not in it \\(e.g. aggregator.global_blocks.3"):
+        ScaffoldModule(preset="tiny", pretrained=str(path))
+    # heads may differ: another SH degree reshapes the Gaussian head's last conv, the backbone still loads
+    src = build_network("tiny", completion=False, sh_degree=0)
+    torch.save(src.state_dict(), path)
+    with caplog.at_level("INFO"):
+        m = ScaffoldModule(preset="tiny", pretrained=str(path))
+    assert torch.equal(m.net.aggregator.camera_token, src.aggregator.camera_token)
+    assert "shape mismatches: 2" in caplog.text and str(path) in caplog.text
