@@ -10,11 +10,34 @@ from __future__ import annotations
 
 import pickle
 import sys
+from pathlib import Path
 
 # Test-time settings: taken from the config files and the command line even when --ckpt_path holds other values
 # (LightningCLI otherwise re-applies every hyperparameter stored in the checkpoint over them).
 TEST_TIME_KEYS = ("eval_align", "eval_pose_align_steps", "eval_pose_align_lr", "eval_joint", "camera_refine_steps",
                   "camera_refine_lr", "render_backend")
+# model.net keys the weights do not depend on (machine-local paths, the inference-time voxel merge): a value given in
+# the config files or on the command line wins over the checkpoint's. Any other net key comes from the checkpoint,
+# with a warning when the config asked for another value.
+NET_TEST_TIME_KEYS = ("voxel_size", "wan_dir", "wan_empty_prompt", "pose_prior")
+
+
+def merge_ckpt_net(asked: dict | None, stored: dict | None, preset: str) -> tuple[dict, list[str]]:
+    """The ``model.net`` overrides to build a checkpoint's network with: the checkpoint's (``stored``), and the
+    :data:`NET_TEST_TIME_KEYS` the config ``asked`` for. Also ``"key is used, not asked"`` for each other key asked
+    for that the checkpoint's network does not have."""
+    from anycity.models.presets import preset_config
+
+    asked, merged = dict(asked or {}), dict(stored or {})
+    merged.update({k: v for k, v in asked.items() if k in NET_TEST_TIME_KEYS})
+    try:
+        used = preset_config(preset, **merged)
+    except ValueError:
+        return merged, []  # the network's own construction reports it
+    norm = lambda v: tuple(v) if isinstance(v, list) else v  # noqa: E731 - YAML lists, dataclass tuples
+    ignored = [f"{k} is {getattr(used, k)!r}, not {v!r}" for k, v in asked.items()
+               if k not in NET_TEST_TIME_KEYS and hasattr(used, k) and norm(v) != norm(getattr(used, k))]
+    return merged, ignored
 
 
 def _cli_class():
@@ -38,6 +61,7 @@ def _cli_class():
             sub = self.config.get("subcommand")
             init = self.config.get(f"{sub}.model.init_args") if sub else None
             keep = {k: init[k] for k in TEST_TIME_KEYS if init is not None and k in init}
+            asked_net = (init.get("net") if init is not None else None) or {}
             try:  # Lightning reads the checkpoint's hyperparameters with a bare torch.load
                 super()._parse_ckpt_path()
             except (pickle.UnpicklingError, RuntimeError, EOFError):
@@ -47,6 +71,21 @@ def _cli_class():
                 raise
             for k, v in keep.items():
                 self.config[f"{sub}.model.init_args.{k}"] = v
+            ckpt = self.config[sub].get("ckpt_path") if sub else None
+            if init is None or not ckpt or not Path(ckpt).is_file():
+                return
+            now = self.config[f"{sub}.model.init_args"]
+            net, ignored = merge_ckpt_net(asked_net, now.get("net"), now.get("preset", "tiny"))
+            self.config[f"{sub}.model.init_args.net"] = net
+            if ignored:
+                from lightning.pytorch.utilities import rank_zero_warn
+
+                rank_zero_warn(f"--ckpt_path {ckpt}: its network is built as it was trained, so model.net "
+                               f"{'; '.join(ignored)} (only {', '.join(NET_TEST_TIME_KEYS)} may differ from the "
+                               "checkpoint's)")
+            if sub != "fit":  # the checkpoint holds the weights: the pretrained file is neither read nor needed (a
+                # resumed fit keeps it, so that the checkpoints it writes still say what the run started from)
+                self.config[f"{sub}.model.init_args.pretrained"] = None
 
         def _run_subcommand(self, subcommand: str) -> None:
             from anycity.lit.keep import keep_previous_run  # earlier runs' logs/checkpoints/exports are kept

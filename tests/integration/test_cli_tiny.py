@@ -92,6 +92,28 @@ def test_fit_test_predict_stage1_then_stage2(tiny_shards, tmp_path):
     assert len(cams["views"]) == 3 and (p / "mine" / "my_photos" / "scene.ply").stat().st_size > 1000
 
 
+def test_a_checkpoint_tests_on_another_machine_with_local_paths_and_no_pretrained_file(tiny_shards, tmp_path):
+    """--ckpt_path re-applied every stored hyperparameter: the pretrained file a run started from was read again
+    (on another machine: not found, though the checkpoint holds the weights), and the config's machine-local paths
+    and voxel merge were silently replaced by the training run's. Now those win, the pretrained file is not read,
+    and an architecture key the checkpoint overrules is named in a warning."""
+    from anycity.models import build_network
+
+    weights = tmp_path / "vggt_like.pt"
+    torch.save(build_network("tiny", completion=False, camera_trunk_depth=2).state_dict(), weights)
+    run = tmp_path / "s1"
+    build_cli(["fit", *_tiny_args(tiny_shards, run, extra=["--model.init_args.pretrained", str(weights)])])
+    weights.unlink()  # "another machine"
+    t = tmp_path / "test"
+    with pytest.warns(UserWarning, match="model.net camera_trunk_depth is 2, not 3 .*voxel_size"):
+        cli = build_cli(["test", *_tiny_args(tiny_shards, t), "--ckpt_path", str(run / "checkpoints" / "last.ckpt"),
+                         "--model.init_args.net", '{"camera_trunk_depth": 3, "voxel_size": 0.05}',
+                         "--model.init_args.camera_refine_steps", "0", "--model.init_args.eval_pose_align_steps", "0"])
+    assert cli.model.hparams.pretrained is None
+    assert cli.model.net.cfg.voxel_size == 0.05 and cli.model.net.cfg.camera_trunk_depth == 2
+    assert torch.isfinite(cli.trainer.callback_metrics["test/psnr_scaffold"])
+
+
 def test_resume_continues_step_optimizer_and_schedule(tiny_shards, tmp_path):
     run = tmp_path / "r"
     build_cli(["fit", *_tiny_args(tiny_shards, run, steps=2)])
