@@ -38,6 +38,7 @@ def _read(out):
 
 def _check(out, gt, scale=1.0):
     meta = _read(out)[0]
+    assert len(meta["views"]) == len(gt)
     for v, g in zip(meta["views"], gt):
         w2c = np.array(v["w2c"])
         g = g.copy()
@@ -81,6 +82,10 @@ def test_colmap_binary_and_text(tmp_path):
         lines += [" ".join(map(str, [i + 1, *q, *g[:3, 3], 1, f"v{i}.png"])), "1.0 2.0 -1"]
     (txt / "sparse" / "images.txt").write_text("\n".join(lines) + "\n")
     _check_convert("colmap", txt, tmp_path / "out_txt", gt)
+    # the last image has no 2-D points and the file ends right after its line (trailing blank line trimmed): it
+    # was silently dropped
+    (txt / "sparse" / "images.txt").write_text("\n".join(lines[:-1]) + "\n")
+    _check_convert("colmap", txt, tmp_path / "out_txt_trimmed", gt)
 
 
 def _check_convert(fmt, src, out, gt, scale=1.0):

@@ -78,7 +78,9 @@ def _read_txt(d: Path) -> ColmapModel:
     lines = _lines(d / "images.txt")
     while lines and not lines[0]:
         lines.pop(0)
-    for i in range(0, len(lines) - 1 if len(lines) % 2 else len(lines), 2):
+    if len(lines) % 2:  # the last image's empty POINTS2D line, dropped by an editor or writer that trims the end
+        lines.append("")
+    for i in range(0, len(lines), 2):
         e = lines[i].split()
         if not e:
             continue
