@@ -126,9 +126,10 @@ def test_a_stage1_checkpoint_that_does_not_fit_the_scaffold_is_one_line_not_rand
     s1 = ScaffoldModule(preset="tiny")
     path = tmp_path / "s1.ckpt"
     torch.save({"state_dict": s1.state_dict()}, path)
-    for net, what in (({"camera_trunk_depth": 2}, "scaffold weights of this network are not in it .*camera_head.trunk.1"),
-                      ({"depth": 2}, "of its keys are not in this network .*aggregator.frame_blocks.2"),
-                      ({"sh_degree": 2}, "shapes differ .*gaussian_head.scratch.output_conv2.2.weight: \\[21, ")):
+    cases = (({"camera_trunk_depth": 2}, "scaffold weights of this network are not in it .*camera_head.trunk.1"),
+             ({"depth": 2}, "of its keys are not in this network .*aggregator.frame_blocks.2"),
+             ({"sh_degree": 2}, "shapes differ .*gaussian_head.scratch.output_conv2.2.weight: \\[21, "))
+    for net, what in cases:
         with pytest.raises(ValueError, match=f"model.init_from: .*s1.ckpt does not fit .*{what}") as e:
             RefinementModule(preset="tiny", net=net).load_stage1(str(path))
         assert "\n" not in str(e.value)
