@@ -1,5 +1,7 @@
 """Every command leaves earlier runs' logs, checkpoints and outputs intact (moved aside or refused)."""
 
+import warnings
+
 import numpy as np
 import pytest
 from PIL import Image
@@ -35,7 +37,11 @@ def test_fit_validate_test_predict_keep_earlier_runs(tiny_shards, tmp_path):
     build_cli(["fit", *_args(tiny_shards, run, ck)])
     first = (run / "checkpoints" / "last.ckpt").read_bytes()
     metrics1 = (run / "metrics.csv").read_text()
-    build_cli(["fit", *_args(tiny_shards, run, ck + ["--seed_everything", "1"])])  # a fresh second fit, same dir
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        build_cli(["fit", *_args(tiny_shards, run, ck + ["--seed_everything", "1"])])  # a fresh second fit, same dir
+    # nothing is deleted, so Lightning's "previous log files ... will be deleted" must not be shown
+    assert not [w for w in caught if "will be deleted" in str(w.message)]
     assert (run / "checkpoints.1" / "last.ckpt").read_bytes() == first  # the first run's checkpoint is kept
     assert (run / "metrics.1.csv").read_text() == metrics1 and (run / "config.1.yaml").is_file()
     ckpt = str(run / "checkpoints" / "last.ckpt")

@@ -10,6 +10,7 @@ run left where this one will write are moved aside to the first free ``<name>.<N
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 from lightning.pytorch.utilities import rank_zero_info
@@ -41,6 +42,9 @@ def keep_previous_run(trainer, subcommand: str, ckpt_path=None, export_dir: str 
                       scene: str | None = None) -> list[Path]:
     """Move aside what an earlier run left where ``subcommand`` will write; returns the moved paths. ``scene``:
     the one scene a ``predict`` writes (a photo folder's name), when known."""
+    # Lightning's CSVLogger then warns that "previous log files in this directory will be deleted": the files it
+    # would overwrite are moved aside here, so that warning could only alarm
+    warnings.filterwarnings("ignore", message=r"Experiment logs directory .* exists and is not empty")
     if trainer.global_rank != 0:
         return []
     moved = []
