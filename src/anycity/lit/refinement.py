@@ -114,7 +114,12 @@ class RefinementModule(AnyCityModule):
         # checked here, not in __init__: test/predict from a Stage II checkpoint never need the Stage I file
         if stage == "fit" and self.trainer.ckpt_path is None and self.net.pose_prior is not None:
             self.net.pose_prior.check_loaded()  # training from scratch needs the prior's file; a checkpoint does not
-        if stage == "fit" and self.hparams.init_from and self.trainer.ckpt_path is None:
+        fresh_fit = stage == "fit" and self.trainer.ckpt_path is None
+        if fresh_fit and not self.hparams.init_from and not self.hparams.pretrained and self.hparams.freeze_scaffold:
+            raise ValueError("model.init_from: Stage II freezes the scaffold, and none was given (no init_from, no "
+                             "pretrained), so it would train on a random one; pass the Stage I checkpoint, e.g. "
+                             "--model.init_args.init_from runs/stage1/checkpoints/last.ckpt")
+        if fresh_fit and self.hparams.init_from:
             if not Path(self.hparams.init_from).is_file():
                 raise FileNotFoundError(f"model.init_from: {self.hparams.init_from} not found; pass the Stage I "
                                         "checkpoint (e.g. runs/stage1/checkpoints/last.ckpt)")

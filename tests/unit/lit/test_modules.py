@@ -72,6 +72,17 @@ def test_refinement_rejects_missing_init_and_bad_gate_mode(tmp_path):
     m._trainer = SimpleNamespace(ckpt_path=None)
     with pytest.raises(FileNotFoundError, match="init_from"):
         m.setup("fit")
+    # no Stage I at all: Stage II trained silently on a random, frozen scaffold
+    m = RefinementModule(init_from=None)
+    m._trainer = SimpleNamespace(ckpt_path=None)
+    with pytest.raises(ValueError, match="model.init_from: Stage II freezes the scaffold, and none was given"):
+        m.setup("fit")
+    m.setup("test")  # test/predict take the weights from a checkpoint
+    m._trainer = SimpleNamespace(ckpt_path="last.ckpt")
+    m.setup("fit")  # a resumed fit too
+    m = RefinementModule(init_from=None, freeze_scaffold=False)  # everything trains: nothing stays random
+    m._trainer = SimpleNamespace(ckpt_path=None)
+    m.setup("fit")
     with pytest.raises(ValueError, match="gate_mode"):
         RefinementModule(gate_mode="max")
     with pytest.raises(ValueError, match="d2s_depth_scale"):
