@@ -59,7 +59,8 @@ class AnyCityModule(pl.LightningModule):
         pretrained_kind: layout of ``pretrained`` ("vggt" model.pt or "anysplat").
         lr: peak learning rate of AdamW.
         weight_decay: AdamW weight decay (not applied to biases and norms).
-        pretrained_lr_scale: LR multiplier of parameters matching ``pretrained_patterns``.
+        pretrained_lr_scale: LR multiplier of parameters matching ``pretrained_patterns`` (with ``pretrained``
+            weights only: from random init they train at the full rate).
         pretrained_patterns: glob patterns (over ``net.`` parameter names) of pretrained layers.
         warmup_steps: linear LR warm-up steps; the cosine decay spans the rest of the run.
         min_lr_ratio: final LR as a fraction of ``lr``.
@@ -160,6 +161,14 @@ class AnyCityModule(pl.LightningModule):
     def configure_optimizers(self) -> dict[str, Any]:
         hp = self.hparams
         patterns = [p if p.startswith("net.") else f"net.{p}" for p in (hp.pretrained_patterns or [])]
+        names = [n for n, _ in self.named_parameters()]
+        for pat in patterns:  # a typo would silently train the pretrained layers at the full rate
+            if not any(fnmatchcase(n, pat) for n in names):
+                raise ValueError(f"model.pretrained_patterns: {pat!r} matches no parameter (names look like "
+                                 f"{names[0]}); fix the pattern (globs over full dotted names)")
+        # the groups are the same with or without weights (so a resumed run's optimiser state fits), but layers
+        # trained from random init are not slowed down as pretrained ones
+        scale = hp.pretrained_lr_scale if hp.pretrained else 1.0
         groups: dict[tuple[bool, bool], list[Tensor]] = {}
         for name, p in self.named_parameters():
             if not p.requires_grad:
@@ -169,7 +178,7 @@ class AnyCityModule(pl.LightningModule):
             groups.setdefault((pretrained, no_decay), []).append(p)
         if not groups:
             raise ValueError("configure_optimizers: no trainable parameters; check the freeze patterns")
-        param_groups = [{"params": ps, "lr": hp.lr * (hp.pretrained_lr_scale if pre else 1.0),
+        param_groups = [{"params": ps, "lr": hp.lr * (scale if pre else 1.0),
                          "weight_decay": 0.0 if nd else hp.weight_decay} for (pre, nd), ps in groups.items()]
         opt = torch.optim.AdamW(param_groups, lr=hp.lr, betas=(0.9, 0.95))
         total = int(self.trainer.estimated_stepping_batches)

@@ -225,3 +225,30 @@ def test_stage1_loads_an_older_checkpoint_that_still_has_a_completion_branch():
     m.on_load_checkpoint(ckpt)
     m.load_state_dict(ckpt["state_dict"], strict=True)
     torch.testing.assert_close(m.net.aggregator.camera_token, old.aggregator.camera_token)
+
+
+def test_pretrained_lr_scale_applies_to_pretrained_weights_only_and_patterns_must_match(tmp_path):
+    """stage1.yaml's pretrained_patterns slowed the backbone to 0.1x the LR even when it trained from random init
+    (pretrained: null), with nothing said; a typo in a pattern silently left the pretrained layers at the full
+    rate."""
+    from types import SimpleNamespace
+
+    from anycity.models import build_network
+
+    def lrs(m):
+        m._trainer = SimpleNamespace(estimated_stepping_batches=10)
+        opt = m.configure_optimizers()["optimizer"]
+        return sorted({(g["initial_lr"], any(p is m.net.aggregator.camera_token for p in g["params"]))
+                       for g in opt.param_groups})
+
+    pats = ["aggregator.*", "camera_head.*"]
+    scratch = ScaffoldModule(preset="tiny", lr=1e-3, pretrained_patterns=pats)
+    assert {lr for lr, _ in lrs(scratch)} == {1e-3}
+    path = tmp_path / "model.pt"
+    torch.save(build_network("tiny", completion=False).state_dict(), path)
+    tuned = ScaffoldModule(preset="tiny", lr=1e-3, pretrained=str(path), pretrained_patterns=pats)
+    assert [lr for lr, agg in lrs(tuned) if agg] == [pytest.approx(1e-4)]  # the backbone's group: 0.1x
+    assert len(tuned.configure_optimizers()["optimizer"].param_groups) == len(
+        scratch.configure_optimizers()["optimizer"].param_groups)  # same groups: a resumed run's state fits
+    with pytest.raises(ValueError, match="pretrained_patterns: 'net.agregator.\\*' matches no parameter"):
+        lrs(ScaffoldModule(preset="tiny", pretrained_patterns=["agregator.*"]))
