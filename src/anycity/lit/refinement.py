@@ -207,7 +207,10 @@ class RefinementModule(AnyCityModule):
             gt_enc = extri_intri_to_pose_encoding(ctx.w2c, ctx.K, ctx.hw, self.net.cfg.focal_decode)
             terms["cam"] = camera_loss(out["pose_enc_list"], gt_enc, loss_type=hp.camera_loss_type)["total"]
             loss = loss + hp.camera_weight * terms["cam"]
-        if hp.d2s_weight > 0 and dense is not None:
+        if hp.d2s_weight > 0 and dense is None:  # a contradiction between the configs, not a data matter
+            raise ValueError(f"model.d2s_weight is {hp.d2s_weight}, but the batches hold no dense views "
+                             "(data.num_dense: 0); set data.num_dense (the paper: 12) or model.d2s_weight: 0")
+        if hp.d2s_weight > 0:
             dense = far_views(dense, ctx, hp.d2s_views)
             with torch.no_grad():
                 t_out = self.net(dense.images, refine=False)

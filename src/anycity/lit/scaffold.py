@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from typing import Literal
 
+from lightning.pytorch.utilities import rank_zero_warn
 from torch import Tensor
 
 from anycity.geometry.pose_encoding import extri_intri_to_pose_encoding
@@ -62,6 +63,7 @@ class ScaffoldModule(AnyCityModule):
                              "completion=true; drop it (Stage II, RefinementModule, builds the completion branch)")
         base["net"] = {**(base.get("net") or {}), "completion": False}
         super().__init__(**base)  # also records every argument, these and the base's, as hparams
+        self._told_no_depth = False
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
         # Stage I checkpoints written before Stage I stopped building the completion branch carry its (untrained)
@@ -92,6 +94,10 @@ class ScaffoldModule(AnyCityModule):
             gt_enc = extri_intri_to_pose_encoding(ctx.w2c, ctx.K, ctx.hw, self.net.cfg.focal_decode)
             terms["cam"] = camera_loss(out["pose_enc_list"], gt_enc, loss_type=hp.camera_loss_type)["total"]
             loss = loss + hp.camera_weight * terms["cam"]
+        if geo_on and hp.depth_weight > 0 and ctx.depth is None and not self._told_no_depth:
+            self._told_no_depth = True  # shards converted without depth (e.g. COLMAP): a data matter, said once
+            rank_zero_warn(f"model.depth_weight is {hp.depth_weight}, but a batch has no ground-truth depth (its "
+                           "shards hold none); the depth term is skipped for such batches")
         if geo_on and hp.depth_weight > 0 and ctx.depth is not None:
             dz = depth_z_loss(out["depth"], ctx.depth, ctx.mask, out.get("depth_conf"), hp.depth_conf_threshold,
                               grad_weight=hp.depth_grad_weight)["total"]

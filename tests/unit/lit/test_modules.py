@@ -1,5 +1,7 @@
 """Stage I / Stage II LightningModules on a constructed batch (tiny preset, 32x32 images)."""
 
+import warnings
+
 import pytest
 import torch
 
@@ -278,3 +280,22 @@ def test_stage2_camera_option_trains_the_camera_residual_and_scores_each_variant
     assert after["rre_scaffold"] == pytest.approx(before["rre_scaffold"], abs=1e-5)
     assert after["rre"] != pytest.approx(before["rre"], abs=1e-3)
     assert after["psnr_refined"] != pytest.approx(before["psnr_refined"], abs=1e-4)
+
+
+def test_a_configured_loss_term_the_batch_cannot_feed_is_said(batch):
+    """Stage II with d2s_weight > 0 but data.num_dense: 0 skipped L_d2s (the paper's weight 1.0 term) with nothing
+    said; Stage I's depth term on shards without depth was skipped silently too (a data matter: said once)."""
+    from dataclasses import replace
+
+    m = _no_log(RefinementModule(render_backend="torch"))
+    no_dense = replace(batch, dense=None)
+    with pytest.raises(ValueError, match="model.d2s_weight is 1.0, but the batches hold no dense views"):
+        m.training_step(no_dense, 0)
+    assert torch.isfinite(_no_log(RefinementModule(render_backend="torch", d2s_weight=0.0)).training_step(no_dense, 0))
+    s = _no_log(ScaffoldModule(depth_warmup_steps=0, render_backend="torch"))
+    no_depth = replace(batch, context=replace(batch.context, depth=None, mask=None))
+    with pytest.warns(UserWarning, match="model.depth_weight is .* no ground-truth depth"):
+        s.training_step(no_depth, 0)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("error", message="model.depth_weight")  # once per run
+        s.training_step(no_depth, 1)
