@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
+from anycity.city.plan import MIN_SHARED
 from anycity.geometry.alignment import sim3_matrix, umeyama
 from anycity.geometry.cameras import camera_centers
 
@@ -159,7 +160,7 @@ def correspondences(ca: ChunkGeometry, cb: ChunkGeometry, shared: list[int]) -> 
     return src[keep], dst[keep]
 
 
-def pairwise_edges(chunks: list[ChunkGeometry], names: list[str] | None = None, min_shared: int = 2,
+def pairwise_edges(chunks: list[ChunkGeometry], names: list[str] | None = None, min_shared: int = MIN_SHARED,
                    **fit_kw) -> list[Edge]:
     """A robust Sim(3) for every pair of chunks sharing at least one view.
 

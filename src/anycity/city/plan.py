@@ -97,6 +97,9 @@ def token_descriptors(net, load, num: int, batch: int = 16) -> Tensor:
     return torch.cat(out)
 
 
+MIN_SHARED = 2  # photos two consecutive chunks must share to be aligned (align.pairwise_edges)
+
+
 def plan_chunks(num: int, size: int, overlap: int, loop: bool = False) -> list[list[int]]:
     """Cut positions ``0..num-1`` into chunks of ``size`` consecutive positions, each sharing ``overlap`` with the
     next; the last chunk is shifted back to stay full (it then shares more). One chunk when ``num <= size``.
@@ -110,6 +113,9 @@ def plan_chunks(num: int, size: int, overlap: int, loop: bool = False) -> list[l
         raise ValueError(f"predict_chunk_overlap: expected 0..{size - 1} (below the chunk size), got {overlap}")
     if num <= size:
         return [list(range(num))]
+    if overlap < MIN_SHARED:  # said before the network runs over every chunk, not after
+        raise ValueError(f"predict_chunk_overlap: {num} photos in chunks of {size} need an overlap of at least "
+                         f"{MIN_SHARED} (consecutive chunks are aligned on the photos they share), got {overlap}")
     step = size - overlap
     starts = list(range(0, num - size, step)) + [num - size]
     chunks = [list(range(s, s + size)) for s in starts]

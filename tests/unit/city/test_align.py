@@ -37,6 +37,10 @@ def test_plan_chunks_overlap_and_cover():
     assert own[5] == 0 and own[7] == 1  # 7 is chunk 0's last view but sits inside chunk 1
     with pytest.raises(ValueError, match="overlap"):
         plan_chunks(20, 8, 8)
+    # consecutive chunks align on >= 2 shared photos: said before the network runs, not after every chunk
+    with pytest.raises(ValueError, match="20 photos in chunks of 8 need an overlap of at least 2 .*got 1"):
+        plan_chunks(20, 8, 1)
+    assert plan_chunks(8, 8, 0) == [list(range(8))]  # one chunk: nothing to align
 
 
 def test_order_from_descriptors_recovers_a_shuffled_sequence():
