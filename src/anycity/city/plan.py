@@ -14,6 +14,8 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+MIN_SHARED = 2  # photos two consecutive chunks must share to be aligned (align.pairwise_edges)
+
 
 def natural_key(name: str) -> list:
     return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", name)]
@@ -95,9 +97,6 @@ def token_descriptors(net, load, num: int, batch: int = 16) -> Tensor:
         tokens = agg(images.to(param.device, param.dtype), keep={agg.depth - 1})[-1]  # [v, 1, T, 2C]
         out.append(tokens[:, 0, agg.patch_start_idx:].float().mean(1).cpu())
     return torch.cat(out)
-
-
-MIN_SHARED = 2  # photos two consecutive chunks must share to be aligned (align.pairwise_edges)
 
 
 def plan_chunks(num: int, size: int, overlap: int, loop: bool = False) -> list[list[int]]:
