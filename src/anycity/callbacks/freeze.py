@@ -9,6 +9,17 @@ from lightning.pytorch.callbacks import Callback
 from torch import nn
 
 
+def require_matches(module: nn.Module, patterns: list[str], what: str) -> None:
+    """Raise one line for the first glob of ``patterns`` that matches no name of ``module.named_parameters()``
+    (``what`` starts the message, e.g. ``"freeze: pattern"``): a typo would otherwise silently do nothing."""
+    names = [n for n, _ in module.named_parameters()]
+    for pat in patterns:
+        if not any(fnmatchcase(n, pat) for n in names):
+            sample = ", ".join(sorted({n.split(".")[0] + "." + n.split(".")[1] if "." in n else n for n in names})[:8])
+            raise ValueError(f"{what} {pat!r} matches no parameter; names look like {sample}, ...; "
+                             "fix the pattern (globs match full dotted names)")
+
+
 def freeze_by_patterns(module: nn.Module, patterns: list[str], unfreeze: list[str] | None = None) -> list[str]:
     """Set ``requires_grad=False`` on every parameter whose name matches one of ``patterns``.
 
@@ -21,12 +32,7 @@ def freeze_by_patterns(module: nn.Module, patterns: list[str], unfreeze: list[st
     Raises:
         ValueError: a pattern that matches no parameter (a typo would silently train everything).
     """
-    names = [n for n, _ in module.named_parameters()]
-    for pat in [*patterns, *(unfreeze or [])]:
-        if not any(fnmatchcase(n, pat) for n in names):
-            sample = ", ".join(sorted({n.split(".")[0] + "." + n.split(".")[1] if "." in n else n for n in names})[:8])
-            raise ValueError(f"freeze: pattern {pat!r} matches no parameter; names look like {sample}, ...; "
-                             "fix the pattern (globs match full dotted names)")
+    require_matches(module, [*patterns, *(unfreeze or [])], "freeze: pattern")
     frozen = []
     for n, p in module.named_parameters():
         if any(fnmatchcase(n, pat) for pat in patterns) and not any(fnmatchcase(n, u) for u in unfreeze or []):

@@ -161,11 +161,9 @@ class AnyCityModule(pl.LightningModule):
     def configure_optimizers(self) -> dict[str, Any]:
         hp = self.hparams
         patterns = [p if p.startswith("net.") else f"net.{p}" for p in (hp.pretrained_patterns or [])]
-        names = [n for n, _ in self.named_parameters()]
-        for pat in patterns:  # a typo would silently train the pretrained layers at the full rate
-            if not any(fnmatchcase(n, pat) for n in names):
-                raise ValueError(f"model.pretrained_patterns: {pat!r} matches no parameter (names look like "
-                                 f"{names[0]}); fix the pattern (globs over full dotted names)")
+        from anycity.callbacks.freeze import require_matches
+
+        require_matches(self, patterns, "model.pretrained_patterns:")  # a typo: pretrained layers at the full rate
         # the groups are the same with or without weights (so a resumed run's optimiser state fits), but layers
         # trained from random init are not slowed down as pretrained ones
         scale = hp.pretrained_lr_scale if hp.pretrained else 1.0
