@@ -50,7 +50,8 @@ def _views(n: int, size: int, gen: torch.Generator) -> Views:
 
 
 def _time_step(module, batch, steps: int) -> float:
-    opt = torch.optim.AdamW([p for p in module.parameters() if p.requires_grad], lr=1e-4)
+    # foreach, as the modules' configure_optimizers
+    opt = torch.optim.AdamW([p for p in module.parameters() if p.requires_grad], lr=1e-4, foreach=True)
     times = []
     for i in range(steps + 1):
         t = time.perf_counter()

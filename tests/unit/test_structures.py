@@ -32,12 +32,21 @@ def test_gaussians_validate_and_properties():
     ("valid", torch.ones(2, 5), "bool"),
     ("valid", torch.ones(2, 4, dtype=torch.bool), "valid"),
     ("opacities", torch.tensor([[float("nan")] * 5] * 2), "NaN"),
+    ("means", torch.zeros(2, 5, 3).index_fill(2, torch.tensor([1]), float("inf")), "means: contains NaN"),
+    ("sh", torch.zeros(2, 5, 4, 3).index_fill(1, torch.tensor([4]), -float("inf")), "sh: contains NaN"),
 ])
 def test_gaussians_validate_errors(field, value, match):
     kwargs = vars(gaussians())
     kwargs[field] = value
     with pytest.raises(ValueError, match=match):
         Gaussians(**kwargs).validate()
+
+
+def test_gaussians_whose_finite_values_overflow_a_sum_validate():
+    # the finiteness check sums first; a sum that overflows must not make finite values look corrupt
+    g = gaussians()
+    g.means = torch.full_like(g.means, 3e38)
+    g.validate()
 
 
 def test_sh_degree_from_k():

