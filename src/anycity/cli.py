@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import pickle
 import sys
+import warnings
 from pathlib import Path
 
 # Test-time settings: taken from the config files and the command line even when --ckpt_path holds other values
@@ -111,9 +112,17 @@ def _cli_class():
     return AnyCityCLI
 
 
+def quiet_third_party_warnings() -> None:
+    """Silence warnings about other libraries' code that no user setting can change."""
+    # Lightning 2.6's pytree helper builds torch's deprecated LeafSpec: with torch >= 2.10 every fit and test printed it
+    warnings.filterwarnings("ignore", message=r"`isinstance\(treespec, LeafSpec\)` is deprecated",
+                            category=FutureWarning)
+
+
 def build_cli(args: list[str] | None = None, run: bool = True, parser_kwargs: dict | None = None):
     """Build (and by default run) the training CLI in-process; ``args`` as on the command line after
     ``anycity``, e.g. ``["fit", "--config", "configs/quickstart.yaml"]``. Returns the LightningCLI object."""
+    quiet_third_party_warnings()
     from anycity.lit import AnyCityModule
     from anycity.lit.datamodule import AerialDataModule
 

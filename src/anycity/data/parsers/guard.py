@@ -33,8 +33,9 @@ def check_scene_cameras(scenes, src, fmt: str) -> None:
             if not (np.isfinite(w2c).all() and np.isfinite(K).all()):
                 raise ValueError(f"{where}: camera holds NaN/inf; the camera file is damaged, re-export it")
             R = w2c[:3, :3]
-            if (np.abs(R @ R.T - np.eye(3)).max() > 1e-3 or abs(np.linalg.det(R) - 1) > 1e-3
-                    or np.abs(w2c[3] - [0, 0, 0, 1]).max() > 1e-6):
+            with np.errstate(all="ignore"):  # a damaged matrix overflows quietly here, then fails the test below
+                ortho, det = np.abs(R @ R.T - np.eye(3)).max(), np.linalg.det(R)
+            if not (ortho <= 1e-3 and abs(det - 1) <= 1e-3 and np.abs(w2c[3] - [0, 0, 0, 1]).max() <= 1e-6):
                 raise ValueError(f"{where}: camera pose is not a rigid rotation + translation; the camera file "
                                  "is damaged, re-export it")
             if not (K[0, 0] > 0 and K[1, 1] > 0) or np.abs(K[2] - [0, 0, 1]).max() > 1e-6:
