@@ -8,19 +8,28 @@ import pytest
 import torch
 from torch import nn
 
+from anycity.callbacks import nonfinite
 from anycity.callbacks.nonfinite import NonFiniteGuard, all_finite
+
+
+@pytest.fixture(params=["foreach", "per_tensor"])
+def norm_path(request, monkeypatch):
+    """Both total-norm paths: torch's foreach helper, and the one for torch < 2.6."""
+    if request.param == "per_tensor":
+        monkeypatch.setattr(nonfinite, "_total_norm", nonfinite._total_norm_per_tensor)
+    return request.param
 
 
 @pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
 @pytest.mark.parametrize("where", [0, 2])
-def test_all_finite_finds_one_bad_element_in_any_tensor(bad, where):
-    tensors = [torch.randn(7, 5), torch.randn(3), torch.randn(2, 2, 4, dtype=torch.float64)]
+def test_all_finite_finds_one_bad_element_in_any_tensor(bad, where, norm_path):
+    tensors = [torch.randn(7, 5), torch.randn(3, dtype=torch.bfloat16), torch.randn(2, 2, 4, dtype=torch.float64)]
     assert all_finite(tensors)
     tensors[where].view(-1)[3] = bad
     assert not all_finite(tensors)
 
 
-def test_all_finite_is_not_fooled_by_a_norm_that_overflows():
+def test_all_finite_is_not_fooled_by_a_norm_that_overflows(norm_path):
     assert all_finite([torch.full((4,), 3e38), torch.ones(2)])  # the L2 norm is inf, every element finite
     assert all_finite([])
 
