@@ -99,7 +99,11 @@ def _cli_class():
 
                 scene = scene_name(photos)
             keep_previous_run(self.trainer, subcommand, self.config[subcommand].get("ckpt_path"), out, scene)
-            super()._run_subcommand(subcommand)
+            with warnings.catch_warnings():
+                if subcommand != "fit":  # evaluating restores no training state: Lightning's notes on it are noise
+                    for note in ("The dirpath has changed from", "Be aware that when using `ckpt_path`, callbacks"):
+                        warnings.filterwarnings("ignore", message=note)
+                super()._run_subcommand(subcommand)
 
         def before_predict(self) -> None:
             # A data module without a predict set reconstructs its test scenes.
