@@ -51,7 +51,7 @@ def test_fit_validate_test_predict_keep_earlier_runs(tiny_shards, tmp_path):
             warnings.simplefilter("always")
             build_cli([cmd, *_args(tiny_shards, run), "--ckpt_path", ckpt])
         assert (run / f"metrics.{i}.csv").read_text() == before, cmd
-        # evaluation restores no callback state, so Lightning's notes about restoring it are not shown
+        # evaluation writes no checkpoint, so Lightning's notes on restoring the callbacks' state are not shown
         assert not [str(w.message) for w in caught if "ckpt_path`, callbacks" in str(w.message)
                     or "dirpath has changed" in str(w.message)], cmd
     out = tmp_path / "export"
