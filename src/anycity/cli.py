@@ -99,10 +99,12 @@ def _cli_class():
 
                 scene = scene_name(photos)
             keep_previous_run(self.trainer, subcommand, self.config[subcommand].get("ckpt_path"), out, scene)
-            with warnings.catch_warnings():
-                if subcommand != "fit":  # no checkpoint is written, so which callback states come back is moot
-                    for note in ("The dirpath has changed from", "Be aware that when using `ckpt_path`, callbacks"):
-                        warnings.filterwarnings("ignore", message=note)
+            if subcommand == "fit":
+                super()._run_subcommand(subcommand)
+                return
+            with warnings.catch_warnings():  # no checkpoint is written, so which callback states come back is moot
+                for note in ("The dirpath has changed from", "Be aware that when using `ckpt_path`, callbacks"):
+                    warnings.filterwarnings("ignore", message=note)
                 super()._run_subcommand(subcommand)
 
         def before_predict(self) -> None:

@@ -18,6 +18,7 @@ import torch
 from lightning.pytorch.utilities import rank_zero_info
 from torch import Tensor
 
+from anycity.lit.distributed import log_eval_metrics
 from anycity.lit.evaluation import (
     AlignMode,
     EvalMetrics,
@@ -312,8 +313,6 @@ class AnyCityModule(pl.LightningModule):
 
     def _log_metrics(self, metrics: EvalMetrics, split: str) -> None:
         # at epoch end on every rank: a rank without samples must still join the metric syncs (lit/distributed.py)
-        from anycity.lit.distributed import log_eval_metrics
-
         log_eval_metrics(self, metrics, split)
 
     def on_validation_epoch_end(self) -> None:
