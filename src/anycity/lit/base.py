@@ -18,6 +18,7 @@ import torch
 from lightning.pytorch.utilities import rank_zero_info
 from torch import Tensor
 
+from anycity.callbacks.nonfinite import all_finite
 from anycity.lit.distributed import log_eval_metrics
 from anycity.lit.evaluation import (
     AlignMode,
@@ -192,7 +193,7 @@ class AnyCityModule(pl.LightningModule):
         this loss lets backward run on every rank and the ``nonfinite`` callback skip the step everywhere."""
         g = out["gaussians"]
         parts = [g.means, g.quats, g.scales, g.opacities, g.sh, out["w2c"], out["K"]]
-        if bool(torch.stack([torch.isfinite(x).all() for x in parts]).all()):
+        if all_finite(parts):
             return None
         return sum(p.sum() for p in self.parameters() if p.requires_grad) * float("nan")
 
