@@ -48,13 +48,15 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: --out {out} exists; delete it or pass another path", file=sys.stderr)
         return 2
 
-    import lightning as L
+    import lightning.pytorch as pl
     import torch
 
+    from anycity.cli import quiet_third_party_noise
     from anycity.lit.datamodule import AerialDataModule
     from anycity.lit.pose_prior import PosePriorModule
 
-    L.seed_everything(args.seed)
+    quiet_third_party_noise()
+    pl.seed_everything(args.seed)
     # the views as Stage II sees them: the same size, crop and scale normalisation (context depth), so the
     # translations come in the same units
     dm = AerialDataModule(root=args.data, image_size=tuple(args.image_size), patch_size=args.patch_size,
@@ -63,13 +65,13 @@ def main(argv: list[str] | None = None) -> int:
                           with_normals=False, seed=args.seed)
     module = PosePriorModule()
 
-    class Report(L.Callback):
+    class Report(pl.Callback):
         def on_validation_end(self, trainer, pl_module):
             if trainer.is_global_zero and not trainer.sanity_checking:
                 print(f"step {trainer.global_step}: validation cities, mean relative rotation error "
                       f"{trainer.callback_metrics['val/rre']:.2f} deg", flush=True)
 
-    trainer = L.Trainer(max_steps=args.steps, accelerator=args.accelerator, devices=args.devices, logger=False,
+    trainer = pl.Trainer(max_steps=args.steps, accelerator=args.accelerator, devices=args.devices, logger=False,
                         enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,
                         num_sanity_val_steps=0, val_check_interval=min(args.val_every, args.steps),
                         limit_val_batches=args.val_batches,

@@ -8,6 +8,7 @@ as one line; ``--debug`` or ``ANYCITY_DEBUG=1`` shows the traceback.
 
 from __future__ import annotations
 
+import logging
 import pickle
 import sys
 import warnings
@@ -118,17 +119,26 @@ def _cli_class():
     return AnyCityCLI
 
 
-def quiet_third_party_warnings() -> None:
-    """Silence warnings about other libraries' code that no user setting can change."""
+def _not_an_advert(record: logging.LogRecord) -> bool:
+    """False for Lightning's "💡 Tip: ... try installing litlogger / litmodels" lines (printed at every Trainer)."""
+    return not record.getMessage().startswith("💡 Tip:")
+
+
+def quiet_third_party_noise() -> None:
+    """Silence warnings and notices about other libraries' code or products that no user setting can change."""
     # Lightning 2.6's pytree helper builds torch's deprecated LeafSpec: with torch >= 2.10 every fit and test printed it
     warnings.filterwarnings("ignore", message=r"`isinstance\(treespec, LeafSpec\)` is deprecated",
                             category=FutureWarning)
+    # Lightning 2.6 advertises its cloud logger and model registry twice per Trainer, through its rank-zero logger
+    lightning_info = logging.getLogger("lightning.pytorch.utilities.rank_zero")
+    if _not_an_advert not in lightning_info.filters:
+        lightning_info.addFilter(_not_an_advert)
 
 
 def build_cli(args: list[str] | None = None, run: bool = True, parser_kwargs: dict | None = None):
     """Build (and by default run) the training CLI in-process; ``args`` as on the command line after
     ``anycity``, e.g. ``["fit", "--config", "configs/quickstart.yaml"]``. Returns the LightningCLI object."""
-    quiet_third_party_warnings()
+    quiet_third_party_noise()
     from anycity.lit import AnyCityModule
     from anycity.lit.datamodule import AerialDataModule
 

@@ -86,6 +86,34 @@ def test_lightnings_pytree_deprecation_is_not_printed():
         if not any("LeafSpec" in str(w.message) for w in seen):
             pytest.skip("this Lightning/torch pair does not warn")
         seen.clear()
-        cli.quiet_third_party_warnings()
+        cli.quiet_third_party_noise()
         _tree_flatten({"a": 1})
     assert not [str(w.message) for w in seen if "LeafSpec" in str(w.message)]
+
+
+def test_lightnings_adverts_are_not_printed(tmp_path):
+    """Lightning 2.6 logged two "💡 Tip: ... try installing litlogger / litmodels" lines at every Trainer; its own
+    notices (the accelerator lines) still show."""
+    import logging
+
+    from lightning.pytorch import Trainer
+
+    rank_zero = logging.getLogger("lightning.pytorch.utilities.rank_zero")
+    seen: list[str] = []
+    handler = logging.Handler()
+    handler.emit = lambda record: seen.append(record.getMessage())
+    rank_zero.addHandler(handler)
+    try:
+        rank_zero.removeFilter(cli._not_an_advert)  # an earlier build_cli in this process installed it
+        Trainer(accelerator="cpu", logger=False, default_root_dir=tmp_path, enable_model_summary=False)
+        if not any(m.startswith("💡 Tip:") for m in seen):
+            pytest.skip("this Lightning prints no tip")
+        seen.clear()
+        cli.quiet_third_party_noise()
+        cli.quiet_third_party_noise()  # idempotent: one filter
+        Trainer(accelerator="cpu", logger=False, default_root_dir=tmp_path, enable_model_summary=False)
+    finally:
+        rank_zero.removeHandler(handler)
+    assert rank_zero.filters.count(cli._not_an_advert) == 1
+    assert not [m for m in seen if "Tip" in m]
+    assert any(m.startswith("GPU available") for m in seen)

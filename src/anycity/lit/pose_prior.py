@@ -6,7 +6,7 @@ their ground-truth poses (the supervision the camera loss uses), and saves the w
 
 from __future__ import annotations
 
-import lightning as L
+import lightning.pytorch as pl
 import torch
 from torch import Tensor
 
@@ -15,7 +15,7 @@ from anycity.models.pose_prior import PairFlowPose
 from anycity.structures import ViewBatch
 
 
-class PosePriorModule(L.LightningModule):
+class PosePriorModule(pl.LightningModule):
     """L1 on the rotation matrix and translation of context views 1..V-1, in the sample's normalised frame (view 0
     is the identity). AdamW with a one-cycle schedule over ``trainer.max_steps``. Validation and test log
     ``rre``: the mean relative rotation error over every context view pair, as ``anycity test`` computes it."""
