@@ -117,3 +117,15 @@ def test_lightnings_adverts_are_not_printed(tmp_path):
     assert rank_zero.filters.count(cli._not_an_advert) == 1
     assert not [m for m in seen if "Tip" in m]
     assert any(m.startswith("GPU available") for m in seen)
+
+
+@pytest.mark.parametrize("cmd", [["data", "synth"], ["data", "convert"], ["export"], ["view"], ["render-video"]])
+def test_light_subcommand_help_is_readable(cmd, capsys):
+    """No Python object reprs: jsonargparse printed ``type: <function <lambda> at 0x...>`` for a str option with
+    choices."""
+    with pytest.raises(SystemExit) as stop:
+        cli.main([*cmd, "--help"])
+    assert stop.value.code == 0
+    text = capsys.readouterr().out
+    assert "<function" not in text and " at 0x" not in text, text
+    assert text.count("--") >= 3, text

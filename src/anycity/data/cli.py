@@ -23,12 +23,12 @@ def _synth_parser() -> ArgumentParser:
     p.add_argument("--views", type=int, default=48, help="views per city along the trajectory")
     p.add_argument("--size", type=str, default="256x256", help="image size HxW in pixels")
     p.add_argument("--seed", type=int, default=0, help="dataset seed (scene i uses (seed, i))")
-    p.add_argument("--trajectory", type=str, default="mixed", choices=["orbit", "nadir", "mixed"],
+    p.add_argument("--trajectory", default="mixed", choices=["orbit", "nadir", "mixed"],
                    help="camera path: orbit at 30-60 deg pitch, nadir lawnmower, or a per-scene mix")
     p.add_argument("--preview", action=ActionYesNo, default=False, help="write preview.png (contact sheet)")
     p.add_argument("--workers", type=int | None, default=None, help="processes (default: min(2, cpus))")
-    p.add_argument("--image_format", type=str, default="jpg", choices=["jpg", "png"], help="view encoding")
-    p.add_argument("--depth_dtype", type=str, default="float16", choices=["float16", "float32"],
+    p.add_argument("--image_format", default="jpg", choices=["jpg", "png"], help="view encoding")
+    p.add_argument("--depth_dtype", default="float16", choices=["float16", "float32"],
                    help="stored depth precision")
     p.add_argument("--normals", action=ActionYesNo, default=False,
                    help="also store ground-truth normals (3x the bytes of depth; readers derive them from depth)")
@@ -45,12 +45,12 @@ def _convert_parser() -> ArgumentParser:
     from anycity.data.parsers import PARSERS
 
     p = ArgumentParser(description="Convert a posed multi-view dataset into webdataset shards.")
-    p.add_argument("--format", type=str, required=True, choices=sorted(PARSERS), help="source format")
+    p.add_argument("--format", required=True, choices=sorted(PARSERS), help="source format")
     p.add_argument("--src", type=str, required=True, help="source dataset folder (or pose file)")
     p.add_argument("--out", type=str, required=True, help="output shard directory")
     p.add_argument("--overwrite", action=ActionYesNo, default=False,
                    help="replace a shard set already in --out (default: refuse)")
-    p.add_argument("--split", type=str, default="auto", choices=["auto", "train", "val", "test"],
+    p.add_argument("--split", default="auto", choices=["auto", "train", "val", "test"],
                    help="auto: the dataset's split, else 8:1:1 by scene")
     p.add_argument("--max_views", type=int, default=64, help="views per sample (longer trajectories are cut)")
     p.add_argument("--max_side", type=int | None, default=None, help="downscale images to this long side")

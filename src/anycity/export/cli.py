@@ -84,7 +84,9 @@ def export(src: str | Path, fmt: str, out: str | Path, overwrite: bool = False) 
 def export_main(argv: list[str]) -> int:
     p = argparse.ArgumentParser(prog="anycity export", description="Export a predicted scene for other tools.")
     p.add_argument("--from", dest="src", required=True, help="predict scene folder or scene.ply")
-    p.add_argument("--format", required=True, choices=FORMATS)
+    p.add_argument("--format", required=True, choices=FORMATS, help="splat: antimatter15 .splat; colmap: text "
+                   "model (sparse/0); nerfstudio: transforms.json + scene.ply; ply: the standard 3DGS PLY without "
+                   "the provenance columns")
     p.add_argument("--out", default=None, help="output folder (default: <from>/export_<format>)")
     p.add_argument("--overwrite", action="store_true", help="write into an --out folder that is not empty")
     a = p.parse_args(argv)

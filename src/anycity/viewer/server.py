@@ -126,8 +126,10 @@ def _share_text(scene: ViewScene) -> str:
 def view_main(argv: list[str]) -> int:
     p = argparse.ArgumentParser(prog="anycity view", description="Open a predicted scene in the browser (viser).")
     p.add_argument("path", help="scene.ply or a predict output folder (predictions/<scene>/)")
-    p.add_argument("--host", default="127.0.0.1", help="interface to listen on (0.0.0.0 serves the network)")
-    p.add_argument("--port", type=int, default=8080, help="port (0: any free one; a busy one moves up)")
+    p.add_argument("--host", default="127.0.0.1",
+                   help="interface to listen on (default: %(default)s; 0.0.0.0 serves the network)")
+    p.add_argument("--port", type=int, default=8080,
+                   help="port (default: %(default)s; 0: any free one; a busy one moves up)")
     p.add_argument("--no-cameras", action="store_true", help="hide the camera frustums")
     a = p.parse_args(argv)
     server, scene = build_server(a.path, a.host, a.port, cameras=not a.no_cameras)

@@ -123,10 +123,12 @@ def render_video_main(argv: list[str]) -> int:
                                 description="Render an mp4 fly-through along the predicted cameras.")
     p.add_argument("path", help="predict scene folder (scene.ply + cameras.json)")
     p.add_argument("--out", default=None, help="mp4 path (default: <path>/flythrough.mp4)")
-    p.add_argument("--per-segment", type=int, default=12, help="frames between consecutive cameras")
-    p.add_argument("--orbit", type=int, default=0, help="frames of an orbit around the scene centre (0: none)")
+    p.add_argument("--per-segment", type=int, default=12,
+                   help="frames between consecutive cameras (default: %(default)s)")
+    p.add_argument("--orbit", type=int, default=0,
+                   help="frames of an orbit around the scene centre (default: %(default)s: none)")
     p.add_argument("--width", type=int, default=None, help="frame width (default: the input width)")
-    p.add_argument("--fps", type=int, default=24)
+    p.add_argument("--fps", type=int, default=24, help="frames per second (default: %(default)s)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     a = p.parse_args(argv)
     src = Path(a.path)
