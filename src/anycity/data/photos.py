@@ -19,16 +19,30 @@ import torch
 from anycity.data.imagecheck import check_image_file
 from anycity.data.views import resize_plan, resize_view
 
-PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png")
+PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".webp")
+# photos that are not read here, named in a warning: camera raw and HEIF (no decoder), TIFF (where its orientation
+# tag is applied differs between OpenCV and Pillow versions; OpenCV 5.0 refuses an oriented TIFF)
+UNREAD_SUFFIXES = (".dng", ".heic", ".heif", ".raw", ".cr2", ".cr3", ".nef", ".arw", ".orf", ".rw2", ".raf", ".tif",
+                   ".tiff")
 MAX_VIEWS = 64  # views of one forward pass; more photos are reconstructed in chunks (anycity.city)
 
 
 def list_photos(folder: str | Path) -> list[Path]:
-    """The ``.jpg``/``.jpeg``/``.png`` files of ``folder`` (at least 2), sorted by name."""
+    """The photos of ``folder`` (:data:`PHOTO_SUFFIXES`, any case; at least 2), sorted by name.
+
+    Hidden files are not photos: a card copied from a Mac holds a ``._DJI_0001.JPG`` metadata file beside each
+    photo. Camera raw, HEIF and TIFF files are named in a warning, as they are not read.
+    """
     folder = Path(folder)
     if not folder.is_dir():
         raise FileNotFoundError(f"predict_images: {folder} is not a folder; pass a folder holding one scene's photos")
-    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in PHOTO_SUFFIXES)
+    visible = sorted(p for p in folder.iterdir() if not p.name.startswith("."))
+    files = [p for p in visible if p.suffix.lower() in PHOTO_SUFFIXES]
+    unread = [p.name for p in visible if p.suffix.lower() in UNREAD_SUFFIXES]
+    if unread:
+        shown = ", ".join(unread[:5]) + (" ..." if len(unread) > 5 else "")
+        warnings.warn(f"predict_images: {len(unread)} camera raw, HEIF or TIFF files in {folder} are not read "
+                      f"({shown}); export them as JPEG to use them", stacklevel=2)
     if len(files) < 2:
         only = f" (only {files[0].name})" if files else ""
         raise ValueError(f"predict_images: {folder} holds {len(files)} photos{only} ({'/'.join(PHOTO_SUFFIXES)}); "

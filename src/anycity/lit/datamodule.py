@@ -110,8 +110,8 @@ class AerialDataModule(pl.LightningDataModule):
             batch on the device after the transfer (``on_after_batch_transfer``). The LightningModule sees the
             same batch either way; code that iterates the DataLoader itself calls
             :func:`anycity.data.pipeline.to_float32`. Recommended for training at 448 px.
-        predict_images: a folder of one scene's own photos (2 or more ``.jpg``/``.png``, no poses) that ``anycity
-            predict`` reconstructs; None: ``predict`` reconstructs the test scenes. More photos than
+        predict_images: a folder of one scene's own photos (2 or more ``.jpg``/``.png``/``.webp``, no poses) that
+            ``anycity predict`` reconstructs; None: ``predict`` reconstructs the test scenes. More photos than
             ``predict_chunk_size`` are reconstructed in overlapping chunks, aligned and merged (:mod:`anycity.city`).
         predict_chunk_size: photos per forward pass of ``predict_images`` (2..64; 16 measured better than one pass
             of 32 with the quickstart model, and the camera refinement costs grow as its square).

@@ -40,6 +40,39 @@ def test_exif_orientation_is_applied(tmp_path):
     assert h > w  # portrait, as the phone showed it
 
 
+def test_webp_and_16_bit_photos_load_upright(tmp_path):
+    from PIL import Image
+
+    d = tmp_path / "survey"
+    d.mkdir()
+    exif = Image.Exif()
+    exif[0x0112] = 6  # stored landscape, shown portrait
+    for name in ("a.webp", "b.WEBP"):
+        Image.new("RGB", (64, 32), (200, 40, 40)).save(d / name, exif=exif)
+    cv2.imwrite(str(d / "c.png"), np.full((64, 32), 40000, np.uint16))  # 16-bit grey: 40000 >> 8 = 156
+    out = load_photo_folder(d, (32, 32), mode="keep", patch=8)
+    assert out["names"] == ["a.webp", "b.WEBP", "c.png"]
+    assert out["images"].shape[-2] > out["images"].shape[-1]  # portrait, as shown
+    np.testing.assert_allclose(out["images"][:2].mean(dim=(2, 3)).numpy(), [[200 / 255, 40 / 255, 40 / 255]] * 2,
+                               atol=0.02)
+    assert abs(float(out["images"][2].mean()) - 156 / 255) < 0.01
+
+
+def test_hidden_files_are_not_photos_and_raw_files_are_named(tmp_path):
+    """A card copied from a Mac holds ``._NAME.JPG`` metadata beside each photo; camera raw and TIFF files are not
+    read, and the warning says so."""
+    d = tmp_path / "flight"
+    _write(d, "DJI_0001.JPG", 32, 32, 1)
+    _write(d, "DJI_0002.JPG", 32, 32, 2)
+    (d / "._DJI_0001.JPG").write_bytes(b"\x00\x05\x16\x07Mac OS X")
+    (d / "DJI_0001.DNG").write_bytes(b"raw")
+    (d / "DJI_0002.tif").write_bytes(b"tiff")
+    with pytest.warns(UserWarning, match=r"2 camera raw, HEIF or TIFF files .* not read \(DJI_0001\.DNG, "
+                      r"DJI_0002\.tif\); export them as JPEG"):
+        out = load_photo_folder(d, (32, 32))
+    assert out["names"] == ["DJI_0001.JPG", "DJI_0002.JPG"]
+
+
 def test_folder_errors_name_the_problem(tmp_path):
     with pytest.raises(FileNotFoundError, match="not a folder"):
         load_photo_folder(tmp_path / "missing", (32, 32))
