@@ -157,6 +157,7 @@ def test_blendedmvs_with_pfm(tmp_path):
         d = np.arange(H * W, dtype=np.float32).reshape(H, W) + 1
         with open(src / "rendered_depth_maps" / f"{i:08d}.pfm", "wb") as f:
             f.write(f"Pf\n{W} {H}\n-1.0\n".encode() + np.flipud(d).astype("<f4").tobytes())
+    (src / "cams" / "._00000000_cam.txt").write_bytes(b"\x00\x05\x16\x07Mac OS X")  # a Mac-copied drive's metadata
     convert("blendedmvs", src, tmp_path / "out")
     _check(tmp_path / "out", gt)
     sample = next(iter(wds.WebDataset(str(next((tmp_path / "out").glob("*.tar"))), shardshuffle=False)))
@@ -185,6 +186,7 @@ def test_llff_and_bungeenerf(tmp_path):
     for fmt, cols in (("llff", ((1, 1), (0, 1), (2, -1))), ("bungeenerf", ((0, 1), (1, -1), (2, -1)))):
         src = tmp_path / fmt
         _images(src / "images", [f"{i:03d}.png" for i in range(N)])
+        (src / "images" / "._000.png").write_bytes(b"\x00\x05\x16\x07Mac OS X")  # not an image: passed over
         rows = _llff_rows(gt, cols)
         if fmt == "llff":
             np.save(src / "poses_bounds.npy", rows)

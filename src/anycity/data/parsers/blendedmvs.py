@@ -44,7 +44,7 @@ def _scene(d: Path) -> ParsedScene:
     import cv2
 
     views = []
-    for cam in sorted((d / "cams").glob("*_cam.txt")):
+    for cam in sorted(c for c in (d / "cams").glob("*_cam.txt") if not c.name.startswith(".")):  # not ._x (macOS)
         stem = cam.name[: -len("_cam.txt")]
         E, K = read_cam(cam)
         img = d / "blended_images" / f"{stem}.jpg"

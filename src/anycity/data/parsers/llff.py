@@ -14,11 +14,13 @@ import numpy as np
 
 from anycity.data.parsers.base import ParsedScene, ParsedView, require
 
-_EXTS = {".jpg", ".jpeg", ".png", ".JPG", ".PNG", ".JPEG"}
+_EXTS = {".jpg", ".jpeg", ".png"}
 
 
 def _images(root: Path, n: int, where: Path) -> list[Path]:
-    imgs = sorted(p for p in require(root / "images", "an images/ folder").iterdir() if p.suffix in _EXTS)
+    """The sorted images of ``root/images`` (any case; hidden files such as macOS ``._x.JPG`` are not images)."""
+    imgs = sorted(p for p in require(root / "images", "an images/ folder").iterdir()
+                  if p.suffix.lower() in _EXTS and not p.name.startswith("."))
     if len(imgs) != n:
         raise ValueError(f"{where}: {n} poses but {len(imgs)} images in {root / 'images'}; they must match 1:1")
     return imgs
