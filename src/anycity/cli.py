@@ -106,6 +106,8 @@ def _cli_class():
             with warnings.catch_warnings():  # no checkpoint is written, so which callback states come back is moot
                 for note in ("The dirpath has changed from", "Be aware that when using `ckpt_path`, callbacks"):
                     warnings.filterwarnings("ignore", message=note)
+                # shards stream as an IterableDataset, and PredictionExport does not read the batch indices
+                warnings.filterwarnings("ignore", message="Couldn't infer the batch indices fetched from your")
                 super()._run_subcommand(subcommand)
 
         def before_predict(self) -> None:
@@ -129,7 +131,7 @@ def quiet_third_party_noise() -> None:
     # Lightning 2.6's pytree helper builds torch's deprecated LeafSpec: with torch >= 2.10 every fit and test printed it
     warnings.filterwarnings("ignore", message=r"`isinstance\(treespec, LeafSpec\)` is deprecated",
                             category=FutureWarning)
-    # Lightning 2.6 advertises its cloud logger and model registry twice per Trainer, through its rank-zero logger
+    # Lightning 2.6 advertises its cloud logger and model registry (up to two lines per Trainer) on its rank-zero logger
     lightning_info = logging.getLogger("lightning.pytorch.utilities.rank_zero")
     if _not_an_advert not in lightning_info.filters:
         lightning_info.addFilter(_not_an_advert)

@@ -18,6 +18,10 @@ from anycity.export.smoothing import VARIANCE_PX, smooth_3d
 class PredictionExport(BasePredictionWriter):
     """Export every predicted scene under ``out_dir/<scene>/``.
 
+    A shard set's split holds several samples of one scene (other context views): its later samples go to
+    ``<scene>-2/``, ``<scene>-3/`` ... in the order predicted, and under DDP the folders of rank ``r > 0`` end in
+    ``-rank<r>``, so no sample overwrites another.
+
     Files: ``scene.ply`` (standard 3DGS PLY plus the provenance columns ``obs_views`` and ``completion`` when
     the prediction carries ``scaffold`` and ``depth``; see :mod:`anycity.export.provenance`), ``cameras.json``
     (predicted OpenCV w2c + K),
@@ -46,12 +50,26 @@ class PredictionExport(BasePredictionWriter):
         self.save_renders = save_renders
         self.smooth_3d = smooth_3d
         self.written: list[Path] = []
+        self._folders: set[str] = set()  # written in this run by this rank
         self._city = None
         self._bar = None
         self.city_report: dict | None = None
 
     def _root(self, trainer: pl.Trainer) -> Path:
         return Path(self.out_dir) if self.out_dir else Path(trainer.log_dir or trainer.default_root_dir) / "predictions"
+
+    def _sample_folder(self, trainer: pl.Trainer, scene: str) -> Path:
+        """``<scene>``, or ``<scene>-N`` for the scene's N-th sample in this run (``-rank<r>`` first on rank r > 0)."""
+        base = str(scene).replace("/", "_") + (f"-rank{trainer.global_rank}" if trainer.global_rank else "")
+        name, n = base, 1
+        while name in self._folders:
+            n += 1
+            name = f"{base}-{n}"
+        self._folders.add(name)
+        return self._root(trainer) / name
+
+    def on_predict_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        self._folders = set()
 
     def write_on_batch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule, prediction: dict[str, Any],
                            batch_indices: Any, batch: Any, batch_idx: int, dataloader_idx: int = 0) -> None:
@@ -65,10 +83,10 @@ class PredictionExport(BasePredictionWriter):
         scenes = prediction.get("scene") or [f"scene_{batch_idx:04d}_{i}" for i in range(w2c.shape[0])]
         g, prov = self._exported(prediction)
         for i, name in enumerate(scenes):
-            folder = self._root(trainer) / f"{name}".replace("/", "_")
+            folder = self._sample_folder(trainer, name)
             save_ply(g, folder / "scene.ply", index=i, extra=prov)
             if prov is not None:
-                _print_shares(name, _shares(prov, g.valid, slice(i, i + 1), slice(None))[0])
+                _print_shares(folder.name, _shares(prov, g.valid, slice(i, i + 1), slice(None))[0])
             names = batch.get("names") if isinstance(batch, dict) else None  # a photo folder's file names
             save_cameras(folder / "cameras.json", w2c[i], K[i], int(w), int(h), names[i] if names else None)
             if self.save_renders:

@@ -83,3 +83,33 @@ def test_previews_go_to_the_logger_image_api_and_skip_the_log_dir_broadcast(tmp_
     assert ("tb", "val/preview", (16, 16, 3)) in calls  # 2 rows x 2 columns of 8 px
     assert any(c[0] == "wb" and c[1] == "val/preview" for c in calls)
     assert (tmp_path / "tb" / "previews" / "val_step000007.png").is_file()
+
+
+def test_samples_of_one_scene_do_not_overwrite_each_other(tmp_path):
+    """A split holds several samples of a scene: each gets its own folder, per rank under DDP."""
+    from types import SimpleNamespace
+
+    from anycity.callbacks import PredictionExport
+    from anycity.structures import Gaussians, RenderOutput
+
+    n, v, h, w = 6, 2, 8, 8
+    g = Gaussians(torch.rand(1, n, 3) + torch.tensor([0, 0, 3.0]), torch.tensor([1.0, 0, 0, 0]).expand(1, n, 4),
+                  torch.full((1, n, 3), 0.05), torch.full((1, n), 0.5), torch.zeros(1, n, 1, 3))
+    imgs = torch.rand(1, v, 3, h, w)
+    K = torch.tensor([[8.0, 0, 4], [0, 8, 4], [0, 0, 1]]).expand(1, v, 3, 3)
+
+    def predict(cb, trainer, scene, k):
+        pred = {"gaussians": g, "w2c": torch.eye(4).expand(1, v, 4, 4), "K": K, "images": imgs, "scene": [scene],
+                "renders": RenderOutput(rgb=imgs, depth=torch.ones(1, v, 1, h, w), alpha=torch.ones(1, v, 1, h, w))}
+        cb.write_on_batch_end(trainer, None, pred, None, None, k)
+
+    out = tmp_path / "out"
+    cb = PredictionExport(out_dir=str(out), save_renders=False)
+    for rank in (0, 1):
+        trainer = SimpleNamespace(log_dir=None, default_root_dir=str(tmp_path), global_rank=rank)
+        cb.on_predict_start(trainer, None)
+        for k, scene in enumerate(["a", "b", "a", "a"]):
+            predict(cb, trainer, scene, k)
+    assert sorted(p.name for p in out.iterdir()) == ["a", "a-2", "a-3", "a-rank1", "a-rank1-2", "a-rank1-3", "b",
+                                                     "b-rank1"]
+    assert all((p / "scene.ply").is_file() and (p / "cameras.json").is_file() for p in out.iterdir())
