@@ -1,6 +1,7 @@
 """Crash-safe file writes: temp file + fsync + rename, and disk-full errors that name the path and the size.
 
-A reader (or a rerun after SIGKILL / power loss) sees the old file or the new one, never a partial one.
+A reader (or a rerun after SIGKILL / power loss) sees the old file or the new one, never a partial one. Files an
+earlier run left are moved aside to :func:`free_name`, never overwritten (:mod:`anycity.lit.keep`).
 """
 
 from __future__ import annotations
@@ -8,6 +9,16 @@ from __future__ import annotations
 import errno
 import os
 from pathlib import Path
+
+
+def free_name(path: Path) -> Path:
+    """``a/metrics.csv`` -> the first of ``a/metrics.1.csv``, ``a/metrics.2.csv``, ... that does not exist."""
+    n = 1
+    while True:
+        cand = path.with_name(f"{path.stem}.{n}{path.suffix}") if path.suffix else path.with_name(f"{path.name}.{n}")
+        if not cand.exists():
+            return cand
+        n += 1
 
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes | memoryview) -> None:

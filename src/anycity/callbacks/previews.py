@@ -12,6 +12,8 @@ from lightning.pytorch.callbacks import Callback
 from PIL import Image
 from torch import Tensor
 
+from anycity.atomic import free_name
+
 
 def depth_to_rgb(depth: Tensor, mask: Tensor | None = None) -> Tensor:
     """``[..., 1, H, W]`` depth -> ``[..., 3, H, W]`` inverse-depth colour map in [0, 1] (near = bright)."""
@@ -67,6 +69,8 @@ class ImagePreviews(Callback):
         root = Path(getattr(trainer.logger, "log_dir", None) or trainer.default_root_dir)
         path = root / "previews" / f"{tag}_step{trainer.global_step:06d}.png"
         path.parent.mkdir(parents=True, exist_ok=True)
+        if path.exists():  # an earlier run's preview at the same step (a rerun of test, a fresh fit): kept aside
+            path.rename(free_name(path))
         Image.fromarray(grid).save(path)
         self.last_path = path
         for logger in trainer.loggers:

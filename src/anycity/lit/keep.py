@@ -15,17 +15,9 @@ from pathlib import Path
 
 from lightning.pytorch.utilities import rank_zero_info
 
+from anycity.atomic import free_name
+
 LOG_FILES = ("metrics.csv", "hparams.yaml", "config.yaml")
-
-
-def free_name(path: Path) -> Path:
-    """``a/metrics.csv`` -> the first of ``a/metrics.1.csv``, ``a/metrics.2.csv``, ... that does not exist."""
-    n = 1
-    while True:
-        cand = path.with_name(f"{path.stem}.{n}{path.suffix}") if path.suffix else path.with_name(f"{path.name}.{n}")
-        if not cand.exists():
-            return cand
-        n += 1
 
 
 def move_aside(path: Path) -> Path | None:

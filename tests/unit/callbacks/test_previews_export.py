@@ -82,7 +82,13 @@ def test_previews_go_to_the_logger_image_api_and_skip_the_log_dir_broadcast(tmp_
     ImagePreviews().on_validation_batch_end(Trainer(), None, out, None, 0)
     assert ("tb", "val/preview", (16, 16, 3)) in calls  # 2 rows x 2 columns of 8 px
     assert any(c[0] == "wb" and c[1] == "val/preview" for c in calls)
-    assert (tmp_path / "tb" / "previews" / "val_step000007.png").is_file()
+    first = tmp_path / "tb" / "previews" / "val_step000007.png"
+    assert first.is_file()
+    before = first.read_bytes()
+    out = {"preview": {"context": torch.zeros(2, 3, 8, 8), "target": torch.ones(2, 3, 8, 8)}}
+    ImagePreviews().on_validation_batch_end(Trainer(), None, out, None, 0)  # a later run at the same step
+    assert (tmp_path / "tb" / "previews" / "val_step000007.1.png").read_bytes() == before  # kept, not overwritten
+    assert first.read_bytes() != before
 
 
 def test_samples_of_one_scene_do_not_overwrite_each_other(tmp_path):
