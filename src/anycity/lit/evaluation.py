@@ -124,8 +124,9 @@ def align_target_poses(render_rgb, gaussians: Gaussians, w2c: Tensor, images: Te
 
     A pose-free model's scene sits in its own frame, so each held-out camera is refined photometrically before it
     is scored: Adam on a camera-frame rotation (axis-angle) and translation delta, Gaussians frozen, MSE against the
-    target image. The camera moves by moving the scene the opposite way, so every render backend works (the fused
-    CPU kernels have no camera gradients).
+    target image (per sample, summed over the batch: a sample's fit does not depend on its batch-mates). The camera
+    moves by moving the scene the opposite way, so every render backend works (the fused CPU kernels have no camera
+    gradients).
 
     Args:
         render_rgb: ``f(gaussians [B*T scenes], w2c [B*T, 1, 4, 4]) -> rgb [B*T, 1, 3, H, W]``.
@@ -146,7 +147,8 @@ def align_target_poses(render_rgb, gaussians: Gaussians, w2c: Tensor, images: Te
         def loss(rot: Tensor, trans: Tensor) -> Tensor:
             # camera delta @ w2c == w2c applied to the scene moved by inv(w2c) @ delta @ w2c
             moved = transform_gaussians(scenes, inv @ _se3(rot, trans) @ cams)
-            return (render_rgb(moved, cams[:, None]) - target).square().mean()
+            # each sample's own mean, summed: a sample is fitted as if alone, whatever the batch holds
+            return (render_rgb(moved, cams[:, None]) - target).square().reshape(b, -1).mean(1).sum()
 
         rot, trans = _fit_deltas(loss, (b * t,), cams.device, steps, lr)
         out = (_se3(rot, trans) @ cams).reshape(b, t, 4, 4)
@@ -162,7 +164,8 @@ def refine_context_cameras(render_rgb, gaussians: Gaussians, w2c: Tensor, images
     Gaussian sets disagreeing. Each view but the first (the reference frame) gets a rigid delta, a rotation about
     the point at its Gaussians' median depth on its optical axis (an orbit-like correction is then one rotation
     instead of a coupled rotation and translation) plus a translation, fitted by Adam so that all views' Gaussians,
-    rendered together into every context camera, reproduce the context images (MSE). No target image is used.
+    rendered together into every context camera, reproduce the context images (MSE per sample, summed over the
+    batch). No target image is used.
     Each step renders V scenes of V*H*W Gaussians (cost grows as V^2 H W): meant for a sparse context.
 
     Args:
@@ -204,7 +207,8 @@ def refine_context_cameras(render_rgb, gaussians: Gaussians, w2c: Tensor, images
             # the moved scene seen through the refined camera w2c_i inv(A_i)
             rel = (invert_rigid(A)[:, :, None] @ A[:, None]).flatten(0, 1)  # [B*V, V, 4, 4]
             moved = transform_gaussians(scenes, rel)
-            return (render_rgb(moved, cams.flatten(0, 1)[:, None]) - target).square().mean()
+            err = (render_rgb(moved, cams.flatten(0, 1)[:, None]) - target).square()
+            return err.reshape(b, -1).mean(1).sum()  # per sample, summed: as if alone in the batch
 
         rot, trans = _fit_deltas(loss, (b, v - 1), cams.device, steps, lr)
         A = transforms(rot, trans)

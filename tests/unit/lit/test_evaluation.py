@@ -179,3 +179,32 @@ def test_refine_context_cameras_rejects_merged_gaussians():
                        torch.ones(placed.means.shape[:2], dtype=torch.bool))
     with pytest.raises(ValueError, match="voxel_size=None"):
         refine_context_cameras(render_rgb, merged, pred, images, steps=5)
+
+
+def test_test_time_fits_do_not_depend_on_the_batch():
+    """Each sample is refined as if alone: its cameras are the same bits in a batch of one and of two (the fused
+    renderer treats scenes independently). A mean over the batch made them depend on the batch-mates (Adam's eps)."""
+    pytest.importorskip("numba")
+    from anycity.lit.evaluation import align_target_poses, refine_context_cameras
+    from anycity.render import render
+    from anycity.structures import Gaussians
+
+    placed, gt, pred, K, images, render_rgb = _views_with_a_camera_error("cpu")
+    pair = Gaussians(*(torch.cat([x, x]) for x in (placed.means, placed.quats, placed.scales, placed.opacities,
+                                                   placed.sh)))
+    other = pred.clone()
+    other[0, 1:, :3, 3] += 0.03  # the second sample: the same views with another camera error
+
+    def one_view(scenes, cams):
+        return render(scenes, cams, K[0, :1].expand(scenes.means.shape[0], 1, 3, 3), 32, 32, backend="cpu").rgb
+
+    start = gt[:, :2].clone()
+    start[..., :3, 3] += 0.02
+    with torch.inference_mode():
+        alone, _ = refine_context_cameras(render_rgb, placed, pred, images, steps=30)
+        batched, _ = refine_context_cameras(render_rgb, pair, torch.cat([pred, other]), torch.cat([images, images]),
+                                            steps=30)
+        aligned = align_target_poses(one_view, placed, start, images[:, :2], steps=30, lr=0.01)
+        aligned2 = align_target_poses(one_view, pair, torch.cat([start, start - 0.05 * (start != 0)]),
+                                      torch.cat([images[:, :2], images[:, :2]]), steps=30, lr=0.01)
+    assert torch.equal(batched[:1], alone) and torch.equal(aligned2[:1], aligned)
