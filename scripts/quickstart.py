@@ -98,7 +98,10 @@ def main(argv: list[str] | None = None) -> int:
     ckpt2 = out / "stage2" / "checkpoints" / "last.ckpt"
 
     _banner("evaluation on held-out views of unseen (test) scenes", t0)
-    cli = build_cli(["test", *stage2, *_run_args(out, "test"), "--ckpt_path", str(ckpt2)])
+    # 4 test samples per step: a quarter faster, and the same figures as one at a time (each sample's test-time
+    # fits ignore its batch-mates; only the metric means' float summation order differs, ~1e-6 dB)
+    cli = build_cli(["test", "--data.eval_batch_size", "4", *stage2, *_run_args(out, "test"), "--ckpt_path",
+                     str(ckpt2)])
     m = {k[len("test/"):]: float(v) for k, v in cli.trainer.callback_metrics.items() if k.startswith("test/")}
     metrics = quickstart_metrics(m, (time.monotonic() - t0) / 60)
     out.mkdir(parents=True, exist_ok=True)
