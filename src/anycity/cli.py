@@ -226,22 +226,49 @@ def _candidates(message: str) -> list[str]:
     return sorted(names)
 
 
+def _section_candidates(dotted: str) -> list[str] | None:
+    """Valid keys beside ``dotted`` (``data.x``, ``trainer.x``, ``model[.init_args].net.x``), or None when the
+    section is not one of those."""
+    import inspect
+
+    parts = dotted.lstrip("-").split(".")[:-1]
+    if "net" in parts:
+        import dataclasses
+
+        from anycity.models.presets import preset_config
+
+        return sorted(f.name for f in dataclasses.fields(preset_config("tiny")))
+    if parts[:1] in (["data"], ["trainer"]):
+        if parts[0] == "data":
+            from anycity.lit.datamodule import AerialDataModule as cls
+        else:
+            from lightning.pytorch import Trainer as cls
+        return sorted(p for p in inspect.signature(cls.__init__).parameters if p not in ("self", "args", "kwargs"))
+    return None
+
+
 def config_error(message: str, argv: list[str]) -> str:
-    """One line for a jsonargparse error: the unknown option and the nearest valid key."""
+    """One line for a jsonargparse error: the unknown option or config-file key and the nearest valid key."""
     import difflib
     import re
 
     bad = re.findall(r"Option '(\w+)' is not accepted", message) + re.findall(r"NestedArg\(key='(\w+)'", message)
     bad += re.findall(r"[Kk]ey '([\w.]+)' is not expected", message)
+    bad += re.findall(r"does not accept option '([\w.]+)'", message)  # a key in a --config file
+    bad += re.findall(r"unrecognized arguments: --([\w.]+)", message)
     if not bad:
         return _one_line(message).replace("\n", " ")
     key = bad[0].split(".")[-1]
-    opt = next((a.split("=")[0] for a in argv if a.startswith("--") and a.split("=")[0].endswith("." + key)),
-               f"--{bad[0]}")
-    near = difflib.get_close_matches(key, _candidates(message), n=1, cutoff=0.6)
+    given = next((a.split("=")[0] for a in argv if a.startswith("--") and
+                  (a.split("=")[0].endswith("." + key) or a.split("=")[0] == f"--{bad[0]}")), None)
+    where = given or bad[0]
+    candidates = _section_candidates(where) if "." in where else None
+    near = difflib.get_close_matches(key, candidates if candidates is not None else _candidates(message), n=1,
+                                     cutoff=0.6)
     alias = difflib.get_close_matches(key.lower(), list(_ALIASES), n=1, cutoff=0.8)
     hint = near[0] if near else (f"{_ALIASES[alias[0]]} ({alias[0].replace('_', ' ')})" if alias else None)
-    return f"unknown option {opt}" + (f"; did you mean {hint}?" if hint else "; see anycity COMMAND --help")
+    what = f"unknown option {given}" if given else f"unknown key {bad[0]} in a --config file"
+    return what + (f"; did you mean {hint}?" if hint else "; see anycity COMMAND --help")
 
 
 def _dispatch(args: list[str], argv_given: bool) -> int:

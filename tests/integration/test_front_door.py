@@ -74,6 +74,27 @@ def test_config_typo_names_the_nearest_key(capsys):
     assert "did you mean lr (learning rate)?" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("typo, said", [
+    (["--data.num_contxt", "5"], "unknown option --data.num_contxt; did you mean num_context?"),
+    (["--model.init_args.net.camera_trunk_dept", "3"],  # a network key: the network's keys are the candidates
+     "unknown option --model.init_args.net.camera_trunk_dept; did you mean camera_trunk_depth?"),
+    ({"data": {"num_contxt": 5}}, "unknown key data.num_contxt in a --config file; did you mean num_context?"),
+    ({"trainer": {"max_stpes": 5}}, "unknown key trainer.max_stpes in a --config file; did you mean max_steps?"),
+    ({"model": {"init_args": {"warmup_step": 5}}}, "unknown key warmup_step in a --config file; did you mean "
+     "warmup_steps?"),
+])
+def test_typos_in_every_section_name_the_nearest_key(typo, said, tmp_path, capsys, monkeypatch):
+    monkeypatch.delenv("ANYCITY_DEBUG", raising=False)
+    if isinstance(typo, dict):
+        import yaml
+
+        (tmp_path / "typo.yaml").write_text(yaml.safe_dump(typo))
+        typo = ["--config", str(tmp_path / "typo.yaml")]
+    assert cli.main(["fit", "--config", "configs/quickstart.yaml", *typo]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and said in err, err
+
+
 def test_lightnings_pytree_deprecation_is_not_printed():
     """Lightning 2.6 + torch >= 2.10 printed a FutureWarning about Lightning's own code on every fit and test."""
     import warnings
