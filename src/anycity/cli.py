@@ -256,6 +256,10 @@ def config_error(message: str, argv: list[str]) -> str:
     bad += re.findall(r"[Kk]ey '([\w.]+)' is not expected", message)
     bad += re.findall(r"does not accept option '([\w.]+)'", message)  # a key in a --config file
     bad += re.findall(r"unrecognized arguments: --([\w.]+)", message)
+    unexpected = re.search(r"Unexpected keys: \{'(\w+)'", message)  # a typed dict's key (model.net) in a file
+    if unexpected:
+        section = re.findall(r'Parser key "(\w+)"', message[:unexpected.start()])
+        bad.append(".".join(section[-1:] + [unexpected.group(1)]))
     if not bad:
         return _one_line(message).replace("\n", " ")
     key = bad[0].split(".")[-1]

@@ -82,6 +82,8 @@ def test_config_typo_names_the_nearest_key(capsys):
     ({"trainer": {"max_stpes": 5}}, "unknown key trainer.max_stpes in a --config file; did you mean max_steps?"),
     ({"model": {"init_args": {"warmup_step": 5}}}, "unknown key warmup_step in a --config file; did you mean "
      "warmup_steps?"),
+    ({"model": {"init_args": {"net": {"camera_trunk_dept": 3}}}}, "unknown key net.camera_trunk_dept in a --config "
+     "file; did you mean camera_trunk_depth?"),
 ])
 def test_typos_in_every_section_name_the_nearest_key(typo, said, tmp_path, capsys, monkeypatch):
     monkeypatch.delenv("ANYCITY_DEBUG", raising=False)
