@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from anycity.data.imagecheck import check_image_file
-from anycity.data.views import resize_plan, resize_view
+from anycity.data.views import jpeg_reduction, resize_plan, resize_view
 
 PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".webp")
 # photos that are not read here, named in a warning: camera raw and HEIF (no decoder), TIFF (where its orientation
@@ -84,17 +84,24 @@ def common_size(sizes: list[tuple[int, int]], size: tuple[int, int], mode: str =
 
 
 def load_photo(path: Path, hw: tuple[int, int], mode: str = "keep", patch: int = 14) -> torch.Tensor:
-    """One photo -> ``[3, H, W]`` float32 RGB in [0, 1] at exactly ``hw`` (its aspect kept when it matches)."""
-    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)  # applies the EXIF orientation
-    if bgr is None:
+    """One photo -> ``[3, H, W]`` float32 RGB in [0, 1] at exactly ``hw`` (its aspect kept when it matches).
+
+    A JPEG much larger than ``hw`` is decoded at 1/2, 1/4 or 1/8 of its size by libjpeg's DCT scaling (a 20 MP
+    drone photo for a 448 px model: 35 instead of 130 ms), then area-resized as in full.
+    """
+    h, w = photo_size(path)
+    keep = mode == "keep" and resize_plan(h, w, hw, "keep", patch)[2:] == tuple(hw)
+    nh, nw = resize_plan(h, w, hw, "keep" if keep else "crop", patch)[:2]
+    r = jpeg_reduction(h, w, nh, nw) if path.suffix.lower() in (".jpg", ".jpeg") else 1
+    flag = {1: cv2.IMREAD_COLOR, 2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4,
+            8: cv2.IMREAD_REDUCED_COLOR_8}[r]
+    bgr = cv2.imread(str(path), flag)  # applies the EXIF orientation
+    if bgr is None or bgr.shape[:2] != (h // r, w // r):
         raise ValueError(f"predict_images: cannot decode {path}; re-save it as JPEG or PNG, or remove it")
-    h, w = bgr.shape[:2]
     K = np.array([[max(h, w), 0, w / 2], [0, max(h, w), h / 2], [0, 0, 1]], np.float64)  # unused placeholder
     rgb = np.ascontiguousarray(bgr[..., ::-1])
-    if mode == "keep" and resize_plan(h, w, hw, "keep", patch)[2:] == tuple(hw):
-        rgb, *_ = resize_view(rgb, K, hw, "keep", patch)
-    else:  # another aspect ratio than the folder's (or mode "crop"): cover hw, centre-crop
-        rgb, *_ = resize_view(rgb, K, hw, "crop", patch)
+    # another aspect ratio than the folder's (or mode "crop"): cover hw, centre-crop
+    rgb, *_ = resize_view(rgb, K, hw, "keep" if keep else "crop", patch, src_hw=(h, w))
     return torch.from_numpy(np.ascontiguousarray(rgb)).permute(2, 0, 1).float() / 255
 
 

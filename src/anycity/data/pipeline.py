@@ -30,7 +30,7 @@ import webdataset as wds
 
 from anycity.data.schema import decode_image, decode_normals, decode_npy, member, read_meta, sample_where
 from anycity.data.tario import NoSampleGuard, tar_samples
-from anycity.data.views import Selection, normalise, resize_plan, resize_view, select_eval, select_train
+from anycity.data.views import Selection, jpeg_reduction, normalise, resize_plan, resize_view, select_eval, select_train
 from anycity.structures import ViewBatch, Views
 
 GROUPS = ("context", "target", "dense")
@@ -73,14 +73,6 @@ def single_thread():
     finally:
         if n > 1:
             torch.set_num_threads(n)
-
-
-def _reduction(h: int, w: int, nh: int, nw: int) -> int:
-    """Largest JPEG DCT scale-down (8, 4, 2) that keeps at least ``nh x nw`` pixels and divides ``h x w``."""
-    for r in (8, 4, 2):
-        if h % r == 0 and w % r == 0 and h // r >= nh and w // r >= nw:
-            return r
-    return 1
 
 
 def context_count_probs(context_range: tuple[int, int] | list[int] | None,
@@ -170,7 +162,7 @@ class SampleBuilder:
         h, w = view["height"], view["width"]
         key = view["image"]
         nh, nw, _, _ = resize_plan(h, w, self.size, self.mode, self.patch)
-        r = _reduction(h, w, nh, nw) if key.endswith((".jpg", ".jpeg")) else 1
+        r = jpeg_reduction(h, w, nh, nw) if key.endswith((".jpg", ".jpeg")) else 1
         img = decode_image(member(sample, key), reduce=r)
         if img.shape[:2] != (-(-h // r), -(-w // r)):
             raise ValueError(f"{sample_where(sample)}: key {key!r} is {img.shape[1] * r}x{img.shape[0] * r}, "

@@ -99,6 +99,15 @@ def select_eval(n: int, num_context: int, num_targets: int, num_dense: int, hold
     return out
 
 
+def jpeg_reduction(h: int, w: int, nh: int, nw: int) -> int:
+    """Largest JPEG DCT scale-down (8, 4, 2) that keeps at least ``nh x nw`` pixels and divides ``h x w`` (so the
+    decoded image covers exactly the same field of view); 1 when none does."""
+    for r in (8, 4, 2):
+        if h % r == 0 and w % r == 0 and h // r >= nh and w // r >= nw:
+            return r
+    return 1
+
+
 def resize_plan(h: int, w: int, size: tuple[int, int], mode: str = "crop", patch: int = 14
                 ) -> tuple[int, int, int, int]:
     """Resized size ``(nh, nw)`` before the centre crop and the output size ``(H, W)`` (see :func:`resize_view`)."""

@@ -73,6 +73,34 @@ def test_hidden_files_are_not_photos_and_raw_files_are_named(tmp_path):
     assert out["names"] == ["DJI_0001.JPG", "DJI_0002.JPG"]
 
 
+def test_large_jpegs_decode_at_a_fraction_of_their_size(tmp_path, monkeypatch):
+    """A JPEG 8x larger than the model's input is decoded at 1/8 scale by libjpeg, upright, and matches decoding it
+    in full and resizing."""
+    from PIL import Image
+
+    import anycity.data.photos as photos
+    from anycity.data.views import resize_view
+
+    yy, xx = np.mgrid[0:480, 0:640]
+    img = np.stack([xx * 255 // 639, yy * 255 // 479, (xx + yy) % 256], -1).astype(np.uint8)  # smooth, no aliasing
+    d = tmp_path / "drone"
+    d.mkdir()
+    exif = Image.Exif()
+    exif[0x0112] = 6  # shown rotated: 480 wide, 640 high
+    Image.fromarray(img).save(d / "a.jpg", quality=95, exif=exif)
+    Image.fromarray(img).save(d / "b.JPG", quality=95, exif=exif)
+    flags = []
+    imread = cv2.imread
+    monkeypatch.setattr(photos.cv2, "imread", lambda f, flag: flags.append(flag) or imread(f, flag))
+    out = load_photo_folder(d, (64, 48), mode="keep", patch=8)
+    assert flags == [cv2.IMREAD_REDUCED_COLOR_8] * 2 and out["images"].shape == (2, 3, 64, 48)
+    full = imread(str(d / "a.jpg"), cv2.IMREAD_COLOR)[..., ::-1]
+    assert full.shape[:2] == (640, 480)  # upright
+    ref, *_ = resize_view(np.ascontiguousarray(full), np.eye(3), (64, 48), "keep", 8)
+    err = (out["images"][0].permute(1, 2, 0).numpy() - ref / 255).__abs__().mean()
+    assert err < 0.01, err
+
+
 def test_folder_errors_name_the_problem(tmp_path):
     with pytest.raises(FileNotFoundError, match="not a folder"):
         load_photo_folder(tmp_path / "missing", (32, 32))
