@@ -154,28 +154,30 @@ def quickstart_metrics(m: dict[str, float], minutes: float) -> dict:
     return out
 
 
+def markdown_table(header: list[str], rows: list[list[str]]) -> str:
+    """A markdown table with every column padded to its widest cell (the model names left, the figures right)."""
+    widths = [max(len(r[i]) for r in [header, *rows]) for i in range(len(header))]
+    fmt = lambda r: "| " + " | ".join(c.ljust(w) if i == 0 else c.rjust(w)  # noqa: E731
+                                      for i, (c, w) in enumerate(zip(r, widths))) + " |"
+    return "\n".join([fmt(header), "|" + "|".join("-" * (w + 2) for w in widths) + "|", *map(fmt, rows)])
+
+
 def print_tables(x: dict) -> None:
     """The PSNR table (feed-forward first, each test-time step named for the images it reads) and the region
     table of the paper's Table 2 (observation-supported / weak pixels)."""
-    print("\n| model                      | feed-forward PSNR / SSIM | + camrefine (context only) | + targetalign "
-          "(reads target) |")
-    print("|----------------------------|--------------------------|----------------------------|------------------"
-          "-----------|")
-    print(f"| mean-colour baseline       | {x['baseline_psnr']:11.2f}              |                            |")
-    print(f"| nearest context view       | {x['nearest_view_psnr']:11.2f}              |                            |")
-    for v, label in (("scaffold", "Stage I scaffold"), ("refined", "Stage II refined")):
-        print(f"| {label:26s} | {x[f'{v}_psnr']:11.2f} / {x[f'{v}_ssim']:.3f}      | {x[f'{v}_psnr_camrefine']:11.2f}"
-              f" / {x[f'{v}_ssim_camrefine']:.3f}       | {x[f'{v}_psnr_targetalign']:12.2f} / "
-              f"{x[f'{v}_ssim_targetalign']:.3f}         |")
+    pair = lambda v, p: f"{x[f'{v}_psnr{p}']:.2f} / {x[f'{v}_ssim{p}']:.3f}"  # noqa: E731
+    rows = [["mean-colour baseline", f"{x['baseline_psnr']:.2f}", "", ""],
+            ["nearest context view", f"{x['nearest_view_psnr']:.2f}", "", ""]]
+    rows += [[label, pair(v, ""), pair(v, "_camrefine"), pair(v, "_targetalign")]
+             for v, label in (("scaffold", "Stage I scaffold"), ("refined", "Stage II refined"))]
+    print("\n" + markdown_table(["model", "feed-forward PSNR / SSIM", "+ camrefine (context only)",
+                                 "+ targetalign (reads target)"], rows))
     print(f"\nregions of the target pixels (ground-truth depth reprojected into the context views): observed "
           f"{100 * x['region_obs']:.1f}%, weak {100 * x['region_weak']:.1f}% (the rest is sky)")
-    print("| model            | observed PSNR | weak PSNR | observed, camrefine | weak, camrefine |")
-    print("|------------------|---------------|-----------|---------------------|-----------------|")
-    print(f"| baseline         | {x['psnr_obs_baseline']:13.2f} | {x['psnr_weak_baseline']:9.2f} |"
-          "                     |                 |")
-    for v in ("scaffold", "refined"):
-        print(f"| {v:16s} | {x[f'psnr_obs_{v}']:13.2f} | {x[f'psnr_weak_{v}']:9.2f} | "
-              f"{x[f'psnr_obs_{v}_camrefine']:19.2f} | {x[f'psnr_weak_{v}_camrefine']:15.2f} |")
+    rows = [["baseline", f"{x['psnr_obs_baseline']:.2f}", f"{x['psnr_weak_baseline']:.2f}", "", ""]]
+    rows += [[v, *(f"{x[f'psnr_{r}_{v}{p}']:.2f}" for p in ("", "_camrefine") for r in ("obs", "weak"))]
+             for v in ("scaffold", "refined")]
+    print(markdown_table(["model", "observed PSNR", "weak PSNR", "observed, camrefine", "weak, camrefine"], rows))
     print(f"\ndepth (refined, feed-forward, held-out views): AbsRel {x['abs_rel']:.3f}  delta1 {x['delta1']:.3f}")
     print(f"context cameras (all view pairs), network -> after camrefine: rotation error {x['rot_err_deg']:.1f} -> "
           f"{x['rot_err_deg_refined_cameras']:.1f} deg, translation direction error {x['trans_err_deg']:.1f} -> "
