@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import shutil
+import warnings
 from pathlib import Path
 
 import torch
@@ -69,16 +70,30 @@ def export(src: str | Path, fmt: str, out: str | Path, overwrite: bool = False) 
                          "pass the predict scene folder")
     w2c, K, w, h, names = camera_tensors(cams)
     src_dir = Path(src) if Path(src).is_dir() else Path(src).parent
-    files = [f"images/{n}.png" for n in names]
-    inputs = src_dir / "inputs"
-    for n, f in zip(names, files, strict=True):  # the context images the cameras belong to, when predict saved them
-        if (inputs / f"{n}.png").is_file():
-            (out / "images").mkdir(exist_ok=True)
-            shutil.copyfile(inputs / f"{n}.png", out / f)
+    images = image_names(names)
+    # the input images the cameras belong to, at the cameras' size: predict saves view v as inputs/NNN.png
+    inputs = [src_dir / "inputs" / f"{v:03d}.png" for v in range(len(names))]
+    if all(f.is_file() for f in inputs):
+        (out / "images").mkdir(exist_ok=True)
+        for f, name in zip(inputs, images, strict=True):
+            shutil.copyfile(f, out / "images" / name)
+    else:
+        warnings.warn(f"{src_dir}: no inputs/ images for all {len(names)} cameras (predict with --export.save_renders "
+                      f"false?); the {fmt} export names images/{images[0]} etc. without writing them", stacklevel=2)
     if fmt == "colmap":
-        return save_colmap(out / "sparse" / "0", w2c, K, w, h, [f"{n}.png" for n in names], g)
+        return save_colmap(out / "sparse" / "0", w2c, K, w, h, images, g)
     save_ply(g, out / "scene.ply")
-    return save_transforms(out / "transforms.json", w2c, K, w, h, files, ply_file_path="scene.ply")
+    return save_transforms(out / "transforms.json", w2c, K, w, h, [f"images/{n}" for n in images],
+                           ply_file_path="scene.ply")
+
+
+def image_names(names: list[str]) -> list[str]:
+    """Exported image file names for the cameras' view names: ``DJI_0018.jpg`` -> ``DJI_0018.png`` (the inputs are
+    PNGs at the cameras' size), ``003`` -> ``003.png``; prefixed with the view index where two would collide."""
+    stems = [Path(n).stem if Path(n).suffix.lower() in (".jpg", ".jpeg", ".png", ".webp") else n for n in names]
+    if len(set(stems)) < len(stems):
+        stems = [f"{v:03d}_{s}" for v, s in enumerate(stems)]
+    return [f"{s}.png" for s in stems]
 
 
 def export_main(argv: list[str]) -> int:

@@ -76,7 +76,8 @@ def test_splat_round_trip(tmp_path):
 
 def test_colmap_round_trip(tmp_path):
     d, g, w2c, K = _predict_dir(tmp_path)
-    out = export(d, "colmap", tmp_path / "out")
+    with pytest.warns(UserWarning, match="no inputs/ images for all 3 cameras"):  # predict saved no inputs here
+        out = export(d, "colmap", tmp_path / "out")
     model = colmap_parser.read_model(tmp_path / "out")
     assert out == tmp_path / "out" / "sparse" / "0"
     assert len(model.images) == 3 and len(model.points) == g.num_gaussians
@@ -95,7 +96,8 @@ def test_colmap_round_trip(tmp_path):
 
 def test_nerfstudio_round_trip(tmp_path):
     d, g, w2c, K = _predict_dir(tmp_path, scale=2.5)
-    path = export(d, "nerfstudio", tmp_path / "out")
+    with pytest.warns(UserWarning, match="names images/000.png etc. without writing them"):
+        path = export(d, "nerfstudio", tmp_path / "out")
     scene = ns_parser.parse(path)[0]
     assert len(scene.views) == 3
     for v, view in enumerate(scene.views):
@@ -105,6 +107,34 @@ def test_nerfstudio_round_trip(tmp_path):
     meta = json.loads(path.read_text())
     assert meta["ply_file_path"] == "scene.ply" and (tmp_path / "out" / "scene.ply").is_file()
     assert json.loads((tmp_path / "out" / "scale.json").read_text())["metres_per_unit"] == 2.5
+
+
+def test_exports_carry_a_photo_folders_input_images(tmp_path):
+    """predict saves view v of a photo folder as inputs/NNN.png: the exports copy them under names the COLMAP model
+    and transforms.json use (DJI_0001.jpg -> images/DJI_0001.png), so both convert back with their images."""
+    from PIL import Image
+
+    g, w2c, K = _scene()
+    d = tmp_path / "pred" / "flight"
+    names = ["DJI_0001.jpg", "DJI_0002.jpg", "DJI_0003.JPG"]
+    save_ply(g, d / "scene.ply")
+    save_cameras(d / "cameras.json", w2c, K, 48, 32, names)
+    (d / "inputs").mkdir()
+    for v in range(3):
+        Image.new("RGB", (48, 32), (60 * v, 0, 0)).save(d / "inputs" / f"{v:03d}.png")
+    for fmt in ("colmap", "nerfstudio"):
+        export(d, fmt, tmp_path / fmt)
+        assert sorted(p.name for p in (tmp_path / fmt / "images").iterdir()) == ["DJI_0001.png", "DJI_0002.png",
+                                                                                 "DJI_0003.png"]
+        src = tmp_path / fmt if fmt == "colmap" else tmp_path / fmt / "transforms.json"
+        views = (colmap_parser if fmt == "colmap" else ns_parser).parse(src)[0].views
+        assert [v.name for v in views] == ["DJI_0001.png", "DJI_0002.png", "DJI_0003.png"]
+        for v, view in enumerate(views):  # each camera with its own input image
+            assert np.asarray(Image.open(view.image_path))[0, 0, 0] == 60 * v
+            np.testing.assert_allclose(view.w2c, w2c[v].numpy(), atol=1e-6)
+    from anycity.export.cli import image_names
+
+    assert image_names(["a.jpg", "a.png", "b"]) == ["000_a.png", "001_a.png", "002_b.png"]
 
 
 def test_ply_export_and_errors(tmp_path, capsys):
