@@ -116,6 +116,11 @@ def test_folder_errors_name_the_problem(tmp_path):
     (bad / "a.png").unlink()
     with pytest.raises(ValueError, match="holds 1 photos .only b.jpg.*add more"):
         load_photo_folder(bad, (32, 32))
+    flights = tmp_path / "flights"  # the parent of two scenes' folders
+    _write(flights / "north", "a.png", 32, 32)
+    _write(flights / "south", "a.png", 32, 32)
+    with pytest.raises(ValueError, match=r"holds 0 photos but sub-folders of photos \(north, south\); pass one"):
+        load_photo_folder(flights, (32, 32))
 
 
 def test_keep_aspect_no_crop_and_mixed_sizes_go_to_the_most_common(tmp_path):
