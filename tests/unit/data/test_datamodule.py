@@ -242,3 +242,21 @@ def test_train_num_context_typos_and_mixed_batches(synth_root):
                                epoch_samples=1))
     with pytest.raises(ValueError, match=r"collate: the samples of one batch have \[2, 3\] context views"):
         collate([items[0], other[0]])
+
+
+def test_a_photo_folder_is_predicted_in_one_process(tmp_path):
+    """Under DDP each rank would get some of the chunks and merge a part of the scene: refused in one line."""
+    from types import SimpleNamespace
+
+    import numpy as np
+    from PIL import Image
+
+    for i in range(3):
+        Image.fromarray(np.full((16, 16, 3), 40 * i, np.uint8)).save(tmp_path / f"{i}.png")
+    dm = AerialDataModule(predict_images=str(tmp_path), image_size=(16, 16), patch_size=8, num_workers=0)
+    dm.trainer = SimpleNamespace(world_size=2)
+    with pytest.raises(ValueError, match="one photo folder is reconstructed in one process .* not on 2; pass "
+                                         "--trainer.devices 1"):
+        dm.predict_dataloader()
+    dm.trainer = SimpleNamespace(world_size=1)
+    assert len(list(dm.predict_dataloader())) == 1
