@@ -206,10 +206,10 @@ class AerialDataModule(pl.LightningDataModule):
     def predict_dataloader(self) -> DataLoader:
         if self.hp.predict_images is None:
             return self.test_dataloader()
-        if self.trainer is not None and self.trainer.world_size > 1:  # each rank would get some of the chunks
+        world = getattr(self.trainer, "world_size", 1)
+        if world > 1:  # each rank would get some of the chunks and merge a part of the scene
             raise ValueError(f"predict_images: one photo folder is reconstructed in one process (its chunks are "
-                             f"aligned and merged together), not on {self.trainer.world_size}; pass "
-                             "--trainer.devices 1")
+                             f"aligned and merged together), not on {world}; pass --trainer.devices 1")
         from anycity.city.plan import plan_chunks
         from anycity.data.photos import MAX_VIEWS, PhotoFolder
 
