@@ -164,6 +164,9 @@ def test_blendedmvs_with_pfm(tmp_path):
     import io
     depth = np.load(io.BytesIO(sample["000.depth.npy"]))
     assert depth[0, 0] == 1 and depth[0, 1] == 2  # top row first after the PFM flip
+    (src / "blended_images" / "00000001.jpg").write_bytes(b"not a jpeg")  # a damaged download: named in one line
+    with pytest.raises(ValueError, match=r"00000001\.jpg: not a readable image .* remove 00000001_cam\.txt"):
+        convert("blendedmvs", src, tmp_path / "out2")
 
 
 def _llff_rows(gt, cols):

@@ -40,15 +40,26 @@ def read_cam(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return E, K
 
 
-def _scene(d: Path) -> ParsedScene:
-    import cv2
+def _image_size(img: Path, cam: Path) -> tuple[int, int]:
+    """``(h, w)`` from the image's header (no decode)."""
+    from PIL import Image
 
+    try:
+        with Image.open(require(img, f"the image of {cam.name}")) as im:
+            w, h = im.size
+    except (OSError, SyntaxError, ValueError) as e:
+        raise ValueError(f"{img}: not a readable image ({type(e).__name__}); re-download it, or remove {cam.name} "
+                         "to leave the view out") from None
+    return h, w
+
+
+def _scene(d: Path) -> ParsedScene:
     views = []
     for cam in sorted(c for c in (d / "cams").glob("*_cam.txt") if not c.name.startswith(".")):  # not ._x (macOS)
         stem = cam.name[: -len("_cam.txt")]
         E, K = read_cam(cam)
         img = d / "blended_images" / f"{stem}.jpg"
-        h, w = cv2.imread(str(require(img, f"the image of {cam.name}")), cv2.IMREAD_GRAYSCALE).shape
+        h, w = _image_size(img, cam)
         pfm = d / "rendered_depth_maps" / f"{stem}.pfm"
         depth = (lambda p=pfm: read_pfm(p)) if pfm.exists() else None
         views.append(ParsedView(name=img.name, image_path=img, w2c=E, K=K, width=w, height=h, depth=depth))
