@@ -118,6 +118,17 @@ def test_nerfstudio(tmp_path):
     (src / "transforms.json").write_text(json.dumps({"fl_x": 30, "w": W, "h": H, "k1": 0.1, "frames": frames}))
     with pytest.raises(ValueError, match="undistort"):
         convert("nerfstudio", src, tmp_path / "o2")
+    # depth PNGs are read while the shards are written: a damaged one is named in one line, and no shard set is left
+    (src / "depth").mkdir()
+    for i, fr in enumerate(frames):
+        fr["depth_file_path"] = f"depth/f{i}.png"
+        cv2.imwrite(str(src / fr["depth_file_path"]), np.full((H, W), 1000, np.uint16))
+    (src / "depth" / "f1.png").write_bytes(b"not a png")
+    (src / "transforms.json").write_text(json.dumps({"fl_x": 30, "fl_y": 31, "cx": 16, "cy": 12, "w": W, "h": H,
+                                                     "frames": frames}))
+    with pytest.raises(ValueError, match=r"depth/f1\.png: not a one-channel depth png; re-export it"):
+        convert("nerfstudio", src, tmp_path / "o3")
+    assert not (tmp_path / "o3" / "index.json").exists()
 
 
 def test_matrixcity_split_file_with_depth(tmp_path):

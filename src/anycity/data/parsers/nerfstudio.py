@@ -50,6 +50,8 @@ def parse(src: str | Path) -> list[ParsedScene]:
 
             def depth(dp=dp):
                 raw = cv2.imread(str(require(dp, "a 16-bit depth png")), cv2.IMREAD_UNCHANGED)
+                if raw is None or raw.ndim != 2:
+                    raise ValueError(f"{dp}: not a one-channel depth png; re-export it, or drop its depth_file_path")
                 return raw.astype(np.float32) * scale
         c2w = np.asarray(fr["transform_matrix"], float)
         views.append(ParsedView(name=Path(fr["file_path"]).name, image_path=root / fr["file_path"],
