@@ -89,15 +89,17 @@ def common_size(sizes: list[tuple[int, int]], size: tuple[int, int], mode: str =
     return target, odd
 
 
-def load_photo(path: Path, hw: tuple[int, int], mode: str = "keep", patch: int = 14) -> torch.Tensor:
+def load_photo(path: Path, hw: tuple[int, int], mode: str = "keep", patch: int = 14,
+               size: tuple[int, int] | None = None) -> torch.Tensor:
     """One photo -> ``[3, H, W]`` float32 RGB in [0, 1] at exactly ``hw`` (its aspect kept when it matches).
 
     A JPEG much larger than ``hw`` is decoded at 1/2, 1/4 or 1/8 of its size by libjpeg's DCT scaling (a 20 MP
     drone photo for a 448x672 input: 43 instead of 253 ms with the resize), then area-resized as in full.
+    ``size``: the photo's :func:`photo_size` when the caller has read it already.
     """
     r = 1
     if path.suffix.lower() in (".jpg", ".jpeg"):
-        h, w = photo_size(path)  # as shown: OpenCV applies a JPEG's EXIF orientation too
+        h, w = size or photo_size(path)  # as shown: OpenCV applies a JPEG's EXIF orientation too
         keep = mode == "keep" and resize_plan(h, w, hw, "keep", patch)[2:] == tuple(hw)
         r = jpeg_reduction(h, w, *resize_plan(h, w, hw, "keep" if keep else "crop", patch)[:2])
     flag = {1: cv2.IMREAD_COLOR, 2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4,
@@ -150,7 +152,8 @@ class PhotoFolder:
         self.files = [files[i] for i in idx]
         self.names = [f.name for f in self.files]
         self.mode, self.patch = mode, patch
-        self.hw, odd = common_size([photo_size(f) for f in self.files], tuple(size), mode, patch)
+        self._sizes = {f: photo_size(f) for f in self.files}  # the headers, read once (load reuses them)
+        self.hw, odd = common_size([self._sizes[f] for f in self.files], tuple(size), mode, patch)
         if odd:
             shown = ", ".join(self.names[i] for i in odd[:5]) + (" ..." if len(odd) > 5 else "")
             warnings.warn(f"predict_images: {len(odd)} of {len(self.files)} photos in {self.folder} ({shown}) have "
@@ -171,7 +174,8 @@ class PhotoFolder:
     def load(self, indices: list[int] | None = None) -> torch.Tensor:
         """``[V, 3, H, W]`` float32 of the photos at ``indices`` (all by default)."""
         indices = range(len(self)) if indices is None else indices
-        return torch.stack([load_photo(self.files[i], self.hw, self.mode, self.patch) for i in indices])
+        return torch.stack([load_photo(self.files[i], self.hw, self.mode, self.patch, self._sizes[self.files[i]])
+                            for i in indices])
 
 
 def load_photo_folder(folder: str | Path, size: tuple[int, int], mode: str = "keep", patch: int = 14,
