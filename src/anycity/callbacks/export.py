@@ -6,13 +6,12 @@ from pathlib import Path
 from typing import Any
 
 import lightning.pytorch as pl
-import numpy as np
 from lightning.pytorch.callbacks import BasePredictionWriter
-from PIL import Image
 
 from anycity.export import save_cameras, save_ply
 from anycity.export.provenance import provenance, summary
 from anycity.export.smoothing import VARIANCE_PX, smooth_3d
+from anycity.export.views import save_view_pngs
 
 
 class PredictionExport(BasePredictionWriter):
@@ -91,10 +90,7 @@ class PredictionExport(BasePredictionWriter):
             save_cameras(folder / "cameras.json", w2c[i], K[i], int(w), int(h), names[i] if names else None)
             if self.save_renders:
                 for kind, imgs in (("renders", renders.rgb[i]), ("inputs", images[i])):
-                    (folder / kind).mkdir(parents=True, exist_ok=True)
-                    for v, img in enumerate(imgs):
-                        arr = (img.float().clamp(0, 1).permute(1, 2, 0).cpu().numpy() * 255 + 0.5).astype(np.uint8)
-                        Image.fromarray(arr).save(folder / kind / f"{v:03d}.png")
+                    save_view_pngs(folder, kind, imgs, range(len(imgs)))
             self.written.append(folder)
 
     def _exported(self, prediction: dict[str, Any]):
@@ -139,10 +135,7 @@ class PredictionExport(BasePredictionWriter):
         if self.save_renders:
             own = city.owned(k)
             for kind, imgs in (("renders", prediction["renders"].rgb[0]), ("inputs", prediction["images"][0])):
-                (folder / kind).mkdir(parents=True, exist_ok=True)
-                for i in own:
-                    arr = (imgs[i].float().clamp(0, 1).permute(1, 2, 0).cpu().numpy() * 255 + 0.5).astype(np.uint8)
-                    Image.fromarray(arr).save(folder / kind / f"{views[i]:03d}.png")
+                save_view_pngs(folder, kind, imgs[own], [views[i] for i in own])
         self._bar.update(1)
         if k == info["count"] - 1:
             self._bar.close()

@@ -71,8 +71,9 @@ def export(src: str | Path, fmt: str, out: str | Path, overwrite: bool = False) 
     w2c, K, w, h, names = camera_tensors(cams)
     src_dir = Path(src) if Path(src).is_dir() else Path(src).parent
     images = image_names(names)
-    # the input images the cameras belong to, at the cameras' size: predict saves view v as inputs/NNN.png
-    inputs = [src_dir / "inputs" / f"{v:03d}.png" for v in range(len(names))]
+    from anycity.export.views import view_png
+
+    inputs = [view_png(src_dir, "inputs", v) for v in range(len(names))]  # the images the cameras belong to
     if all(f.is_file() for f in inputs):
         (out / "images").mkdir(exist_ok=True)
         for f, name in zip(inputs, images, strict=True):

@@ -12,6 +12,7 @@ from PIL import Image
 
 from anycity.export.cli import camera_tensors, load_scene
 from anycity.export.ply import load_ply_extras
+from anycity.export.views import view_png
 from anycity.structures import Gaussians
 
 SH_C0 = 0.28209479177387814
@@ -43,10 +44,8 @@ def load_view_scene(path: str | Path, thumb_side: int = 128) -> ViewScene:
         return ViewScene(g, extras, None, None, 0, 0, folder)
     w2c, K, w, h, names = camera_tensors(cams)
     thumbs = []
-    for i, n in enumerate(names):
-        f = folder / "inputs" / f"{n}.png"
-        if not f.is_file():  # predict writes inputs/NNN.png in view order; cameras.json names the photos
-            f = folder / "inputs" / f"{i:03d}.png"
+    for i in range(len(names)):
+        f = view_png(folder, "inputs", i)
         if f.is_file():
             im = Image.open(f).convert("RGB")
             im.thumbnail((thumb_side, thumb_side))

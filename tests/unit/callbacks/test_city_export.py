@@ -11,7 +11,7 @@ from anycity.callbacks import PredictionExport
 from anycity.city import apply_sim3, plan_chunks, w2c_to_world
 from anycity.city.align import sim3_parts
 from anycity.city.oracle import orbit_scene, random_sim3
-from anycity.export import load_ply, load_ply_extras
+from anycity.export import load_ply, load_ply_extras, view_png
 from anycity.export.provenance import summary
 from anycity.geometry.projection import unproject_depth
 from anycity.lit.datamodule import AerialDataModule
@@ -59,7 +59,12 @@ def test_photo_folder_chunks_merge_into_one_scene(tmp_path, capsys):
     assert err["w2c_max_abs"] < 1e-4, err  # float32 chunks
     rep = json.loads((out / "chunks.json").read_text())
     assert rep["num_chunks"] == 4 and rep["gaussians"] == n * h * w
-    assert len(list((out / "renders").glob("*.png"))) == n
+    for kind in ("renders", "inputs"):  # photo v's images as inputs/NNN.png, written by the chunk that owns it
+        assert sorted(p.name for p in (out / kind).iterdir()) == [f"{v:03d}.png" for v in range(n)]
+    photo = {v: b["images"][0, j] for b in batches for j, v in enumerate(b["chunk"]["views"])}
+    for v in range(n):
+        back = torch.from_numpy(np.asarray(Image.open(view_png(out, "inputs", v)))).permute(2, 0, 1) / 255.0
+        assert (back - photo[v].float().clamp(0, 1)).abs().max() <= 0.5 / 255 + 1e-6
     # provenance and the smoothing filter, as for a single-pass scene: every Gaussian is seen by its own view (and
     # the overlapping ones by more), none was changed by Stage II; the filter only grows the 0.01 scales
     extras = load_ply_extras(out / "scene.ply")
