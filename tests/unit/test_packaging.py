@@ -42,6 +42,13 @@ def test_every_floor_is_the_version_test_floors_installs():
     assert floors["torch"] >= Version("2.5")  # torch.serialization.safe_globals (anycity.safe_load)
 
 
+def test_the_license_is_an_spdx_string():  # a TOML table is deprecated; setuptools stops building it in 2027-02
+    tomllib = pytest.importorskip("tomllib")
+    meta = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    assert isinstance(meta["project"]["license"], str)
+    assert any(r.startswith("setuptools>=77") for r in meta["build-system"]["requires"])
+
+
 def test_make_test_floors_installs_the_pins_and_runs_the_suite():
     make = (ROOT / "Makefile").read_text()
     recipe = make.split("\ntest-floors:\n", 1)[1].split("\n\n", 1)[0]
