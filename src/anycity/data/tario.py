@@ -63,6 +63,8 @@ def local_members(url: str) -> Iterator[dict]:
     (bytes for small eager members). Raises ``tarfile.ReadError`` / ``ValueError`` on corrupt archives."""
     file = _File(url)
     with open(url, "rb") as f, tarfile.open(fileobj=f, mode="r:") as tf:
+        if tf.firstmember is None:  # an empty tar: Python 3.10's next() would seek to -1 (EINVAL)
+            return
         while (m := tf.next()) is not None:
             if not m.isfile():
                 continue
