@@ -254,9 +254,9 @@ def config_error(message: str, argv: list[str]) -> str:
 
     bad = re.findall(r"Option '(\w+)' is not accepted", message) + re.findall(r"NestedArg\(key='(\w+)'", message)
     bad += re.findall(r"[Kk]ey '([\w.]+)' is not expected", message)
-    # a key in a --config file ("nested key" up to jsonargparse 4.29)
+    # a key in a --config file ("nested key" in jsonargparse 4.39, the oldest pyproject.toml allows)
     bad += re.findall(r"does not accept (?:option|nested key) '([\w.]+)'", message)
-    bad += re.findall(r"[Uu]nrecognized arguments: --([\w.]+)", message)
+    bad += re.findall(r"[Uu]nrecognized arguments: --([\w.]+)", message)  # capitalised in older releases
     unexpected = re.search(r"Unexpected keys: \{'(\w+)'", message)  # a typed dict's key (model.net) in a file
     if unexpected:
         section = re.findall(r'Parser key "(\w+)"', message[:unexpected.start()])
