@@ -1,9 +1,10 @@
 """The ``anycity`` command: one front door for every subcommand.
 
 ``anycity data synth|convert``, ``export``, ``view`` and ``render-video`` run without importing Lightning (they
-start in about a second); ``fit|validate|test|predict`` are the LightningCLI subcommands. Errors a user caused
-(``ValueError``/``FileNotFoundError``, also when raised inside a DataLoader worker, and unknown config keys) print
-as one line; ``--debug`` or ``ANYCITY_DEBUG=1`` shows the traceback.
+start in about a second; ``anycity --help`` does not import torch either); ``fit|validate|test|predict`` are the
+LightningCLI subcommands. Errors a user caused (``ValueError``/``FileNotFoundError``, also when raised inside a
+DataLoader worker, and unknown config keys) print as one line; ``--debug`` or ``ANYCITY_DEBUG=1`` shows the
+traceback.
 """
 
 from __future__ import annotations
