@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 import torch
 
-from anycity.data.imagecheck import check_image_file
+from anycity.data.imagecheck import check_image_file, displayed_size
 from anycity.data.views import jpeg_reduction, resize_plan, resize_view
 
 PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".webp")
@@ -59,18 +59,12 @@ def list_photos(folder: str | Path) -> list[Path]:
 def photo_size(path: Path) -> tuple[int, int]:
     """``(h, w)`` as displayed (EXIF orientation applied), from the header only; decompression bombs and truncated
     JPEGs are refused here, before anything is decoded (:func:`anycity.data.imagecheck.check_image_file`)."""
-    from PIL import Image
-
     check_image_file(path)
     try:
-        with Image.open(path) as im:
-            w, h = im.size
-            if im.getexif().get(0x0112, 1) in (5, 6, 7, 8):  # rotated by 90 degrees when shown
-                w, h = h, w
+        return displayed_size(path)
     except Exception as e:  # noqa: BLE001 - any decoder error means the same thing to the user
         raise ValueError(f"predict_images: cannot decode {path} ({type(e).__name__}); re-save it as JPEG or PNG, or "
                          "remove it") from None
-    return h, w
 
 
 def common_size(sizes: list[tuple[int, int]], size: tuple[int, int], mode: str = "keep", patch: int = 14

@@ -178,6 +178,23 @@ def test_blendedmvs_with_pfm(tmp_path):
     (src / "blended_images" / "00000001.jpg").write_bytes(b"not a jpeg")  # a damaged download: named in one line
     with pytest.raises(ValueError, match=r"00000001\.jpg: not a readable image .* remove 00000001_cam\.txt"):
         convert("blendedmvs", src, tmp_path / "out2")
+    (src / "blended_images" / "00000001.jpg").unlink()  # a missing one: named as missing, not as unreadable
+    with pytest.raises(FileNotFoundError, match=r"00000001\.jpg: not found; expected the image of 00000001_cam\.txt"):
+        convert("blendedmvs", src, tmp_path / "out3")
+
+
+def test_blendedmvs_image_size_is_the_size_shown(tmp_path):
+    """The size OpenCV decodes (EXIF orientation applied), so the intrinsics are not rescaled across the axes."""
+    from PIL import Image
+
+    from anycity.data.parsers.blendedmvs import _image_size
+
+    exif = Image.Exif()
+    exif[0x0112] = 6  # stored 64 wide and 32 high, shown rotated by 90 degrees
+    Image.new("RGB", (64, 32)).save(tmp_path / "a.jpg", exif=exif)
+    Image.new("RGB", (64, 32)).save(tmp_path / "b.jpg")
+    assert _image_size(tmp_path / "a.jpg", tmp_path / "a_cam.txt") == (64, 32)
+    assert _image_size(tmp_path / "b.jpg", tmp_path / "b_cam.txt") == (32, 64)
 
 
 def _llff_rows(gt, cols):

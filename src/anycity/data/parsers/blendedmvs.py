@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from anycity.data.imagecheck import displayed_size
 from anycity.data.parsers.base import ParsedScene, ParsedView, require
 
 
@@ -41,16 +42,13 @@ def read_cam(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _image_size(img: Path, cam: Path) -> tuple[int, int]:
-    """``(h, w)`` from the image's header (no decode)."""
-    from PIL import Image
-
+    """``(h, w)`` as shown, from the image's header (no decode)."""
+    require(img, f"the image of {cam.name}")
     try:
-        with Image.open(require(img, f"the image of {cam.name}")) as im:
-            w, h = im.size
-    except (OSError, SyntaxError, ValueError) as e:
+        return displayed_size(img)
+    except Exception as e:  # noqa: BLE001 - any decoder error means the same thing to the user
         raise ValueError(f"{img}: not a readable image ({type(e).__name__}); re-download it, or remove {cam.name} "
                          "to leave the view out") from None
-    return h, w
 
 
 def _scene(d: Path) -> ParsedScene:
