@@ -27,6 +27,10 @@ UNREAD_SUFFIXES = (".dng", ".heic", ".heif", ".raw", ".cr2", ".cr3", ".nef", ".a
 MAX_VIEWS = 64  # views of one forward pass; more photos are reconstructed in chunks (anycity.city)
 
 
+def _is_photo(path: Path) -> bool:
+    return path.suffix.lower() in PHOTO_SUFFIXES and not path.name.startswith(".")  # not a Mac's ._x.jpg
+
+
 def list_photos(folder: str | Path) -> list[Path]:
     """The photos of ``folder`` (:data:`PHOTO_SUFFIXES`, any case; at least 2), sorted by name.
 
@@ -37,7 +41,7 @@ def list_photos(folder: str | Path) -> list[Path]:
     if not folder.is_dir():
         raise FileNotFoundError(f"predict_images: {folder} is not a folder; pass a folder holding one scene's photos")
     visible = sorted(p for p in folder.iterdir() if not p.name.startswith("."))
-    files = [p for p in visible if p.suffix.lower() in PHOTO_SUFFIXES]
+    files = [p for p in visible if _is_photo(p)]
     unread = [p.name for p in visible if p.suffix.lower() in UNREAD_SUFFIXES]
     if unread:
         shown = ", ".join(unread[:5]) + (" ..." if len(unread) > 5 else "")
@@ -45,8 +49,7 @@ def list_photos(folder: str | Path) -> list[Path]:
                       f"({shown}); export them as JPEG to use them", stacklevel=2)
     if len(files) < 2:
         only = f" (only {files[0].name})" if files else ""
-        scenes = [d.name for d in visible
-                  if d.is_dir() and any(f.suffix.lower() in PHOTO_SUFFIXES for f in d.iterdir())]
+        scenes = [d.name for d in visible if d.is_dir() and any(map(_is_photo, d.iterdir()))]
         if scenes:  # the parent of several scenes' folders
             shown = ", ".join(scenes[:5]) + (" ..." if len(scenes) > 5 else "")
             raise ValueError(f"predict_images: {folder} holds {len(files)} photos{only} but sub-folders of photos "
@@ -91,11 +94,13 @@ def load_photo(path: Path, hw: tuple[int, int], mode: str = "keep", patch: int =
     drone photo for a 448x672 input: 43 instead of 253 ms with the resize), then area-resized as in full.
     ``size``: the photo's :func:`photo_size` when the caller has read it already.
     """
+    def fit(h: int, w: int) -> str:  # the folder's aspect ratio: kept; another one (or mode "crop"): cover, crop
+        return "keep" if mode == "keep" and resize_plan(h, w, hw, "keep", patch)[2:] == tuple(hw) else "crop"
+
     r = 1
     if path.suffix.lower() in (".jpg", ".jpeg"):
         h, w = size or photo_size(path)  # as shown: OpenCV applies a JPEG's EXIF orientation too
-        keep = mode == "keep" and resize_plan(h, w, hw, "keep", patch)[2:] == tuple(hw)
-        r = jpeg_reduction(h, w, *resize_plan(h, w, hw, "keep" if keep else "crop", patch)[:2])
+        r = jpeg_reduction(h, w, *resize_plan(h, w, hw, fit(h, w), patch)[:2])
     flag = {1: cv2.IMREAD_COLOR, 2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4,
             8: cv2.IMREAD_REDUCED_COLOR_8}[r]
     bgr = cv2.imread(str(path), flag)  # applies the EXIF orientation
@@ -103,10 +108,7 @@ def load_photo(path: Path, hw: tuple[int, int], mode: str = "keep", patch: int =
         raise ValueError(f"predict_images: cannot decode {path}; re-save it as JPEG or PNG, or remove it")
     h, w = bgr.shape[0] * r, bgr.shape[1] * r  # the full size (r divides both sides)
     K = np.array([[max(h, w), 0, w / 2], [0, max(h, w), h / 2], [0, 0, 1]], np.float64)  # unused placeholder
-    rgb = np.ascontiguousarray(bgr[..., ::-1])
-    # the folder's aspect ratio: kept; another one (or mode "crop"): cover hw, centre-crop
-    keep = mode == "keep" and resize_plan(h, w, hw, "keep", patch)[2:] == tuple(hw)
-    rgb, *_ = resize_view(rgb, K, hw, "keep" if keep else "crop", patch, src_hw=(h, w))
+    rgb, *_ = resize_view(np.ascontiguousarray(bgr[..., ::-1]), K, hw, fit(h, w), patch, src_hw=(h, w))
     return torch.from_numpy(np.ascontiguousarray(rgb)).permute(2, 0, 1).float() / 255
 
 

@@ -119,6 +119,8 @@ def test_folder_errors_name_the_problem(tmp_path):
     flights = tmp_path / "flights"  # the parent of two scenes' folders
     _write(flights / "north", "a.png", 32, 32)
     _write(flights / "south", "a.png", 32, 32)
+    (flights / "west").mkdir()  # only a Mac's metadata of a photo: not a folder of photos
+    (flights / "west" / "._a.jpg").write_bytes(b"\x00\x05\x16\x07Mac OS X")
     with pytest.raises(ValueError, match=r"holds 0 photos but sub-folders of photos \(north, south\); pass one"):
         load_photo_folder(flights, (32, 32))
 
