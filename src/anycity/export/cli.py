@@ -13,6 +13,8 @@ from pathlib import Path
 
 import torch
 
+from anycity.export.views import view_png
+
 FORMATS = ("splat", "colmap", "nerfstudio", "ply")
 
 
@@ -71,8 +73,6 @@ def export(src: str | Path, fmt: str, out: str | Path, overwrite: bool = False) 
     w2c, K, w, h, names = camera_tensors(cams)
     src_dir = Path(src) if Path(src).is_dir() else Path(src).parent
     images = image_names(names)
-    from anycity.export.views import view_png
-
     inputs = [view_png(src_dir, "inputs", v) for v in range(len(names))]  # the images the cameras belong to
     if all(f.is_file() for f in inputs):
         (out / "images").mkdir(exist_ok=True)
