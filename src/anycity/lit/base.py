@@ -7,6 +7,7 @@ Stage-specific training lives in :mod:`anycity.lit.scaffold` (Stage I) and :mod:
 
 from __future__ import annotations
 
+import functools
 import math
 import typing
 from dataclasses import fields
@@ -27,6 +28,7 @@ from anycity.lit.evaluation import (
     cameras_in_pred_frame,
     fit_gt_to_pred,
     refine_context_cameras,
+    scored_targets,
     transform_gaussians,
 )
 from anycity.metrics import depth_metrics, mean_colour_baseline, nearest_view_reference
@@ -37,6 +39,25 @@ Preset = Literal["tiny", "small", "base", "vggt-1b"]
 RenderBackend = Literal["auto", "torch", "cpu", "gsplat"]
 BackgroundMode = Literal["fixed", "context_mean"]
 PretrainedKind = Literal["vggt", "anysplat"]
+
+def float32_outside_net(step):
+    """Run a LightningModule step with autocast off, except in :meth:`AnyCityModule.forward_net`, which keeps the
+    trainer's precision (``bf16-mixed``) for the network's trunk. Lightning runs every step under autocast; left on,
+    the losses', metrics' and test-time fits' matmuls and convolutions (SSIM, reprojection, Sim(3) transfers) would
+    run in bf16: SSIM reads about 0.02 high and ray anchoring gets a 0.2 px noise floor."""
+
+    @functools.wraps(step)
+    def wrapped(self, *args, **kwargs):
+        dev, outer = self.device.type, getattr(self, "_net_autocast", None)
+        self._net_autocast = (dev, torch.is_autocast_enabled(dev), torch.get_autocast_dtype(dev))
+        try:
+            with torch.autocast(dev, enabled=False):
+                return step(self, *args, **kwargs)
+        finally:
+            self._net_autocast = outer
+
+    return wrapped
+
 
 _NET_HINTS = typing.get_type_hints(NetConfig)
 # Overrides of a preset's NetConfig fields; a TypedDict so that a misspelt key fails when the config is parsed.
@@ -145,8 +166,13 @@ class AnyCityModule(pl.LightningModule):
         """Render ``gaussians`` into cameras ``w2c [B, V, 4, 4]``, ``K`` (``anycity.render.render`` itself runs in
         float32 outside autocast); ``context [B, V', 3, H', W']`` are the input images (for
         ``background_mode="context_mean"``)."""
-        from anycity.render import render
+        from anycity.render import render, resolve_backend
 
+        if resolve_backend(self.hparams.render_backend, w2c.device, gaussians.means.dtype) == "cpu":
+            # The fused CPU kernels give cameras no gradient (render refuses to drop one silently): training on them
+            # treats the render cameras as constants, as it always has, rather than leave them for the 3x slower
+            # torch backend. gsplat and the torch backend pass camera gradients.
+            w2c, K = w2c.detach(), K.detach()
         if self.hparams.background_mode == "context_mean":
             bg = context.detach().float().mean(dim=(1, 3, 4))[:, None].expand(-1, w2c.shape[1], -1).contiguous()
         else:
@@ -203,9 +229,18 @@ class AnyCityModule(pl.LightningModule):
             self.log(f"train/{k}", v.detach(), batch_size=batch_size, prog_bar=k in prog_bar)
 
     # ----------------------------------------------------------------------------------------- evaluation
+    def forward_net(self, images: Tensor, **kwargs) -> dict[str, Any]:
+        """``self.net(images, **kwargs)`` under the autocast the running step was entered with (see
+        :func:`float32_outside_net`; the network keeps its heads in float32 itself)."""
+        if getattr(self, "_net_autocast", None) is None:  # called outside a step: the caller's autocast holds
+            return self.net(images, **kwargs)
+        dev, enabled, dtype = self._net_autocast
+        with torch.autocast(dev, dtype=dtype, enabled=enabled):
+            return self.net(images, **kwargs)
+
     def predict_variants(self, images: Tensor) -> tuple[dict[str, Any], dict[str, Gaussians]]:
         """Network outputs and the Gaussians to score: ``{"scaffold"}`` (+ ``"refined"`` in Stage II)."""
-        out = self.net(images, refine="refined" in self.variants)
+        out = self.forward_net(images, refine="refined" in self.variants)
         scaffold = out.get("scaffold_gaussians") or out["gaussians"]
         variants = {"scaffold": scaffold}
         if "refined" in self.variants:
@@ -221,6 +256,7 @@ class AnyCityModule(pl.LightningModule):
         return out["w2c"], out["K"]
 
     @torch.no_grad()
+    @float32_outside_net
     def evaluate(self, batch: ViewBatch, metrics: EvalMetrics, want_preview: bool, protocols: tuple[str, ...] = (
             "feedforward",)) -> dict[str, Any] | None:
         """Score every variant on the batch's targets under each of ``protocols`` (see :mod:`anycity.lit.protocols`,
@@ -235,36 +271,37 @@ class AnyCityModule(pl.LightningModule):
         out, variants = self.predict_variants(ctx.images)
         gt = tgt.images.flatten(0, 1)
         regions = self.region_masks(ctx, tgt)
-        metrics.update_regions(regions)
+        keep = scored_targets(tgt.index)  # a padded chunk's repeated targets are scored once
+        metrics.update_regions(regions, keep)
         metrics.update("baseline", mean_colour_baseline(ctx.images, tuple(tgt.images.shape)).flatten(0, 1), gt,
-                       regions)
+                       regions, keep)
         metrics.update_pose(out["w2c"], ctx.w2c)
         if out.get("scaffold_w2c") is not None and out["scaffold_w2c"] is not out["w2c"]:
             metrics.update_pose(out["scaffold_w2c"], ctx.w2c, "scaffold")
         if ctx.index is not None and tgt.index is not None and ctx.hw == tgt.hw:
             metrics.update("nearest", nearest_view_reference(ctx.images, ctx.index, tgt.index).flatten(0, 1), gt,
-                           regions)
+                           regions, keep)
         preview = {"context": ctx.images[0, :1].expand(tgt.num_views, -1, -1, -1), "target": tgt.images[0]}
         hp = self.hparams
         joint = P.joint(self, ctx, tgt)[0] if "joint" in protocols else None
         for name, g in variants.items():
             scene = P.Scene(g, *self.variant_cameras(out, name))
             r, s = P.feedforward(self, scene, ctx, cams)
-            metrics.update(name, r.rgb.flatten(0, 1), gt, regions)
+            metrics.update(name, r.rgb.flatten(0, 1), gt, regions, keep)
             if tgt.depth is not None:
                 d = depth_metrics(r.depth / s[:, None, None, None, None], tgt.depth, tgt.mask)
-                metrics.update_depth(name, d["abs_rel"], d["delta1"], d["valid"])
+                metrics.update_depth(name, d["abs_rel"], d["delta1"], d["valid"] if keep is None else d["valid"] & keep)
             preview[name] = r.rgb[0]
             preview[f"{name}_depth"] = r.depth[0]
             if "camrefine" in protocols and hp.camera_refine_steps > 0:
                 r_ref, _, scene = P.camrefine(self, scene, ctx, cams, hp.camera_refine_steps)
-                metrics.update(f"{name}_camrefine", r_ref.rgb.flatten(0, 1), gt, regions)
+                metrics.update(f"{name}_camrefine", r_ref.rgb.flatten(0, 1), gt, regions, keep)
                 metrics.update_pose(scene.w2c, ctx.w2c, f"{name}_camrefine")
             if "targetalign" in protocols and hp.eval_pose_align_steps > 0:
                 r_al, _ = P.targetalign(self, scene, ctx, tgt, hp.eval_pose_align_steps)
-                metrics.update(f"{name}_targetalign", r_al.rgb.flatten(0, 1), gt, regions)
+                metrics.update(f"{name}_targetalign", r_al.rgb.flatten(0, 1), gt, regions, keep)
             if joint is not None:
-                metrics.update(f"{name}_joint", joint[name].rgb.flatten(0, 1), gt, regions)
+                metrics.update(f"{name}_joint", joint[name].rgb.flatten(0, 1), gt, regions, keep)
         if not want_preview:
             return None
         from anycity.callbacks.previews import depth_to_rgb, region_colours
@@ -342,6 +379,7 @@ class AnyCityModule(pl.LightningModule):
 
     # ----------------------------------------------------------------------------------------- prediction
     @torch.no_grad()
+    @float32_outside_net
     def predict_step(self, batch: ViewBatch | Views | Tensor | dict, batch_idx: int) -> dict[str, Any]:
         """Reconstruct from context images (a batch of shards, of :class:`Views`, images ``[B, V, 3, H, W]`` or a
         photo-folder dict ``{"images", "scene"}``); returns Gaussians, predicted cameras and context re-renders."""

@@ -216,11 +216,23 @@ def refine_context_cameras(render_rgb, gaussians: Gaussians, w2c: Tensor, images
     return out.to(w2c.dtype), A.to(w2c.dtype)
 
 
-def _update_finite(metric: MeanMetric, values: Tensor) -> None:
-    """Average the finite per-image values (NaN marks an image whose region is empty)."""
-    values = values[torch.isfinite(values)]
+def _update_defined(metric: MeanMetric, values: Tensor) -> None:
+    """Average the per-image values that are defined: NaN marks an image whose region is empty. A region rendered
+    exactly (PSNR +inf) counts, as it does in the whole-image PSNR."""
+    values = values[~torch.isnan(values)]
     if values.numel():
         metric.update(values)
+
+
+def scored_targets(index: Tensor | None) -> Tensor | None:
+    """``[B*T]`` bool: False for a target that repeats an earlier one of its sample (trajectory positions
+    ``index [B, T]``). Evaluation pads a sample's last chunk of held-out views with its own views, so that batches
+    stack; each held-out view is scored once. None when the views carry no positions."""
+    if index is None:
+        return None
+    t = index.shape[1]
+    earlier = torch.ones(t, t, dtype=torch.bool, device=index.device).tril(-1)  # [i, j]: j before i
+    return ~((index[:, :, None] == index[:, None, :]) & earlier).any(-1).flatten()
 
 
 PROTOCOL_SUFFIXES = ("", "_camrefine", "_targetalign", "_joint")  # feedforward first, unsuffixed
@@ -276,8 +288,13 @@ class EvalMetrics(nn.Module):
                 m[f"{name}{suffix}"] = MeanMetric()
         self.metrics = nn.ModuleDict(m)
 
-    def update(self, name: str, pred: Tensor, target: Tensor, regions: tuple[Tensor, Tensor] | None = None) -> None:
+    def update(self, name: str, pred: Tensor, target: Tensor, regions: tuple[Tensor, Tensor] | None = None,
+               keep: Tensor | None = None) -> None:
+        """Score ``pred``/``target [M, 3, H, W]`` (regions ``[B, T, 1, H, W]`` with ``M = B*T``); ``keep [M]`` bool
+        (:func:`scored_targets`) leaves out the targets a batch repeats."""
         p, t = pred.float().clamp(0, 1), target.float()
+        if keep is not None:
+            p, t = p[keep], t[keep]
         self.metrics[f"psnr_{name}"].update(p, t)
         has_ssim = f"ssim_{name}" in self.metrics
         if has_ssim:
@@ -287,18 +304,19 @@ class EvalMetrics(nn.Module):
         from anycity.metrics.regions import masked_lpips, masked_psnr, masked_ssim
 
         for r, mask in zip(REGIONS, regions):
-            mk = mask.flatten(0, 1)
-            _update_finite(self.metrics[f"psnr_{r}_{name}"], masked_psnr(p, t, mk))
+            mk = mask.flatten(0, 1) if keep is None else mask.flatten(0, 1)[keep]
+            _update_defined(self.metrics[f"psnr_{r}_{name}"], masked_psnr(p, t, mk))
             if has_ssim:
-                _update_finite(self.metrics[f"ssim_{r}_{name}"], masked_ssim(p, t, mk))
+                _update_defined(self.metrics[f"ssim_{r}_{name}"], masked_ssim(p, t, mk))
             if has_ssim and self.lpips is not None:
-                _update_finite(self.metrics[f"lpips_{r}_{name}"], masked_lpips(self.lpips.to(p.device), p, t, mk))
+                _update_defined(self.metrics[f"lpips_{r}_{name}"], masked_lpips(self.lpips.to(p.device), p, t, mk))
 
-    def update_regions(self, regions: tuple[Tensor, Tensor] | None) -> None:
-        """The share of target pixels in each region, per image."""
+    def update_regions(self, regions: tuple[Tensor, Tensor] | None, keep: Tensor | None = None) -> None:
+        """The share of target pixels in each region, per image (``keep`` as in :meth:`update`)."""
         if regions is not None:
             for r, mask in zip(REGIONS, regions):
-                self.metrics[f"region_{r}"].update(mask.flatten(0, 1).float().mean(dim=(1, 2, 3)))
+                share = mask.flatten(0, 1).float().mean(dim=(1, 2, 3))
+                self.metrics[f"region_{r}"].update(share if keep is None else share[keep])
 
     def update_depth(self, variant: str, abs_rel: Tensor, delta1: Tensor, valid: Tensor) -> None:
         if bool(valid.any()):

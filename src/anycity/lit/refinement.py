@@ -17,7 +17,7 @@ from torch import Tensor
 
 from anycity.geometry import camera_centers
 from anycity.geometry.pose_encoding import extri_intri_to_pose_encoding
-from anycity.lit.base import AnyCityModule
+from anycity.lit.base import AnyCityModule, float32_outside_net
 from anycity.losses import camera_loss, d2s_loss, preservation_loss, regularizer_loss, rgb_loss
 from anycity.models.anycity import SCAFFOLD_PREFIXES
 from anycity.safe_load import safe_torch_load
@@ -105,25 +105,53 @@ class RefinementModule(AnyCityModule):
         if camera_weight > 0 and not self.net.cfg.refine_cameras:
             raise ValueError("model.camera_weight: Stage II keeps the scaffold's cameras unless "
                              "model.net.refine_cameras is true; set it, or camera_weight: 0")
+        if reg_weight > 0 and self.net.cfg.voxel_size is not None:
+            raise ValueError("model.reg_weight: the stability term compares the scaffold's and the final Gaussians one "
+                             "to one, which a voxel merge (model.net.voxel_size) pairs arbitrarily; train with "
+                             "net.voxel_size: null, or set reg_weight: 0")
         if freeze_scaffold:
             for p in self.net.scaffold_parameters():
                 p.requires_grad_(False)
 
     # ----------------------------------------------------------------------------------------- init
     def setup(self, stage: str) -> None:
-        # checked here, not in __init__: test/predict from a Stage II checkpoint never need the Stage I file
-        if stage == "fit" and self.trainer.ckpt_path is None and self.net.pose_prior is not None:
-            self.net.pose_prior.check_loaded()  # training from scratch needs the prior's file; a checkpoint does not
-        fresh_fit = stage == "fit" and self.trainer.ckpt_path is None
-        if fresh_fit and not self.hparams.init_from and not self.hparams.pretrained and self.hparams.freeze_scaffold:
-            raise ValueError("model.init_from: Stage II freezes the scaffold, and none was given (no init_from, no "
-                             "pretrained), so it would train on a random one; pass the Stage I checkpoint, e.g. "
-                             "--model.init_args.init_from runs/stage1/checkpoints/last.ckpt")
-        if fresh_fit and self.hparams.init_from:
-            if not Path(self.hparams.init_from).is_file():
-                raise FileNotFoundError(f"model.init_from: {self.hparams.init_from} not found; pass the Stage I "
-                                        "checkpoint (e.g. runs/stage1/checkpoints/last.ckpt)")
+        # A resumed fit (--ckpt_path) needs neither the Stage I file nor the pose prior's: its checkpoint holds both.
+        # Lightning restores it after this hook and says so (trainer.ckpt_path) only then, so a missing file is
+        # reported in _check_fresh_fit, once it is known whether this fit resumes. test/predict never need them.
+        self._fresh_fit_problems: list[Exception] = []
+        if stage != "fit":
+            return
+        try:
+            if self.net.pose_prior is not None:
+                self.net.pose_prior.check_loaded()
+        except FileNotFoundError as e:
+            self._fresh_fit_problems.append(e)
+        if not self.hparams.init_from:
+            if not self.hparams.pretrained and self.hparams.freeze_scaffold:
+                self._fresh_fit_problems.append(ValueError(
+                    "model.init_from: Stage II freezes the scaffold, and none was given (no init_from, no pretrained), "
+                    "so it would train on a random one; pass the Stage I checkpoint, e.g. "
+                    "--model.init_args.init_from runs/stage1/checkpoints/last.ckpt"))
+        elif not Path(self.hparams.init_from).is_file():
+            self._fresh_fit_problems.append(FileNotFoundError(
+                f"model.init_from: {self.hparams.init_from} not found; pass the Stage I checkpoint (e.g. "
+                "runs/stage1/checkpoints/last.ckpt)"))
+        else:  # loaded here, before the strategy wraps the model; a resumed fit's checkpoint then replaces it
             self.load_stage1(self.hparams.init_from)
+
+    def on_fit_start(self) -> None:
+        if not self.trainer.strategy.restore_checkpoint_after_setup:
+            self._check_fresh_fit()
+
+    def on_train_start(self) -> None:
+        if self.trainer.strategy.restore_checkpoint_after_setup:  # FSDP, DeepSpeed: restored after on_fit_start
+            self._check_fresh_fit()
+
+    def _check_fresh_fit(self) -> None:
+        """Raise the first thing :meth:`setup` found missing, unless this fit resumed from a checkpoint."""
+        problems = getattr(self, "_fresh_fit_problems", [])
+        if self.trainer.ckpt_path is None and problems:
+            raise problems[0]
 
     def load_stage1(self, path: str) -> None:
         """Copy the scaffold weights (``net.{aggregator,camera_head,depth_head,gaussian_head}.*``) of a Stage I
@@ -179,10 +207,11 @@ class RefinementModule(AnyCityModule):
         restore_pose_prior(self.net, checkpoint)
 
     # ----------------------------------------------------------------------------------------- training
+    @float32_outside_net
     def training_step(self, batch: ViewBatch, batch_idx: int) -> Tensor:
         hp = self.hparams
         ctx, tgt, dense = batch.context, batch.target, batch.dense
-        out = self.net(ctx.images, refine=True)
+        out = self.forward_net(ctx.images, refine=True)
         if (bad := self.nonfinite_forward(out)) is not None:  # every DDP rank then skips the step (callbacks/nonfinite)
             return bad
         final, scaffold = out["gaussians"], out["scaffold_gaussians"]
@@ -213,7 +242,7 @@ class RefinementModule(AnyCityModule):
         if hp.d2s_weight > 0:
             dense = far_views(dense, ctx, hp.d2s_views)
             with torch.no_grad():
-                t_out = self.net(dense.images, refine=False)
+                t_out = self.forward_net(dense.images, refine=False)
                 t_g = t_out.get("scaffold_gaussians") or t_out["gaussians"]
                 w2c_td, s_t = self.target_cameras(t_out["w2c"], dense, dense)
                 teacher = _scaled(self.render(t_g, w2c_td, dense.K, dense.hw, ctx.images), s_t)

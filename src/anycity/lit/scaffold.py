@@ -13,7 +13,7 @@ from lightning.pytorch.utilities import rank_zero_warn
 from torch import Tensor
 
 from anycity.geometry.pose_encoding import extri_intri_to_pose_encoding
-from anycity.lit.base import AnyCityModule
+from anycity.lit.base import AnyCityModule, float32_outside_net
 from anycity.losses import camera_loss, depth_z_loss, normal_loss, ray_anchor_loss, rgb_loss
 from anycity.structures import ViewBatch
 
@@ -72,10 +72,11 @@ class ScaffoldModule(AnyCityModule):
         for k in [k for k in sd if k.startswith(("net.completion.", "net.video_prior."))]:
             del sd[k]
 
+    @float32_outside_net
     def training_step(self, batch: ViewBatch, batch_idx: int) -> Tensor:
         hp = self.hparams
         ctx, tgt = batch.context, batch.target
-        out = self.net(ctx.images, refine=False)
+        out = self.forward_net(ctx.images, refine=False)
         if (bad := self.nonfinite_forward(out)) is not None:  # every DDP rank then skips the step (callbacks/nonfinite)
             return bad
         g = out.get("scaffold_gaussians") or out["gaussians"]
@@ -109,7 +110,7 @@ class ScaffoldModule(AnyCityModule):
             loss = loss + hp.depth_weight * terms["depth"]
         if geo_on and hp.normal_weight > 0:
             n = normal_loss(r_ctx.depth, r_ctx.normal, out["K"], image=ctx.images, alpha=r_ctx.alpha,
-                            scales=g.scales, flat_weight=hp.flat_weight)
+                            scales=g.scales, flat_weight=hp.flat_weight, scales_valid=g.valid)
             terms["normal"] = n["total"]
             loss = loss + hp.normal_weight * terms["normal"]
         terms["loss"] = loss

@@ -34,6 +34,7 @@ def normal_loss(
     flat_weight: float = 0.0,
     huber_delta: float = 0.1,
     edge_alpha: float = 1.0,
+    scales_valid: Tensor | None = None,
 ) -> dict[str, Tensor]:
     """Normal consistency between depth-derived and Gaussian-derived normals.
 
@@ -44,6 +45,7 @@ def normal_loss(
         image: ``[B, V, 3, H, W]`` guide image for the structure weight, or None (weight 1).
         alpha: ``[B, V, 1, H, W]`` rendered opacity; pixels with alpha < 0.5 are ignored. None = all.
         scales: ``[B, N, 3]`` Gaussian scales for the flatness prior (mean smallest scale), or None.
+        scales_valid: ``[B, N]`` bool, the Gaussians that exist (a voxel merge pads with invalid ones), or None (all).
     Returns:
         ``{"normal", "flat", "total"}``.
     """
@@ -58,5 +60,8 @@ def normal_loss(
         w = w * structure_weight(image.float(), edge_alpha)
     per_px = F.huber_loss(1.0 - cos, torch.zeros_like(cos), reduction="none", delta=huber_delta)
     term = (per_px * w).sum() / valid.float().sum().clamp_min(1.0)
-    flat = scales.float().min(-1).values.mean() if scales is not None else term.new_zeros(())
+    flat = term.new_zeros(())
+    if scales is not None:
+        s_min = scales.float().min(-1).values
+        flat = s_min.mean() if scales_valid is None else s_min[scales_valid].sum() / scales_valid.sum().clamp_min(1)
     return {"normal": term, "flat": flat, "total": term + flat_weight * flat}

@@ -97,11 +97,12 @@ def test_checkpoint_references_frozen_prior_by_hash_and_keeps_lora(wan_dir, tmp_
 
 def test_init_from_is_checked_when_fitting_starts_not_at_construction(tmp_path):
     m = RefinementModule(preset="tiny", init_from=str(tmp_path / "missing.ckpt"))  # test/predict: fine
-    m._trainer = SimpleNamespace(ckpt_path=None)
+    m._trainer = SimpleNamespace(ckpt_path=None, strategy=SimpleNamespace(restore_checkpoint_after_setup=False))
     m.setup("test")
     m.setup("predict")
+    m.setup("fit")
     with pytest.raises(FileNotFoundError, match="missing.ckpt"):
-        m.setup("fit")
+        m.on_fit_start()
 
 
 def test_stage1_checkpoint_is_read_memory_mapped_tensors_only(tmp_path, monkeypatch):

@@ -208,3 +208,23 @@ def test_test_time_fits_do_not_depend_on_the_batch():
         aligned2 = align_target_poses(one_view, pair, torch.cat([start, start - 0.05 * (start != 0)]),
                                       torch.cat([images[:, :2], images[:, :2]]), steps=30, lr=0.01)
     assert torch.equal(batched[:1], alone) and torch.equal(aligned2[:1], aligned)
+
+
+def test_region_psnr_keeps_an_exactly_rendered_image_and_skips_an_empty_region():
+    """NaN (an empty region) leaves an image out of the region mean; +inf (the region rendered exactly) does not,
+    as in the whole-image PSNR."""
+    from anycity.lit.evaluation import EvalMetrics
+
+    m = EvalMetrics(("scaffold",))
+    gt = torch.rand(3, 3, 8, 8, generator=torch.Generator().manual_seed(0))
+    pred = gt.clone()
+    pred[1:] = (pred[1:] + 0.1).clamp(0, 1)  # image 0 exact, images 1 and 2 not
+    obs = torch.ones(3, 1, 8, 8, dtype=torch.bool)
+    weak = torch.zeros(3, 1, 8, 8, dtype=torch.bool)
+    weak[1] = True  # only image 1 has weak pixels
+    m.update("scaffold", pred, gt, (obs[:, None], weak[:, None]))
+    assert m.metrics["psnr_scaffold"].compute().item() == float("inf")
+    assert m.metrics["psnr_obs_scaffold"].compute().item() == float("inf")
+    from anycity.metrics.regions import masked_psnr
+    assert m.metrics["psnr_weak_scaffold"].compute().item() == pytest.approx(
+        masked_psnr(pred[1:2], gt[1:2], weak[1:2]).item())

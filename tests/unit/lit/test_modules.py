@@ -67,26 +67,33 @@ def test_refinement_freezes_scaffold_starts_at_scaffold_and_loads_stage1(batch, 
     assert res["psnr_nearest"].item() == pytest.approx(expected.item(), abs=1e-4)
 
 
-def test_refinement_rejects_missing_init_and_bad_gate_mode(tmp_path):
+def _start_fit(m, ckpt_path=None):
+    """What Lightning calls of the module when a fit starts: setup, the checkpoint restore (not done here), then
+    on_fit_start, when trainer.ckpt_path says whether it resumed."""
     from types import SimpleNamespace
 
+    m._trainer = SimpleNamespace(ckpt_path=ckpt_path, strategy=SimpleNamespace(restore_checkpoint_after_setup=False))
+    m.setup("fit")
+    m.on_fit_start()
+
+
+def test_refinement_rejects_missing_init_and_bad_gate_mode(tmp_path):
     m = RefinementModule(init_from=str(tmp_path / "nope.ckpt"))  # checked when fitting starts (test/predict: unused)
-    m._trainer = SimpleNamespace(ckpt_path=None)
     with pytest.raises(FileNotFoundError, match="init_from"):
-        m.setup("fit")
+        _start_fit(m)
+    _start_fit(m, "last.ckpt")  # a resumed fit reads its checkpoint, not the Stage I file
     # no Stage I at all: Stage II trained silently on a random, frozen scaffold
     m = RefinementModule(init_from=None)
-    m._trainer = SimpleNamespace(ckpt_path=None)
     with pytest.raises(ValueError, match="model.init_from: Stage II freezes the scaffold, and none was given"):
-        m.setup("fit")
+        _start_fit(m)
     m.setup("test")  # test/predict take the weights from a checkpoint
-    m._trainer = SimpleNamespace(ckpt_path="last.ckpt")
-    m.setup("fit")  # a resumed fit too
-    m = RefinementModule(init_from=None, freeze_scaffold=False)  # everything trains: nothing stays random
-    m._trainer = SimpleNamespace(ckpt_path=None)
-    m.setup("fit")
+    _start_fit(m, "last.ckpt")  # a resumed fit too
+    _start_fit(RefinementModule(init_from=None, freeze_scaffold=False))  # everything trains: nothing stays random
     with pytest.raises(ValueError, match="gate_mode"):
         RefinementModule(gate_mode="max")
+    with pytest.raises(ValueError, match="model.reg_weight: .*voxel merge"):  # it would pair unrelated Gaussians
+        RefinementModule(net={"voxel_size": 0.1})
+    RefinementModule(net={"voxel_size": 0.1}, reg_weight=0.0)
     with pytest.raises(ValueError, match="d2s_depth_scale"):
         RefinementModule(d2s_depth_scale="gt")
 
@@ -299,3 +306,86 @@ def test_a_configured_loss_term_the_batch_cannot_feed_is_said(batch):
     with warnings.catch_warnings():
         warnings.filterwarnings("error", message="model.depth_weight")  # once per run
         s.training_step(no_depth, 1)
+
+
+def test_bf16_autocast_reaches_the_trunk_only(batch, monkeypatch):
+    """Under ``precision: bf16-mixed`` Lightning runs each step in autocast. The network's trunk keeps it; the losses,
+    the metrics (SSIM's convolutions) and the geometry (ray anchoring's reprojection) run in float32."""
+    import anycity.lit.evaluation as evaluation
+    import anycity.lit.refinement as refinement
+    import anycity.lit.scaffold as scaffold
+
+    seen = {}
+
+    def spy(where, fn):
+        def wrapped(*a, **k):
+            seen.setdefault(where, []).append(torch.is_autocast_enabled("cpu"))
+            return fn(*a, **k)
+        return wrapped
+
+    monkeypatch.setattr(scaffold, "rgb_loss", spy("loss", scaffold.rgb_loss))
+    monkeypatch.setattr(scaffold, "ray_anchor_loss", spy("loss", scaffold.ray_anchor_loss))
+    monkeypatch.setattr(refinement, "d2s_loss", spy("loss", refinement.d2s_loss))
+    monkeypatch.setattr(evaluation.EvalMetrics, "update", spy("metrics", evaluation.EvalMetrics.update))
+    torch.manual_seed(0)
+    for m in (ScaffoldModule(depth_warmup_steps=0, render_backend="torch"), RefinementModule(render_backend="torch")):
+        m = _no_log(m)
+        trunk = m.net.aggregator.forward
+        monkeypatch.setattr(m.net.aggregator, "forward", spy("trunk", trunk))
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            assert torch.isfinite(m.training_step(batch, 0))
+            m.evaluate(batch, m.val_metrics, want_preview=False)
+            assert torch.is_autocast_enabled("cpu")  # the step's own autocast is given back
+    assert seen["trunk"] and all(seen["trunk"])
+    assert seen["loss"] and not any(seen["loss"])
+    assert seen["metrics"] and not any(seen["metrics"])
+    assert m.forward_net is not None and getattr(m, "_net_autocast", None) is None  # no state left after a step
+
+
+def test_a_resumed_stage2_fit_needs_no_stage1_file(batch, tmp_path):
+    """Lightning tells a module that a fit resumes only after setup; the Stage I file (moved aside by a fresh Stage I
+    run, say) must not be needed by a resume, and a fresh fit without it must still stop."""
+    import lightning.pytorch as pl
+    from torch.utils.data import DataLoader
+
+    stage1 = tmp_path / "stage1.ckpt"
+    torch.save({"state_dict": ScaffoldModule().state_dict()}, stage1)
+
+    def fit(steps, ckpt_path=None):
+        m = _no_log(RefinementModule(init_from=str(stage1), render_backend="torch", camera_refine_steps=0))
+        trainer = pl.Trainer(max_steps=steps, accelerator="cpu", logger=False, enable_checkpointing=False,
+                             enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0)
+        trainer.fit(m, DataLoader([batch], batch_size=None, collate_fn=lambda b: b), ckpt_path=ckpt_path)
+        return trainer
+
+    fit(1).save_checkpoint(tmp_path / "stage2.ckpt")
+    stage1.unlink()
+    assert fit(2, str(tmp_path / "stage2.ckpt")).global_step == 2
+    with pytest.raises(FileNotFoundError, match="model.init_from: .*stage1.ckpt not found"):
+        fit(1)
+
+
+def test_a_padded_chunk_scores_each_held_out_view_once(batch):
+    """select_eval pads a sample's last chunk of held-out views with its own views (so batches stack): [32, 40] ->
+    [32, 40, 32]. The repeated view must not weigh twice in any figure."""
+    import dataclasses
+
+    from anycity.lit.evaluation import EvalMetrics, scored_targets
+
+    assert scored_targets(torch.tensor([[32, 40, 32, 40], [8, 16, 24, 0]])).tolist() == [
+        True, True, False, False, True, True, True, True]
+    two = _views(2, 5, [2, 5])
+    two.images[:, 1] = two.images[:, 1] * 0.2  # two targets that score differently
+    padded = dataclasses.replace(two, **{f: getattr(two, f)[:, [0, 1, 0]] for f in
+                                         ("images", "w2c", "K", "depth", "mask", "index")})
+    torch.manual_seed(0)
+    m = ScaffoldModule(render_backend="torch", camera_refine_steps=0)
+    res = []
+    for target in (two, padded):
+        metrics = EvalMetrics(m.variants)
+        m.evaluate(dataclasses.replace(batch, target=target), metrics, want_preview=False)
+        res.append({k: v.compute().item() for k, v in metrics.metrics.items() if v.update_called})
+    assert res[0].keys() == res[1].keys()
+    assert {"psnr_scaffold", "psnr_weak_scaffold", "abs_rel_scaffold"} <= res[0].keys()
+    for k in res[0]:
+        assert res[1][k] == pytest.approx(res[0][k], rel=1e-5, abs=1e-6), k

@@ -226,3 +226,20 @@ def test_depth_loss_without_alignment_is_absolute():
     out = depth_z_loss(2.0 * gt, gt, align=False, grad_weight=0.0)
     assert out["depth_l1"].item() == pytest.approx(math.log(2.0), rel=1e-5)
     assert depth_z_loss(gt, gt, align=False)["total"].item() < 1e-6
+
+
+def test_flatness_prior_averages_only_existing_gaussians():
+    """A voxel merge pads each scene's Gaussians with invalid entries (scale 1e-4); they must not pull the mean
+    smallest scale down."""
+    from anycity.losses import normal_loss
+
+    depth = torch.ones(1, 1, 1, 8, 8)
+    normal = torch.zeros(1, 1, 3, 8, 8)
+    normal[:, :, 2] = -1
+    K = torch.tensor([[[8.0, 0, 4], [0, 8.0, 4], [0, 0, 1]]])[None]
+    scales = torch.full((1, 4, 3), 0.5)
+    scales[0, 3] = 1e-4  # padding
+    valid = torch.tensor([[True, True, True, False]])
+    out = normal_loss(depth, normal, K, scales=scales, scales_valid=valid, flat_weight=1.0)
+    assert out["flat"].item() == pytest.approx(0.5)
+    assert normal_loss(depth, normal, K, scales=scales)["flat"].item() == pytest.approx((3 * 0.5 + 1e-4) / 4)

@@ -146,9 +146,10 @@ def test_a_stage2_checkpoint_holds_its_prior_so_test_and_predict_need_no_file(tm
 
     path.unlink()  # another machine: the config still names the training machine's file
     fresh = RefinementModule(net=net)
-    fresh._trainer = SimpleNamespace(ckpt_path=None)
+    fresh._trainer = SimpleNamespace(ckpt_path=None, strategy=SimpleNamespace(restore_checkpoint_after_setup=False))
+    fresh.setup("fit")  # whether the fit resumes is known once it starts
     with pytest.raises(FileNotFoundError, match="net.pose_prior: .*prior.pt not found; train one with"):
-        fresh.setup("fit")
+        fresh.on_fit_start()
     with pytest.raises(FileNotFoundError, match="need no file: it holds the prior"):
         fresh.net(images, refine=True)
     fresh.on_load_checkpoint(ckpt)
