@@ -6,6 +6,8 @@ Conventions: OpenCV camera frame (x right, y down, z forward), ``w2c``/``c2w`` a
 
 from __future__ import annotations
 
+import functools
+
 import torch
 from torch import Tensor
 
@@ -45,9 +47,18 @@ def camera_centers(w2c: Tensor) -> Tensor:
 
 
 def make_intrinsics(fx, fy, cx, cy) -> Tensor:
-    """Scalars or ``[...]`` tensors -> ``[..., 3, 3]`` pinhole K."""
-    fx, fy, cx, cy = torch.broadcast_tensors(*(torch.as_tensor(v, dtype=torch.float32) for v in (fx, fy, cx, cy)))
-    K = torch.zeros(*fx.shape, 3, 3, dtype=fx.dtype)
+    """Scalars or broadcastable ``[...]`` tensors -> ``[..., 3, 3]`` pinhole K.
+
+    K takes the promoted dtype of the floating-point tensor inputs (float32 when there are none: Python numbers,
+    integer tensors) and the device of the first tensor input (CPU when there is none).
+    """
+    values = (fx, fy, cx, cy)
+    tensors = [v for v in values if isinstance(v, Tensor)]
+    dtypes = [t.dtype for t in tensors if t.is_floating_point()]
+    dtype = functools.reduce(torch.promote_types, dtypes) if dtypes else torch.float32
+    device = tensors[0].device if tensors else None
+    fx, fy, cx, cy = torch.broadcast_tensors(*(torch.as_tensor(v, dtype=dtype, device=device) for v in values))
+    K = torch.zeros(*fx.shape, 3, 3, dtype=dtype, device=device)
     K[..., 0, 0], K[..., 1, 1], K[..., 0, 2], K[..., 1, 2], K[..., 2, 2] = fx, fy, cx, cy, 1
     return K
 

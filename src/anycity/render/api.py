@@ -9,6 +9,7 @@ Backends share one contract (all inputs already validated, ``valid`` filled, ``b
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import importlib
 from typing import Literal
@@ -37,18 +38,22 @@ def _module_available(name: str) -> bool:
     return True
 
 
-def resolve_backend(backend: str, device: torch.device, dtype: torch.dtype = torch.float32) -> str:
-    """The backend ``render`` would use for tensors on ``device``: "auto" -> gsplat on CUDA when installed, else
-    the fused "cpu" kernels for float32 CPU tensors when numba is installed, else "torch"."""
+def resolve_backend(backend: str, device: torch.device, dtype: torch.dtype = torch.float32,
+                    camera_grad: bool = False) -> str:
+    """The backend ``render`` would use for ``dtype`` tensors on ``device``: "auto" -> gsplat for float32 CUDA
+    tensors when installed, else the fused "cpu" kernels for float32 CPU tensors when numba is installed and
+    ``camera_grad`` is False (w2c, K and background need no gradient: the kernels give none), else "torch"."""
     if backend not in ("auto", *_BACKENDS):
         raise ValueError(f"backend: expected one of {['auto', *_BACKENDS]}, got {backend!r}")
     if backend != "auto":
         return backend
+    if dtype != torch.float32:  # gsplat and the fused kernels are float32-only
+        return "torch"
     if device.type == "cuda":
         if _module_available("gsplat"):
             return "gsplat"
         _warn_no_gsplat()
-    if device.type == "cpu" and dtype == torch.float32 and _cpu_backend_available():
+    if device.type == "cpu" and not camera_grad and _cpu_backend_available():
         return "cpu"
     return "torch"
 
@@ -127,13 +132,17 @@ def render(
         background: ``[3]``, ``[B, V, 3]`` or None (black).
         near, far: culling planes on camera z.
         render_normals: also return ``normal``.
-        backend: "torch" (tiled pure PyTorch, CPU and CUDA, float32/float64), "gsplat" (CUDA, needs the
-            ``gsplat`` extra), "cpu" (fused numba kernels, float32 CPU), or "auto" (gsplat for CUDA tensors when
-            installed, cpu for float32 CPU tensors when numba is installed, else torch).
+        backend: "torch" (tiled pure PyTorch, CPU and CUDA, float32/float64), "gsplat" (CUDA float32, needs the
+            ``gsplat`` extra), "cpu" (fused numba kernels, float32 CPU, gradients for the Gaussians only: raises
+            when w2c, K or background require grad), or "auto" (gsplat for float32 CUDA tensors when installed;
+            cpu for float32 CPU tensors when numba is installed and no camera/background gradient is wanted, so
+            that such gradients are never dropped silently; else torch).
 
     Returns:
         ``RenderOutput`` with rgb ``[B, V, 3, H, W]``, depth ``[B, V, 1, H, W]``, alpha ``[B, V, 1, H, W]``
-        and normal ``[B, V, 3, H, W]`` or None. Differentiable w.r.t. means, quats, scales, opacities and sh.
+        and normal ``[B, V, 3, H, W]`` or None, float32 when any Gaussian field is float16/bfloat16 (each such
+        field is upcast). Differentiable w.r.t. means, quats, scales, opacities and sh, and (torch backend)
+        w2c, K and background.
 
     Example::
 
@@ -150,10 +159,17 @@ def render(
     if not isinstance(gaussians, Gaussians):
         raise ValueError(f"gaussians: expected anycity.structures.Gaussians, got {type(gaussians).__name__}")
     gaussians.validate()
-    if gaussians.means.dtype in (torch.float16, torch.bfloat16):
-        gaussians = gaussians.float()  # geometry and rendering stay float32 under mixed precision
+    gaussians = _upcast_low_precision(gaussians)
     with torch.autocast(device_type=gaussians.means.device.type, enabled=False):
         return _render(gaussians, w2c, K, width, height, background, near, far, render_normals, backend)
+
+
+def _upcast_low_precision(gaussians: Gaussians) -> Gaussians:
+    """Cast every float16/bfloat16 field to float32 (geometry and rendering stay float32 under mixed precision);
+    other fields are kept as they are."""
+    low = {f.name: getattr(gaussians, f.name) for f in dataclasses.fields(gaussians)}
+    low = {k: t.float() for k, t in low.items() if t is not None and t.dtype in (torch.float16, torch.bfloat16)}
+    return dataclasses.replace(gaussians, **low) if low else gaussians
 
 
 def _render(gaussians, w2c, K, width, height, background, near, far, render_normals, backend) -> RenderOutput:
@@ -186,7 +202,8 @@ def _render(gaussians, w2c, K, width, height, background, near, far, render_norm
     valid = gaussians.valid
     if valid is None:
         valid = torch.ones(means.shape[:2], dtype=torch.bool, device=means.device)
-    name = resolve_backend(backend, means.device, dtype)
+    camera_grad = torch.is_grad_enabled() and any(t.requires_grad for t in (w2c, K, bg))
+    name = resolve_backend(backend, means.device, dtype, camera_grad)
     fn = _load(name)
     rgb, depth, alpha, normal = fn(
         means, gaussians.quats, gaussians.scales, gaussians.opacities, gaussians.sh, valid,

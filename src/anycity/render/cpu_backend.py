@@ -9,11 +9,13 @@ One ``torch.autograd.Function`` runs, on float32 CPU tensors:
    its pairs in a fixed order and chains through projection and SH). No atomics: gradients are bitwise identical
    for any thread count.
 
-Semantics are those of ``anycity.render.api.render`` (the torch backend is the reference). Kernels compile on
-first use (a few seconds, announced once on stderr) and are cached next to this file's ``__pycache__`` or in
-``NUMBA_CACHE_DIR``. Threads follow ``torch.get_num_threads()``. numba's OpenMP pool is not fork-safe, so calling
-this in a child forked after the kernels ran (e.g. ``DataLoader(num_workers>0)`` workers) raises instead of
-hanging.
+Semantics are those of ``anycity.render.api.render`` (the torch backend is the reference), except that gradients
+reach the Gaussians only: ``w2c``, ``K`` or ``background`` that require grad are refused. Outputs are ordinary
+tensors (in-place ops on them work) and backward keeps its own copies, so editing them cannot change gradients.
+Kernels compile on first use (a few seconds, announced once on stderr) and are cached next to this file's
+``__pycache__`` or in ``NUMBA_CACHE_DIR``. Threads follow ``torch.get_num_threads()``. numba's OpenMP pool is
+not fork-safe, so calling this in a child forked after the kernels ran (e.g. ``DataLoader(num_workers>0)``
+workers) raises instead of hanging.
 """
 
 from __future__ import annotations
@@ -134,20 +136,22 @@ class _FusedRender(torch.autograd.Function):
         order = _rast.depth_order(z, ntiles)
         Q, tile_off, slot, pstart = _rast.bin_pairs(order, rect, ntiles, P, ext_y, C, max(N, 1), tiles_x, tiles_y,
                                                     _BIN_CHUNKS)
-        rgb = np.empty((C, 3, height, width), np.float32)
-        depth = np.empty((C, 1, height, width), np.float32)
-        alpha = np.empty((C, 1, height, width), np.float32)
-        normal = np.empty((C, 3, height, width) if normals else (C, 3, 1, 1), np.float32)  # (C,3,1,1): unused
+        # torch-owned [B, V, ...] outputs (not views: in-place ops on them work as with the torch backend); the
+        # kernels write through [C, ...] numpy views of the same memory
+        img3, img1 = (3, height, width), (1, height, width)
+        out = [torch.empty(B, V, *s, dtype=torch.float32) for s in (img3, img1, img1, img3 if normals else (3, 1, 1))]
+        rgb, depth, alpha, normal = [o.numpy().reshape(C, *o.shape[2:]) for o in out]  # normal (C,3,1,1): unused
         t_final = np.empty((C, height, width), np.float32)
         last = np.empty((C, height, width), np.float32)
-        bg = _np(background.reshape(C, 3))
+        bg = _np(background.reshape(C, 3)).copy()  # backward reads it too: never share the caller's memory
         fwd, _ = raster_kernels(D)
         fwd(Q, tile_off, tiles_x, tiles_y, width, height, bg, rgb, depth, alpha, normal, t_final, last)
 
         ctx.save_for_backward(means, quats, scales, opacities, sh)
+        # backward reads depth: keep a private copy, so that edits of the returned depth (or a detached view of it)
+        # cannot change the gradients
         ctx.state = (cams, V, D, tiles_x, tiles_y, width, height, pstart, Q, tile_off, slot, bg, t_final,
-                     last, depth)
-        out = [torch.from_numpy(a).unflatten(0, (B, V)) for a in (rgb, depth, alpha, normal)]
+                     last, depth.copy() if any(ctx.needs_input_grad[:5]) else None)
         if not normals:
             ctx.mark_non_differentiable(out[3])
         return tuple(out)
@@ -175,14 +179,28 @@ class _FusedRender(torch.autograd.Function):
         return (*outs, None, None, None, None, None, None, None, None, None)
 
 
+def _refuse_camera_grads(**tensors: Tensor) -> None:
+    """The fused kernels differentiate the Gaussians only: refuse, rather than silently drop, wanted gradients."""
+    if not torch.is_grad_enabled():
+        return
+    for name, t in tensors.items():
+        if t.requires_grad:
+            raise ValueError(f"backend='cpu': {name} requires grad, but the fused kernels give gradients for the "
+                             "Gaussians only; use backend='torch' (or 'auto') for camera/background gradients, or "
+                             f"pass {name}.detach()")
+
+
 def render_cpu(means, quats, scales, opacities, sh, valid, w2c, K, width, height, background, near, far,
                render_normals):
-    """Backend entry point (contract in ``anycity.render.api``); float32 CPU tensors only."""
+    """Backend entry point (contract in ``anycity.render.api``); float32 CPU tensors only. Differentiable w.r.t.
+    the Gaussians only: raises a ValueError when ``w2c``, ``K`` or ``background`` require grad (``render``'s
+    "auto" sends such calls to the torch backend instead)."""
     for name, t in (("means", means), ("quats", quats), ("scales", scales), ("opacities", opacities), ("sh", sh),
                     ("w2c", w2c)):
         if t.device.type != "cpu" or t.dtype != torch.float32:
             raise ValueError(f"backend='cpu': {name} must be a float32 CPU tensor, got {t.dtype} on {t.device}; "
                              "use backend='torch' for other dtypes or devices")
+    _refuse_camera_grads(w2c=w2c, K=K, background=background)
     if sh.shape[2] > 25:
         raise ValueError(f"backend='cpu': sh has K={sh.shape[2]} coefficients, at most 25 (degree 4) are supported; "
                          "use backend='torch' or a lower SH degree")

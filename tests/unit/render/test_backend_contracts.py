@@ -1,0 +1,120 @@
+"""Contracts every render backend shares: outputs are ordinary tensors, gradients are never silently dropped,
+mixed-precision inputs render in float32, and "auto" only picks a backend that supports the inputs."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from helpers.scenes import make_cameras, make_gaussians
+
+from anycity.geometry import make_intrinsics
+from anycity.render import api, render, resolve_backend
+from anycity.structures import Gaussians
+
+F32 = torch.float32
+PARAMS = ("means", "quats", "scales", "opacities", "sh")
+needs_numba = pytest.mark.skipif(not api._cpu_backend_available(), reason="the fused CPU backend needs numba")
+
+
+def _scene(K=1):
+    """One tiny float32 scene with leaf parameters, and its camera."""
+    g = make_gaussians(B=1, N=30, K=K, seed=5, dtype=F32)
+    g = Gaussians(**{k: getattr(g, k).detach().clone().requires_grad_(True) for k in PARAMS})
+    w2c, K = make_cameras(1, 1, 24, 16, dtype=F32)
+    return g, w2c, K
+
+
+def _grads(g: Gaussians) -> list[torch.Tensor]:
+    return [getattr(g, k).grad.clone() for k in PARAMS]
+
+
+@needs_numba
+def test_cpu_outputs_accept_inplace_ops_like_the_torch_backend():
+    grads = {}
+    for inplace in (True, False):
+        g, w2c, K = _scene()
+        out = render(g, w2c, K, 24, 16, backend="cpu")
+        hole = out.alpha.detach() < 0.5
+        if inplace:
+            out.rgb.clamp_(0, 1)
+            out.depth[hole] = 0.0
+            rgb, depth = out.rgb, out.depth
+        else:
+            rgb, depth = out.rgb.clamp(0, 1), torch.where(hole, torch.zeros_like(out.depth), out.depth)
+        (rgb.sum() + depth.sum()).backward()
+        grads[inplace] = _grads(g)
+    for a, b in zip(grads[True], grads[False]):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+
+
+@needs_numba
+def test_cpu_backward_ignores_edits_of_detached_outputs():
+    grads = {}
+    for touch in (False, True):
+        g, w2c, K = _scene()
+        out = render(g, w2c, K, 24, 16, backend="cpu")
+        loss = out.depth.sum() + out.alpha.sum() + out.rgb.sum()
+        if touch:  # e.g. normalising a detached copy for a preview, in place
+            for t in (out.depth, out.alpha, out.rgb):
+                t.detach().mul_(3.0)
+        loss.backward()
+        grads[touch] = _grads(g)
+    for a, b in zip(grads[True], grads[False]):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+
+
+@needs_numba
+@pytest.mark.parametrize("name", ["w2c", "K", "background"])
+def test_cpu_refuses_camera_and_background_gradients(name):
+    g, w2c, K = _scene()
+    args = {"w2c": w2c, "K": K, "background": torch.full((3,), 0.2)}
+    args[name] = args[name].clone().requires_grad_(True)
+    with pytest.raises(ValueError, match=rf"{name}.*backend='torch'"):
+        render(g, args["w2c"], args["K"], 24, 16, background=args["background"], backend="cpu")
+    with torch.no_grad():  # no gradient wanted: nothing to refuse
+        render(g, args["w2c"], args["K"], 24, 16, background=args["background"], backend="cpu")
+
+
+@needs_numba
+def test_auto_on_cpu_gives_camera_and_background_gradients():
+    got = {}
+    for backend in ("auto", "torch"):
+        g, w2c, K = _scene()
+        cams = [t.clone().requires_grad_(True) for t in (w2c, K, torch.full((3,), 0.2))]
+        render(g, cams[0], cams[1], 24, 16, background=cams[2], backend=backend).rgb.sum().backward()
+        got[backend] = [c.grad for c in cams]
+    for a, b in zip(got["auto"], got["torch"]):
+        assert a is not None
+        torch.testing.assert_close(a, b)
+    assert resolve_backend("auto", torch.device("cpu"), F32) == "cpu"  # camera refinement moves the scene: fused
+    assert resolve_backend("auto", torch.device("cpu"), F32, camera_grad=True) == "torch"
+
+
+@pytest.mark.parametrize("backend", ["torch", "auto"] + (["cpu"] if api._cpu_backend_available() else []))
+@pytest.mark.parametrize("field", ["quats", "scales", "opacities", "sh"])
+def test_low_precision_fields_render_in_float32(field, backend):
+    g, w2c, K = _scene(K=4)
+    fields = {k: getattr(g, k).detach() for k in PARAMS}
+    fields[field] = fields[field].bfloat16()
+    out = render(Gaussians(**fields), w2c, K, 24, 16, backend=backend)
+    ref = render(Gaussians(**fields).float(), w2c, K, 24, 16, backend=backend)
+    assert out.rgb.dtype == F32
+    torch.testing.assert_close(out.rgb, ref.rgb, rtol=0, atol=0)
+
+
+def test_make_intrinsics_follows_its_inputs():
+    assert make_intrinsics(10.0, 11.0, 4.0, 3.0).dtype == F32
+    f64 = make_intrinsics(torch.tensor([10.0, 20.0], dtype=torch.float64), 11.0, 4, 3.0)
+    assert f64.dtype == torch.float64 and f64.shape == (2, 3, 3)
+    assert f64[1, 0, 0] == 20.0 and f64[0, 1, 1] == 11.0 and f64[0, 2, 2] == 1.0
+    assert make_intrinsics(torch.tensor(10), 11.0, 4.0, 3.0).dtype == F32  # integer tensors: float32
+    meta = make_intrinsics(torch.ones(5, device="meta"), 1.0, 2.0, 3.0)
+    assert meta.device.type == "meta" and meta.shape == (5, 3, 3)
+
+
+def test_auto_on_cuda_picks_gsplat_only_for_float32(monkeypatch):
+    monkeypatch.setattr(api, "_module_available", lambda name: True)
+    cuda = torch.device("cuda")  # a device object only: no CUDA needed
+    assert resolve_backend("auto", cuda, F32) == "gsplat"
+    for dtype in (torch.float64, torch.float16, torch.bfloat16):
+        assert resolve_backend("auto", cuda, dtype) == "torch"
