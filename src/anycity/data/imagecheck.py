@@ -1,5 +1,5 @@
 """Cheap checks of an image file before decoding it: refuse decompression bombs and truncated JPEGs; its size as
-shown (:func:`displayed_size`).
+stored or as shown (:func:`image_size`).
 
 The header is read without decoding pixels (PIL opens lazily), so a 30000 x 30000 header costs nothing.
 """
@@ -37,13 +37,15 @@ def check_image_file(path: str | Path, max_pixels: int = MAX_PIXELS) -> None:
             raise ValueError(f"{path}: truncated JPEG (no end-of-image marker); re-copy or re-save it, or remove it")
 
 
-def displayed_size(path: str | Path) -> tuple[int, int]:
-    """``(h, w)`` as shown, with the EXIF orientation applied as OpenCV's decoders apply it, from the header only.
-    Raises what Pillow raises on an unreadable file; callers name the file and the fix."""
+def image_size(path: str | Path, *, as_shown: bool) -> tuple[int, int]:
+    """``(h, w)`` from the header only: as stored, or ``as_shown`` with the EXIF orientation applied as OpenCV's
+    decoders apply it. Posed datasets describe the stored pixels (COLMAP ignores the orientation); a photo folder
+    without cameras is read as shown. Raises what Pillow raises on an unreadable file; callers name the file and the
+    fix."""
     from PIL import Image
 
     with Image.open(path) as im:
         w, h = im.size
-        if im.getexif().get(0x0112, 1) in (5, 6, 7, 8):  # rotated by 90 degrees when shown
+        if as_shown and im.getexif().get(0x0112, 1) in (5, 6, 7, 8):  # rotated by 90 degrees when shown
             w, h = h, w
     return h, w

@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 import torch
 
-from anycity.data.imagecheck import check_image_file, displayed_size
+from anycity.data.imagecheck import check_image_file, image_size
 from anycity.data.views import jpeg_reduction, resize_plan, resize_view
 
 PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".webp")
@@ -64,7 +64,7 @@ def photo_size(path: Path) -> tuple[int, int]:
     JPEGs are refused here, before anything is decoded (:func:`anycity.data.imagecheck.check_image_file`)."""
     check_image_file(path)
     try:
-        return displayed_size(path)
+        return image_size(path, as_shown=True)
     except Exception as e:  # noqa: BLE001 - any decoder error means the same thing to the user
         raise ValueError(f"predict_images: cannot decode {path} ({type(e).__name__}); re-save it as JPEG or PNG, or "
                          "remove it") from None

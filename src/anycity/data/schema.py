@@ -185,13 +185,14 @@ def decode_image(b: bytes, gray: bool = False, reduce: int = 1) -> np.ndarray:
 
     ``reduce`` 2, 4 or 8 decodes a JPEG at that fraction of its size (libjpeg's DCT scaling: much faster than
     decoding in full and resizing; the result covers the same field of view, ``ceil(side / reduce)`` pixels).
+    The stored pixels: a JPEG's EXIF orientation is not applied, as the shard's cameras describe them unrotated.
     """
     flag = cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_COLOR
     if reduce > 1:
         flag = {(2, False): cv2.IMREAD_REDUCED_COLOR_2, (4, False): cv2.IMREAD_REDUCED_COLOR_4,
                 (8, False): cv2.IMREAD_REDUCED_COLOR_8, (2, True): cv2.IMREAD_REDUCED_GRAYSCALE_2,
                 (4, True): cv2.IMREAD_REDUCED_GRAYSCALE_4, (8, True): cv2.IMREAD_REDUCED_GRAYSCALE_8}[reduce, gray]
-    arr = cv2.imdecode(np.frombuffer(b, np.uint8), flag)
+    arr = cv2.imdecode(np.frombuffer(b, np.uint8), flag | cv2.IMREAD_IGNORE_ORIENTATION)
     if arr is None:
         raise ValueError("undecodable image bytes")
     return arr if gray else cv2.cvtColor(arr, cv2.COLOR_BGR2RGB)

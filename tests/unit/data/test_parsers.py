@@ -115,6 +115,10 @@ def test_nerfstudio(tmp_path):
                                                      "frames": frames, "applied_scale": 1.0}))
     meta = _check_convert("nerfstudio", src, tmp_path / "out", gt)
     assert meta["extra"]["applied_scale"] == 1.0
+    # frames listed out of file-name order (ns-process-data writes COLMAP's image ids) come back in file-name order
+    (src / "transforms.json").write_text(json.dumps({"fl_x": 30, "fl_y": 31, "cx": 16, "cy": 12, "w": W, "h": H,
+                                                     "frames": frames[::-1]}))
+    _check_convert("nerfstudio", src, tmp_path / "out_reversed", gt)
     (src / "transforms.json").write_text(json.dumps({"fl_x": 30, "w": W, "h": H, "k1": 0.1, "frames": frames}))
     with pytest.raises(ValueError, match="undistort"):
         convert("nerfstudio", src, tmp_path / "o2")
@@ -155,6 +159,37 @@ def test_matrixcity_split_file_with_depth(tmp_path):
     assert np.allclose(np.load(io.BytesIO(sample["000.depth.npy"])), 12.34)
 
 
+@pytest.mark.parametrize("rotation_scale", [0.01, 1.0])
+def test_matrixcity_raw_block_and_split_files_as_released(tmp_path, rotation_scale):
+    """The released pose files carry the rotation's scale in c2w[3][3] too (MatrixCity's own loaders reset it to 1);
+    the raw block json stores the rotation scaled by 0.01 in most blocks, unscaled in some."""
+    gt = _gt()
+    raw = tmp_path / "aerial" / "block_1"
+    _images(raw, [f"{i:04d}.png" for i in range(N)])
+    frames = []
+    for i, g in enumerate(gt):
+        c2w = np.linalg.inv(g) @ GL_TO_CV
+        c2w[:3, :3] *= rotation_scale
+        c2w[3, 3] = rotation_scale
+        frames.append({"frame_index": i, "rot_mat": c2w.tolist()})
+    (raw / "transforms.json").write_text(json.dumps({"fl_x": 30, "fl_y": 31, "cx": 16, "cy": 12, "w": W, "h": H,
+                                                    "frames": frames}))
+    convert("matrixcity", raw, tmp_path / "out_raw")
+    _check(tmp_path / "out_raw", gt)
+    split = tmp_path / "pose" / "block_A"
+    split.mkdir(parents=True)
+    frames = []
+    for i, g in enumerate(gt):
+        c2w = np.linalg.inv(g) @ GL_TO_CV
+        c2w[:3, 3] /= 100.0
+        c2w[3, 3] = 0.01
+        frames.append({"file_path": f"../../aerial/block_1/{i:04d}.png", "transform_matrix": c2w.tolist()})
+    (split / "transforms_train.json").write_text(json.dumps({"fl_x": 30, "fl_y": 31, "cx": 16, "cy": 12, "w": W,
+                                                            "h": H, "frames": frames}))
+    convert("matrixcity", split, tmp_path / "out_split")
+    _check(tmp_path / "out_split", gt)
+
+
 def test_blendedmvs_with_pfm(tmp_path):
     gt = _gt()
     src = tmp_path / "5a3ca9cb270f0e3f14d0eddb"
@@ -183,8 +218,9 @@ def test_blendedmvs_with_pfm(tmp_path):
         convert("blendedmvs", src, tmp_path / "out3")
 
 
-def test_blendedmvs_image_size_is_the_size_shown(tmp_path):
-    """The size OpenCV decodes (EXIF orientation applied), so the intrinsics are not rescaled across the axes."""
+def test_blendedmvs_image_size_is_the_size_stored(tmp_path):
+    """The size the cameras describe: the stored pixels, whatever a JPEG's EXIF orientation says (the converters
+    decode them unrotated), so the intrinsics are not rescaled across the axes."""
     from PIL import Image
 
     from anycity.data.parsers.blendedmvs import _image_size
@@ -193,8 +229,35 @@ def test_blendedmvs_image_size_is_the_size_shown(tmp_path):
     exif[0x0112] = 6  # stored 64 wide and 32 high, shown rotated by 90 degrees
     Image.new("RGB", (64, 32)).save(tmp_path / "a.jpg", exif=exif)
     Image.new("RGB", (64, 32)).save(tmp_path / "b.jpg")
-    assert _image_size(tmp_path / "a.jpg", tmp_path / "a_cam.txt") == (64, 32)
+    assert _image_size(tmp_path / "a.jpg", tmp_path / "a_cam.txt") == (32, 64)
     assert _image_size(tmp_path / "b.jpg", tmp_path / "b_cam.txt") == (32, 64)
+
+
+@pytest.mark.parametrize("orientation", [3, 6])
+def test_exif_rotated_jpegs_keep_the_cameras_and_the_stored_pixels(tmp_path, orientation):
+    """COLMAP (and every posed dataset) describes the stored pixels: a JPEG's EXIF orientation (a phone held upright,
+    a gimbal's flag) must neither rescale K across the axes (90 degrees) nor rotate the image under its pose (180)."""
+    from PIL import Image
+
+    from anycity.data.schema import decode_image, member
+
+    gt = _gt()
+    src = tmp_path / "scene"
+    (src / "images").mkdir(parents=True)
+    exif = Image.Exif()
+    exif[0x0112] = orientation
+    stored = np.zeros((H, W, 3), np.uint8)
+    stored[: H // 2, : W // 2] = 255  # bright top-left quadrant: any rotation moves it
+    for i in range(N):
+        Image.fromarray(stored).save(src / "images" / f"v{i}.jpg", exif=exif, quality=100)
+    _write_colmap_bin(src / "sparse" / "0", gt)
+    model = src / "sparse" / "0" / "images.bin"  # the model names v{i}.png; these photos are JPEGs
+    model.write_bytes(model.read_bytes().replace(b".png", b".jpg"))
+    _check_convert("colmap", src, tmp_path / "out", gt)  # K exactly the camera's, not rescaled
+    sample = next(iter(wds.WebDataset(str(sorted((tmp_path / "out").glob("*.tar"))[0]), shardshuffle=False)))
+    img = decode_image(member(sample, read_meta(sample)["views"][0]["image"]))
+    assert img.shape == (H, W, 3)
+    assert img[: H // 2, : W // 2].mean() > 200 and img[H // 2 :, W // 2 :].mean() < 50
 
 
 def _llff_rows(gt, cols):

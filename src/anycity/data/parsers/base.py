@@ -72,7 +72,8 @@ def c2w_gl_to_w2c(c2w_gl: np.ndarray) -> np.ndarray:
 
 def _load_view(v: ParsedView, max_side: int | None) -> ViewRecord:
     raw = require(v.image_path, f"the image of view {v.name}").read_bytes()
-    img = cv2.imdecode(np.frombuffer(raw, np.uint8), cv2.IMREAD_COLOR)
+    # The stored pixels, which the cameras describe (COLMAP ignores the EXIF orientation); the shards are decoded so.
+    img = cv2.imdecode(np.frombuffer(raw, np.uint8), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
     if img is None:
         raise ValueError(f"{v.image_path}: not a readable image; replace or remove the file")
     h, w = img.shape[:2]

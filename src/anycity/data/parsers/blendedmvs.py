@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from anycity.data.imagecheck import displayed_size
+from anycity.data.imagecheck import image_size
 from anycity.data.parsers.base import ParsedScene, ParsedView, require
 
 
@@ -42,10 +42,10 @@ def read_cam(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _image_size(img: Path, cam: Path) -> tuple[int, int]:
-    """``(h, w)`` as shown, from the image's header (no decode)."""
+    """``(h, w)`` as stored, from the image's header (no decode): the size the cameras describe."""
     require(img, f"the image of {cam.name}")
     try:
-        return displayed_size(img)
+        return image_size(img, as_shown=False)
     except Exception as e:  # noqa: BLE001 - any decoder error means the same thing to the user
         raise ValueError(f"{img}: not a readable image ({type(e).__name__}); re-download it, or remove {cam.name} "
                          "to leave the view out") from None

@@ -62,7 +62,9 @@ def parse(src: str | Path) -> list[ParsedScene]:
         for i, fr in enumerate(frames):
             if raw:
                 c2w = np.asarray(fr["rot_mat"], float).copy()
-                c2w[:3, :3] *= 100.0
+                # The rotation is stored scaled by 0.01 in most blocks, unscaled in some (MatrixCity's own loaders
+                # test which): divide by its column norm either way.
+                c2w[:3, :3] /= np.linalg.norm(c2w[:3, :3], axis=0).mean()
                 img = path.parent / f"{int(fr['frame_index']):04d}.png"
             else:
                 if "transform_matrix" not in fr:
@@ -70,6 +72,7 @@ def parse(src: str | Path) -> list[ParsedScene]:
                 c2w = np.asarray(fr["transform_matrix"], float).copy()
                 c2w[:3, 3] *= 100.0  # 100 m units -> metres
                 img = (path.parent / fr["file_path"]).resolve()
+            c2w[3, 3] = 1.0  # the files carry the rotation's scale there too; MatrixCity's loaders reset it
             views.append(ParsedView(name=img.name, image_path=img, w2c=c2w_gl_to_w2c(c2w), K=K, width=w, height=h,
                                     depth=_depth_loader(img)))
         T = np.eye(4) if raw else np.diag([100.0, 100.0, 100.0, 1.0])

@@ -39,7 +39,10 @@ def parse(src: str | Path) -> list[ParsedScene]:
     meta = json.loads(require(path, "a nerfstudio transforms.json").read_text())
     scale = float(meta.get("depth_unit_scale_factor", 1e-3))
     views = []
-    for i, fr in enumerate(meta.get("frames", [])):
+    # In file-name order, as nerfstudio's own dataparser reads them: ns-process-data writes COLMAP's image-id order,
+    # and the trajectory order is what the llffhold split and the nearest-context-view choice read.
+    frames = sorted(enumerate(meta.get("frames", [])), key=lambda f: str(f[1].get("file_path", "")))
+    for i, fr in frames:
         where = f"{path} frame {i}"
         K, w, h = _intrinsics({**meta, **fr}, where)
         if "transform_matrix" not in fr or "file_path" not in fr:
