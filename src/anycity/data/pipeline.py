@@ -131,14 +131,20 @@ class SampleBuilder:
         self.with_depth, self.with_normals, self.hold, self.patch = with_depth, with_normals, hold, patch
         self.seed, self.compact = seed, compact
         self._rng: np.random.Generator | None = None
+        self._epoch = 0
         self._in_worker: bool | None = None
 
     def rng(self) -> np.random.Generator:
         if self._rng is None:
             info = torch.utils.data.get_worker_info()
             rank = int(os.environ.get("RANK", 0))
-            self._rng = np.random.default_rng([self.seed, rank, info.id if info else 0])
+            epoch = [self._epoch] if self._epoch else []  # epoch 0 keeps the builder's first seed
+            self._rng = np.random.default_rng([self.seed, rank, info.id if info else 0, *epoch])
         return self._rng
+
+    def begin_epoch(self, epoch: int) -> None:
+        """Draw epoch ``epoch``'s samples from a seed of their own, so a run resumed in that epoch draws the same."""
+        self._epoch, self._rng, self._built = epoch, None, 0
 
     def train_context_count(self) -> int:
         """The context count of the next training sample: ``num_context``, or with ``context_range`` a draw made
@@ -397,10 +403,31 @@ def check_finite(obj, where: str = "sample", path: str = "") -> None:
                              "(skip_corrupt: true skips and counts it)")
 
 
+class _EpochStart:
+    """A resampled training stream's first stage. Each iteration of the pipeline is one epoch; this counts them from
+    ``first_epoch`` and seeds each epoch's random draws (shards, shuffle, views) from ``(seed, epoch)`` alone, so a
+    run resumed in epoch ``e`` (``first_epoch=e``) draws what the uninterrupted run drew there. Epoch 0's seeds
+    are the ones the stream had before it counted epochs."""
+
+    def __init__(self, shards: wds.ResampledShards, first_epoch: int, shuffle_rng: random.Random, seed: int,
+                 builder: SampleBuilder) -> None:
+        self.shards, self.epoch, self.shuffle_rng, self.seed, self.builder = shards, first_epoch - 1, shuffle_rng, \
+            seed, builder
+
+    def __call__(self):
+        self.epoch += 1
+        self.shards.epoch = self.epoch - 1  # it counts its own epochs from -1, one per iteration
+        self.shuffle_rng.seed(self.seed if self.epoch == 0 else f"{self.seed}:{self.epoch}")
+        self.builder.begin_epoch(self.epoch)
+        return iter(self.shards)
+
+
 def make_pipeline(urls: list[str], builder: SampleBuilder, *, train: bool, resampled: bool = True,
                   epoch_samples: int | None = None, shuffle: int = 16, seed: int = 0,
-                  skip_corrupt: bool = False, counter: SkipCounter | None = None) -> wds.DataPipeline:
-    """Shards -> per-sample dicts (batch with :func:`collate` in the DataLoader).
+                  skip_corrupt: bool = False, counter: SkipCounter | None = None,
+                  first_epoch: int = 0) -> wds.DataPipeline:
+    """Shards -> per-sample dicts (batch with :func:`collate` in the DataLoader). A resampled training stream starts
+    at epoch ``first_epoch`` (a resumed run's; see :class:`_EpochStart`).
 
     Raises ``FileNotFoundError`` for missing shard files, and (unless ``skip_corrupt``) ``ValueError`` naming the
     shard and key for corrupt samples; with ``skip_corrupt`` they are skipped and counted in ``counter``.
@@ -437,8 +464,10 @@ def make_pipeline(urls: list[str], builder: SampleBuilder, *, train: bool, resam
         guard.sample_built()
         return out
 
+    shuffle_rng = random.Random(seed)
     if train and resampled:
-        stages = [wds.ResampledShards(urls, seed=seed, deterministic=True)]
+        stages = [_EpochStart(wds.ResampledShards(urls, seed=seed, deterministic=True), first_epoch, shuffle_rng, seed,
+                              builder)]
     elif train:
         # same shuffled order on every rank (seeded by seed + epoch), then split by rank and worker
         stages = [wds.SimpleShardList(urls), wds.detshuffle(bufsize=len(urls), initial=len(urls), seed=seed),
@@ -449,7 +478,7 @@ def make_pipeline(urls: list[str], builder: SampleBuilder, *, train: bool, resam
     if not train:
         stages.append(_eval_shard)
     elif shuffle > 1:
-        stages.append(wds.shuffle(shuffle, initial=min(shuffle, 4), rng=random.Random(seed)))
+        stages.append(wds.shuffle(shuffle, initial=min(shuffle, 4), rng=shuffle_rng))
     stages += [wds.map(build, handler=handler), _flatten]
     pipe = wds.DataPipeline(*stages)
     if train and epoch_samples:

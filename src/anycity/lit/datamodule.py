@@ -169,26 +169,29 @@ class AerialDataModule(pl.LightningDataModule):
                              self.hp.train_num_context if train else None, self.hp.train_context_weighting,
                              self.hp.batch_size)
 
-    def _loader(self, split: str) -> DataLoader:
+    def _loader(self, split: str, first_epoch: int = 0) -> DataLoader:
         train = split == "train"
         workers = self.hp.num_workers
         # epoch_samples per rank, split over its workers (each rank draws its own resampled stream)
         per_worker = math.ceil(self.hp.epoch_samples / max(1, workers)) if train else None
         pipe = make_pipeline(self._urls(split), self._builder(train), train=train, resampled=self.hp.resampled,
                              epoch_samples=per_worker, shuffle=self.hp.shuffle_buffer, seed=self.hp.seed,
-                             skip_corrupt=self.hp.skip_corrupt, counter=self.skip_counter)
+                             skip_corrupt=self.hp.skip_corrupt, counter=self.skip_counter, first_epoch=first_epoch)
         bs = self.hp.batch_size if train else (self.hp.eval_batch_size or self.hp.batch_size)
         return DataLoader(pipe, batch_size=bs, collate_fn=collate, num_workers=workers,
                           persistent_workers=workers > 0, pin_memory=self.hp.pin_memory, drop_last=train)
 
     def train_dataloader(self) -> DataLoader:
-        loader = self._loader("train")
-        # resumed mid-epoch (``--ckpt_path``): skip the samples the interrupted run already trained on, so the
-        # resumed run sees exactly the stream an uninterrupted one would (exact with num_workers=0)
+        # resumed (``--ckpt_path``): start at the interrupted run's epoch and skip the samples it already trained on
+        # in it, so the resumed run sees the stream an uninterrupted one would (exact with num_workers=0)
         t = self.trainer
         done = 0 if t is None else t.global_step * t.accumulate_grad_batches
-        if done and self.hp.epoch_samples:  # position within the current epoch
-            done %= max(1, self.hp.epoch_samples // loader.batch_size)
+        epoch = 0
+        if done and self.hp.epoch_samples:
+            workers = max(1, self.hp.num_workers)  # each worker drops its own last partial batch
+            per_epoch = workers * (math.ceil(self.hp.epoch_samples / workers) // self.hp.batch_size)
+            epoch, done = divmod(done, max(1, per_epoch))
+        loader = self._loader("train", epoch if self.hp.resampled else 0)
         if done:
             skip = done * loader.batch_size // max(1, self.hp.num_workers)
             loader = DataLoader(_SkipFirst(loader.dataset, skip), batch_size=loader.batch_size,
