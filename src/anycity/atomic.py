@@ -8,7 +8,10 @@ from __future__ import annotations
 
 import errno
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
+from typing import BinaryIO
 
 
 def free_name(path: Path) -> Path:
@@ -24,22 +27,40 @@ def free_name(path: Path) -> Path:
 def atomic_write_bytes(path: str | os.PathLike, data: bytes | memoryview) -> None:
     """Write ``data`` to ``path`` via a temp file + fsync + rename: readers see the old or the new file, never
     a partial one. On ``ENOSPC``/``EDQUOT`` raises ``OSError`` naming the path and the bytes needed."""
+    with atomic_open(path, size=len(data)) as f:
+        f.write(data)
+
+
+@contextmanager
+def atomic_open(path: str | os.PathLike, tmp_dir: str | os.PathLike | None = None,
+                size: int | None = None) -> Iterator[BinaryIO]:
+    """A binary file to stream into that appears as ``path`` only when the block ends without an exception
+    (temp file, flush, fsync, rename, folder fsync); on an exception the temp file is removed and ``path`` is
+    unchanged. ``tmp_dir``: where the temp file lives (default: ``path``'s folder; it must be on the same
+    filesystem). ``size``: the bytes it will take, for the disk-full message."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    tmp = Path(tmp_dir or path.parent) / f".{path.name}.tmp-{os.getpid()}"
     try:
         with open(tmp, "wb") as f:
-            f.write(data)
+            yield f
             f.flush()
             os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except OSError as e:
+        publish(tmp, path)
+    except BaseException as e:
         tmp.unlink(missing_ok=True)
-        if e.errno in (errno.ENOSPC, errno.EDQUOT):
-            raise OSError(e.errno, f"disk full writing {path}: {len(data)} bytes needed; free space on "
-                                   f"{path.parent} (the previous file, if any, is unchanged)") from e
+        if isinstance(e, OSError) and e.errno in (errno.ENOSPC, errno.EDQUOT):
+            need = f"{size} bytes needed" if size is not None else "more space needed"
+            raise OSError(e.errno, f"disk full writing {path}: {need}; free space on {path.parent} (the previous "
+                                   "file, if any, is unchanged)") from e
         raise
-    _fsync_dir(path.parent)
+
+
+def publish(src: str | os.PathLike, dst: str | os.PathLike) -> None:
+    """Rename the finished, fsynced file ``src`` to ``dst`` (same filesystem) and fsync ``dst``'s folder, so the
+    new name survives a power loss."""
+    os.replace(src, dst)
+    _fsync_dir(Path(dst).parent)
 
 
 def _fsync_dir(d: Path) -> None:

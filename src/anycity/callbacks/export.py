@@ -33,7 +33,9 @@ class PredictionExport(BasePredictionWriter):
     (per-chunk photos, pairwise alignment residuals and inlier counts). Renders and inputs are then written per
     photo from the chunk that owns it (renders of that chunk's Gaussians), and the provenance columns count the views
     of the Gaussian's own chunk. Chunk predictions are consumed here
-    (emptied in place), so ``trainer.predict`` does not keep every chunk's Gaussians in memory.
+    (emptied in place), so ``trainer.predict`` does not keep every chunk's Gaussians in memory: they spill into the
+    hidden folder ``.<scene>.anycity_city_work/`` beside the scene's (:func:`anycity.city.scene.work_dir`), removed
+    when the scene is written or the run stops; one that a killed run left is removed by the next run of the scene.
 
     Args:
         out_dir: output folder; None = ``<log_dir>/predictions``.
@@ -114,7 +116,7 @@ class PredictionExport(BasePredictionWriter):
         if k == 0:
             if self._city is not None:
                 self._city.close()
-            self._city = ChunkedScene(info["plan"], info["names"], info["hw"])
+            self._city = ChunkedScene(info["plan"], info["names"], info["hw"], out=folder)
             from tqdm.auto import tqdm
 
             self._bar = tqdm(total=info["count"], desc=f"city: chunks of {batch['scene'][0]}", unit="chunk")

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import shutil
 from pathlib import Path
 
@@ -10,6 +9,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from anycity.atomic import atomic_open
 from anycity.city.align import sim3_parts
 from anycity.export.ply import gaussians_to_ply_arrays
 from anycity.geometry.rotations import quat_multiply, rotmat_to_quat
@@ -39,18 +39,31 @@ def sim3_gaussians(g: Gaussians, S: Tensor) -> Gaussians:
 
 class PlyStream:
     """Write a standard 3DGS PLY (the layout of :func:`anycity.export.save_ply`) piece by piece, so the whole scene
-    never sits in memory: rows go to ``<path>.body.tmp``; :meth:`close` writes the header with the final count to
-    ``<path>.tmp``, appends the body and renames it to ``path`` (no partial ``scene.ply`` on failure)."""
+    never sits in memory: rows go to a hidden body file in ``scratch`` (default: ``path``'s folder; it must be on
+    ``path``'s filesystem); :meth:`close` streams the header with the final count and the body through
+    :func:`anycity.atomic.atomic_open` (temp file in ``scratch``, fsync, rename to ``path``). Used as a context
+    manager it closes on success and aborts on an exception, so ``path`` is the old file or the whole new one."""
 
-    def __init__(self, path: str | Path, max_degree: int = 3) -> None:
+    def __init__(self, path: str | Path, max_degree: int = 3, scratch: str | Path | None = None) -> None:
         self.path = Path(path)
+        self.scratch = Path(scratch) if scratch is not None else self.path.parent
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.body_path = self.path.with_name(self.path.name + ".body.tmp")
+        self.scratch.mkdir(parents=True, exist_ok=True)
+        self.body_path = self.scratch / f".{self.path.name}.body.tmp"
         self.body = open(self.body_path, "wb")  # noqa: SIM115 - closed in close()/abort()
         self.max_degree = max_degree
         self.columns: list[str] | None = None
         self.count = 0
         self.dropped = 0
+
+    def __enter__(self) -> PlyStream:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
 
     def write(self, g: Gaussians, extra: dict[str, Tensor] | None = None) -> None:
         """Append every scene of ``g`` (invalid / non-finite rows dropped, as in ``save_ply``); ``extra``: more
@@ -71,22 +84,25 @@ class PlyStream:
             self.dropped += dropped
 
     def close(self) -> Path:
+        """Write ``path`` (header + body) crash-safely and remove the body file; returns ``path``."""
         self.body.close()
         if self.columns is None:
             self.abort()
             raise ValueError(f"PlyStream: nothing was written to {self.path}")
         header = ["ply", "format binary_little_endian 1.0", f"element vertex {self.count}"]
         header += [f"property float {k}" for k in self.columns] + ["end_header"]
-        tmp = self.path.with_name(self.path.name + ".tmp")
-        with open(tmp, "wb") as out, open(self.body_path, "rb") as body:
-            out.write(("\n".join(header) + "\n").encode("ascii"))
-            shutil.copyfileobj(body, out, 1 << 22)
-        os.replace(tmp, self.path)
-        self.body_path.unlink(missing_ok=True)
+        head = ("\n".join(header) + "\n").encode("ascii")
+        size = len(head) + self.body_path.stat().st_size
+        try:
+            with atomic_open(self.path, self.scratch, size) as out, open(self.body_path, "rb") as body:
+                out.write(head)
+                shutil.copyfileobj(body, out, 1 << 22)
+        finally:
+            self.body_path.unlink(missing_ok=True)
         return self.path
 
     def abort(self) -> None:
+        """Drop what was written; ``path`` is left as it was."""
         if not self.body.closed:
             self.body.close()
         self.body_path.unlink(missing_ok=True)
-        self.path.with_name(self.path.name + ".tmp").unlink(missing_ok=True)

@@ -3,6 +3,11 @@
 Memory stays bounded by the chunk size: of each chunk only its cameras and a sparse grid of depth points per view
 stay in memory; the Gaussians of the views it owns (:func:`anycity.city.plan.owners`) go to a spill file, and
 :meth:`ChunkedScene.finish` streams them through their chunk's Sim(3) into the PLY.
+
+Given the output folder, the spill files live in the hidden :func:`work_dir` beside it (on the disk the scene is
+written to, not in ``$TMPDIR``, which is RAM on a tmpfs ``/tmp``); ``finish`` stages its outputs there too, so each
+is published by a rename. The folder is removed when the scene is written or the run fails; one that a killed run
+left is removed by the next run of that scene (its chunks came from another run, so they are never reused).
 """
 
 from __future__ import annotations
@@ -10,19 +15,30 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import os
 import shutil
 import tempfile
+import warnings
 from pathlib import Path
 
 import torch
 from torch import Tensor
 
+from anycity.atomic import atomic_write_bytes, publish
 from anycity.city.align import ChunkGeometry, align_chunks, sim3_parts, w2c_to_world
 from anycity.city.merge import PlyStream, sim3_gaussians
 from anycity.city.plan import owners
 from anycity.export.cameras import save_cameras
 from anycity.structures import Gaussians
+
+WORK_SUFFIX = ".anycity_city_work"
+
+
+def work_dir(folder: str | Path) -> Path:
+    """The hidden work folder of the scene written to ``folder``: ``<parent>/.<name>.anycity_city_work``. Beside
+    the scene, not in it: ``predict`` keeps an earlier run's scene folder by renaming it (:mod:`anycity.lit.keep`),
+    and a killed run's spill must stay where the next run of the scene finds and removes it."""
+    folder = Path(folder)
+    return folder.parent / f".{folder.name}{WORK_SUFFIX}"
 
 
 def grid_pixels(h: int, w: int, per_side: int = 8) -> Tensor:
@@ -42,17 +58,22 @@ class ChunkedScene:
         hw: ``(H, W)`` of the chunks' images (pixel-aligned Gaussians: N = V*H*W in view order).
         points_per_side: depth points per view side used for alignment.
         global_pass: run the pose graph after the pairwise fits (else chain them).
+        out: the folder :meth:`finish` will write; the spill goes to :func:`work_dir` beside it (a killed run's
+            one is removed first, with a warning).
+        workdir: without ``out``, where a new temporary spill folder is made; neither = ``$TMPDIR`` (RAM on a
+            tmpfs ``/tmp``: pass ``out`` for a large scene).
         fit: keyword options of :func:`anycity.city.align.robust_sim3`.
     """
 
     def __init__(self, chunks: list[list[int]], names: list[str], hw: tuple[int, int], points_per_side: int = 8,
-                 global_pass: bool = True, workdir: str | Path | None = None, **fit) -> None:
+                 global_pass: bool = True, workdir: str | Path | None = None, out: str | Path | None = None,
+                 **fit) -> None:
         self.chunks, self.names, self.hw = chunks, names, tuple(hw)
         self.owner = owners(chunks)
         self.pix = grid_pixels(*self.hw, points_per_side)
         self.geometry: list[ChunkGeometry | None] = [None] * len(chunks)
         self.K: dict[int, Tensor] = {}
-        self.spill = Path(tempfile.mkdtemp(prefix="anycity_city_", dir=workdir))
+        self.spill = _spill_dir(out, workdir)
         self.spilled: dict[int, Path] = {}
         self.global_pass, self.fit = global_pass, fit
 
@@ -95,42 +116,42 @@ class ChunkedScene:
     def finish(self, folder: str | Path, width: int | None = None, height: int | None = None) -> dict:
         """Align, merge and write ``folder/{scene.ply, cameras.json, chunks.json}``; returns the report.
 
-        Nothing is left in ``folder`` when it fails (files are written under temporary names, then renamed).
+        Nothing is left in ``folder`` when it fails: the files are written in full and fsynced in
+        :func:`work_dir` (the scene's filesystem), then renamed into place.
         """
+        folder = Path(folder)
+        stage = work_dir(folder)  # the spill folder itself when ``out`` is ``folder``
         try:
             missing = [k for k, g in enumerate(self.geometry) if g is None]
             if missing:
                 raise ValueError(f"ChunkedScene.finish: chunks {missing} were never added")
             S, edges, rep = align_chunks(self.geometry, self.names, self.global_pass, **self.fit)
-            folder = Path(folder)
-            folder.mkdir(parents=True, exist_ok=True)
-            n = len(self.names)
-            w2c = torch.zeros(n, 4, 4, dtype=torch.float64)
-            ply = PlyStream(folder / "scene.ply")
-            try:
-                for k, path in sorted(self.spilled.items()):
-                    piece = torch.load(path, weights_only=True)
-                    ply.write(sim3_gaussians(Gaussians(**piece["gaussians"]), S[k]), piece["extra"] or None)
-                    for v, cam in zip(piece["views"], piece["w2c"]):
-                        w2c[v] = w2c_to_world(cam, S[k])
-                    del piece
+            stage.mkdir(parents=True, exist_ok=True)
+            with PlyStream(folder / "scene.ply", scratch=stage) as ply:
+                w2c = self._merge(ply, S)
                 report = self._report(S, edges, rep, ply)
-                tmp = folder / "cameras.json.tmp"
-                save_cameras(tmp, w2c, torch.stack([self.K[v] for v in range(n)]), int(width or self.hw[1]),
-                             int(height or self.hw[0]), self.names)
-                (folder / "chunks.json.tmp").write_text(json.dumps(report, indent=1))
-                ply.close()
-            except BaseException:
-                ply.abort()
-                for f in ("cameras.json.tmp", "chunks.json.tmp"):
-                    (folder / f).unlink(missing_ok=True)
-                raise
-            os.replace(tmp, folder / "cameras.json")
-            os.replace(folder / "chunks.json.tmp", folder / "chunks.json")
+                save_cameras(stage / "cameras.json", w2c, torch.stack([self.K[v] for v in range(len(self.names))]),
+                             int(width or self.hw[1]), int(height or self.hw[0]), self.names)
+                atomic_write_bytes(stage / "chunks.json", json.dumps(report, indent=1).encode())
+            for name in ("cameras.json", "chunks.json"):
+                publish(stage / name, folder / name)
             self.w2c = w2c
             return report
         finally:
             self.close()
+            shutil.rmtree(stage, ignore_errors=True)
+
+    def _merge(self, ply: PlyStream, S: Tensor) -> Tensor:
+        """Stream every spill file through its chunk's Sim(3) ``S[k]`` into ``ply``; returns the world-frame
+        ``w2c [n, 4, 4]`` of all photos."""
+        w2c = torch.zeros(len(self.names), 4, 4, dtype=torch.float64)
+        for k, path in sorted(self.spilled.items()):
+            piece = torch.load(path, weights_only=True)
+            ply.write(sim3_gaussians(Gaussians(**piece["gaussians"]), S[k]), piece["extra"] or None)
+            for v, cam in zip(piece["views"], piece["w2c"]):
+                w2c[v] = w2c_to_world(cam, S[k])
+            del piece
+        return w2c
 
     def close(self) -> None:
         """Remove the spill files."""
@@ -148,3 +169,15 @@ class ChunkedScene:
                 "pose_graph": {k: (v if math.isfinite(v) else None) for k, v in rep.items()},
                 "gaussians": ply.count, "dropped": ply.dropped,
                 "units": "residuals in world units of chunk 0's frame"}
+
+
+def _spill_dir(out: str | Path | None, workdir: str | Path | None) -> Path:
+    """A new, empty spill folder: :func:`work_dir` of ``out``, else a temporary one in ``workdir``."""
+    if out is None:
+        return Path(tempfile.mkdtemp(prefix="anycity_city_", dir=workdir))
+    spill = work_dir(out)
+    if spill.exists():  # a killed run's: its chunks are not this run's, and the disk space is wanted back
+        warnings.warn(f"{spill}: removing the spill folder an interrupted run left", stacklevel=3)
+        shutil.rmtree(spill)
+    spill.mkdir(parents=True)
+    return spill

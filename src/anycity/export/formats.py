@@ -1,7 +1,8 @@
 """Exports for other tools: antimatter15 ``.splat``, a COLMAP text model and a nerfstudio ``transforms.json``.
 
 All of them stay in the predicted world frame (OpenCV axes, the network's normalised units); ``metres_per_unit``
-is written beside them (``scale.json``) so a user can map back to metres when the input gave a scale.
+is written beside them (``scale.json``) so a user can map back to metres when the input gave a scale. Every file is
+written through :mod:`anycity.atomic`: a killed export leaves no partial file under a final name.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from anycity.atomic import atomic_write_bytes
 from anycity.geometry import rotmat_to_quat
 from anycity.structures import Gaussians
 
@@ -53,10 +55,8 @@ def splat_bytes(g: Gaussians, index: int = 0) -> bytes:
 
 def save_splat(g: Gaussians, path: str | Path, index: int = 0) -> int:
     """Write :func:`splat_bytes` to ``path``; returns the number of splats written."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     data = splat_bytes(g, index)
-    path.write_bytes(data)
+    atomic_write_bytes(path, data)
     return len(data) // 32
 
 
@@ -81,8 +81,8 @@ def save_colmap(path: str | Path, w2c: Tensor, K: Tensor, width: int, height: in
         q = q if q[0] >= 0 else -q
         imgs.append(f"{v + 1} " + " ".join(f"{x:.17g}" for x in [*q.tolist(), *t.tolist()]) + f" {v + 1} {names[v]}")
         imgs.append("")
-    (path / "cameras.txt").write_text("\n".join(cams) + "\n")
-    (path / "images.txt").write_text("\n".join(imgs) + "\n")
+    _write_lines(path / "cameras.txt", cams)
+    _write_lines(path / "images.txt", imgs)
     pts = ["# 3D point list: POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] (Gaussian centres, no tracks)"]
     if g is not None:
         keep = np.nonzero(_keep(g, index))[0]
@@ -93,8 +93,13 @@ def save_colmap(path: str | Path, w2c: Tensor, K: Tensor, width: int, height: in
         rgb = np.round(_dc_rgb(g, index)[keep] * 255).astype(int)
         pts += [f"{i + 1} {p[0]:.9g} {p[1]:.9g} {p[2]:.9g} {c[0]} {c[1]} {c[2]} 0"
                 for i, (p, c) in enumerate(zip(xyz, rgb, strict=True))]
-    (path / "points3D.txt").write_text("\n".join(pts) + "\n")
+    _write_lines(path / "points3D.txt", pts)
     return path
+
+
+def _write_lines(path: Path, lines: list[str]) -> None:
+    """``lines`` as a text file, one a line."""
+    atomic_write_bytes(path, ("\n".join(lines) + "\n").encode())
 
 
 def transforms_dict(w2c: Tensor, K: Tensor, width: int, height: int, names: list[str],
@@ -117,14 +122,14 @@ def save_transforms(path: str | Path, w2c: Tensor, K: Tensor, width: int, height
     path = Path(path)
     if path.suffix != ".json":
         path = path / "transforms.json"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(transforms_dict(w2c, K, width, height, names, ply_file_path), indent=1))
+    content = transforms_dict(w2c, K, width, height, names, ply_file_path)
+    atomic_write_bytes(path, json.dumps(content, indent=1).encode())
     return path
 
 
 def save_scale(path: str | Path, metres_per_unit: float | None, fmt: str) -> None:
     """``scale.json`` beside an export: the frame and its scale (metres per unit, null when unknown)."""
-    Path(path).write_text(json.dumps({
+    atomic_write_bytes(path, json.dumps({
         "frame": "anycity predicted world frame, OpenCV camera convention (see cameras.json)",
         "units": "metres" if metres_per_unit == 1.0 else "predicted (normalised)",
-        "metres_per_unit": metres_per_unit, "format": fmt}, indent=1))
+        "metres_per_unit": metres_per_unit, "format": fmt}, indent=1).encode())

@@ -93,3 +93,48 @@ def test_token_order_is_a_permutation_from_the_network(tmp_path):
     batches = list(dm.predict_dataloader())
     names = batches[0]["chunk"]["names"]
     assert sorted(names) == [f"{i}.png" for i in range(6)] and len(batches) == 2
+
+
+def test_city_spill_goes_under_the_output_folder_and_is_gone_after_success(tmp_path, monkeypatch):
+    """Not into $TMPDIR (RAM on a tmpfs /tmp): beside the scene, on its filesystem, removed when it is written;
+    a killed run's leftover one (predict moved that run's scene folder aside, not it) is removed first."""
+    import tempfile
+    import warnings
+
+    system_tmp = tmp_path / "system_tmp"
+    system_tmp.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(system_tmp))
+    photos = tmp_path / "flight"
+    photos.mkdir()
+    n, h, w = 6, 8, 8
+    for i in range(n):
+        Image.fromarray(np.full((h, w, 3), 30 * i, np.uint8)).save(photos / f"p{i}.png")
+    dm = AerialDataModule(predict_images=str(photos), image_size=(h, w), patch_size=8, predict_chunk_size=4,
+                          predict_chunk_overlap=2, num_workers=0)
+    gt, _ = orbit_scene(n)
+    K = torch.tensor([[8.0, 0, 4], [0, 8, 4], [0, 0, 1]])
+    cb = PredictionExport(out_dir=str(tmp_path / "out"), save_renders=False, smooth_3d=0)
+    out = tmp_path / "out" / "flight"
+    leftover = tmp_path / "out" / ".flight.anycity_city_work" / "chunk_00099.pt"
+    leftover.parent.mkdir(parents=True)
+    leftover.write_bytes(b"a killed run's chunk")
+    for k, b in enumerate(dm.predict_dataloader()):  # an oracle network: true cameras and depth, chunk 0's frame
+        views = b["chunk"]["views"]
+        Ks = K.expand(1, len(views), 3, 3)
+        means = unproject_depth(torch.full((1, len(views), 1, h, w), 5.0), Ks, gt[views][None].float())
+        m = len(views) * h * w
+        g = Gaussians(means.reshape(1, m, 3), torch.tensor([1.0, 0, 0, 0]).expand(1, m, 4),
+                      torch.full((1, m, 3), 0.01), torch.full((1, m), 0.5), torch.zeros(1, m, 1, 3))
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            cb.write_on_batch_end(SimpleNamespace(log_dir=None, default_root_dir=str(tmp_path)), None,
+                                  {"gaussians": g, "w2c": gt[views].float()[None], "K": Ks, "images": b["images"]},
+                                  None, b, k)
+        if k == 0:
+            spill = cb._city.spill
+            assert [str(w.message) for w in caught] == [f"{spill}: removing the spill folder an interrupted run left"]
+            assert spill.parent == out.parent and spill.name.startswith(".") and not leftover.exists()
+            assert any(spill.iterdir()) and not any(system_tmp.iterdir())
+    assert not spill.exists() and not any(system_tmp.iterdir())
+    assert [p.name for p in (tmp_path / "out").iterdir()] == ["flight"]
+    assert sorted(p.name for p in out.iterdir()) == ["cameras.json", "chunks.json", "scene.ply"]

@@ -1,0 +1,149 @@
+"""A write that dies midway (full disk, kill) leaves the old file or none under the final name, and no temp file.
+
+Covers the ``anycity export`` writers (``.splat``, COLMAP text, ``transforms.json``, ``scale.json``), the city
+merge's streamed ``scene.ply`` (:class:`anycity.city.PlyStream`) and the city spill folder.
+"""
+
+from __future__ import annotations
+
+import builtins
+import errno
+import io
+import os
+import shutil
+import stat
+
+import pytest
+import torch
+
+from anycity.city import ChunkedScene, PlyStream
+from anycity.export.formats import save_colmap, save_scale, save_splat, save_transforms
+from anycity.structures import Gaussians
+
+
+def _gaussians(n: int) -> Gaussians:
+    gen = torch.Generator().manual_seed(0)
+    return Gaussians(torch.randn(1, n, 3, generator=gen), torch.randn(1, n, 4, generator=gen),
+                     torch.rand(1, n, 3, generator=gen) + 0.01, torch.rand(1, n, generator=gen),
+                     torch.randn(1, n, 4, 3, generator=gen))
+
+
+class _HalfThenFull:
+    """A file whose ``write`` writes half of what it is given, then fails as a full disk does."""
+
+    def __init__(self, f):
+        self.f = f
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *a):
+        self.f.close()
+
+    def __getattr__(self, name):
+        return getattr(self.f, name)
+
+    def write(self, data):
+        self.f.write(data[: len(data) // 2])
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+
+def _fail_writes_to(monkeypatch, name: str) -> None:
+    """Every file opened for writing whose name contains ``name`` (under any temp name) fails midway."""
+    real_open = builtins.open
+
+    def fake_open(p, mode="r", *a, **k):
+        f = real_open(p, mode, *a, **k)
+        return _HalfThenFull(f) if "w" in mode and name in os.fspath(p) else f
+
+    monkeypatch.setattr(builtins, "open", fake_open)
+    monkeypatch.setattr(io, "open", fake_open)  # pathlib's write_bytes / write_text
+
+
+def _files(root) -> list[str]:
+    return sorted(str(p.relative_to(root)) for p in root.rglob("*") if p.is_file())
+
+
+def _cams(v: int = 3):
+    return torch.eye(4).repeat(v, 1, 1).double(), torch.tensor([[40.0, 0, 24], [0, 40, 16], [0, 0, 1]]).repeat(v, 1, 1)
+
+
+WRITERS = {
+    "scene.splat": lambda d: save_splat(_gaussians(20), d / "scene.splat"),
+    "points3D.txt": lambda d: save_colmap(d / "sparse" / "0", *_cams(), 48, 32, ["a", "b", "c"], _gaussians(20)),
+    "transforms.json": lambda d: save_transforms(d / "transforms.json", *_cams(), 48, 32, ["a", "b", "c"]),
+    "scale.json": lambda d: save_scale(d / "scale.json", 2.5, "splat"),
+}
+
+
+@pytest.mark.parametrize("name", list(WRITERS))
+def test_export_write_failing_midway_leaves_no_file_under_the_final_name(tmp_path, monkeypatch, name):
+    _fail_writes_to(monkeypatch, name)
+    with pytest.raises(OSError, match=f"disk full writing .*{name}"):
+        WRITERS[name](tmp_path)
+    monkeypatch.undo()
+    left = _files(tmp_path)
+    assert not [f for f in left if name in f], left  # neither the final name nor a temp file
+    if name == "points3D.txt":  # the model's other files were written whole before it
+        assert left == ["sparse/0/cameras.txt", "sparse/0/images.txt"]
+    else:
+        assert left == []
+    WRITERS[name](tmp_path)  # a re-run writes it
+    assert name in "\n".join(_files(tmp_path))
+
+
+def _stream(path, **kw) -> PlyStream:
+    s = PlyStream(path, **kw)
+    s.write(_gaussians(30))
+    return s
+
+
+def test_ply_stream_close_fsyncs_the_file_before_its_rename_and_the_folder_after(tmp_path, monkeypatch):
+    final, real_fsync, calls = tmp_path / "scene.ply", os.fsync, []
+
+    def fsync(fd):
+        st = os.fstat(fd)
+        calls.append((stat.S_ISDIR(st.st_mode) and st.st_ino == tmp_path.stat().st_ino, st.st_size, final.exists()))
+        real_fsync(fd)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    _stream(final).close()
+    size = final.stat().st_size
+    assert (False, size, False) in calls  # the whole file's data is on disk before it takes the final name
+    assert any(is_dir and exists for is_dir, _, exists in calls)  # then the folder holding the new name
+    assert _files(tmp_path) == ["scene.ply"]
+
+
+def test_ply_stream_exception_before_close_keeps_the_old_file_and_no_temp(tmp_path):
+    final = tmp_path / "scene.ply"
+    final.write_bytes(b"previous run")
+    with pytest.raises(RuntimeError, match="killed"), _stream(final):
+        raise RuntimeError("killed")
+    assert final.read_bytes() == b"previous run" and _files(tmp_path) == ["scene.ply"]
+
+
+def test_ply_stream_disk_full_in_close_leaves_no_file(tmp_path, monkeypatch):
+    s = _stream(tmp_path / "scene.ply")
+
+    def copy_half(src, dst, *a):
+        dst.write(src.read()[:100])
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(shutil, "copyfileobj", copy_half)
+    with pytest.raises(OSError, match=r"disk full writing .*scene\.ply"):
+        s.close()
+    assert _files(tmp_path) == []
+
+
+def test_city_spill_of_a_killed_run_is_hidden_and_removed_by_the_next_run(tmp_path):
+    plan, names, K = [[0, 1, 2], [1, 2, 3]], ["a", "b", "c", "d"], torch.eye(3).expand(3, 3, 3)
+    out = tmp_path / "flight"
+    killed = ChunkedScene(plan, names, (2, 2), out=out)
+    killed.add(0, _gaussians(12), torch.eye(4).expand(3, 4, 4), K)  # then SIGKILL: no finish, no close
+    left = _files(tmp_path)
+    assert left and all(f.startswith(".") for f in left), left  # nothing that looks like a finished output
+    with pytest.warns(UserWarning, match="removing the spill folder an interrupted run left"):
+        rerun = ChunkedScene(plan, names, (2, 2), out=out)
+    assert _files(tmp_path) == [] and rerun.spill.parent == tmp_path
+    rerun.close()
+    assert list(tmp_path.iterdir()) == []
