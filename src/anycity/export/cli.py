@@ -63,9 +63,9 @@ def export(src: str | Path, fmt: str, out: str | Path, overwrite: bool = False) 
         target = out / "scene.splat"
         save_splat(g, target)
         return target
-    if fmt == "ply":
+    if fmt == "ply":  # every reader's layout: no extra columns, SH degree 3 (SIBR reads fixed 62-float records)
         target = out / "scene.ply"
-        save_ply(g, target)
+        save_ply(g, target, pad_degree=3)
         return target
     if cams is None:
         raise ValueError(f"{src}: no cameras.json beside the scene; --format {fmt} needs the predicted cameras, "
@@ -90,8 +90,11 @@ def export(src: str | Path, fmt: str, out: str | Path, overwrite: bool = False) 
 
 def image_names(names: list[str]) -> list[str]:
     """Exported image file names for the cameras' view names: ``DJI_0018.jpg`` -> ``DJI_0018.png`` (the inputs are
-    PNGs at the cameras' size), ``003`` -> ``003.png``; prefixed with the view index where two would collide."""
+    PNGs at the cameras' size), ``003`` -> ``003.png``; whitespace becomes ``_`` (COLMAP's images.txt and the
+    readers of it split lines on spaces: ``DJI 0018.jpg`` -> ``DJI_0018.png``); prefixed with the view index where
+    two would collide."""
     stems = [Path(n).stem if Path(n).suffix.lower() in (".jpg", ".jpeg", ".png", ".webp") else n for n in names]
+    stems = ["_".join(s.split()) or "view" for s in stems]
     if len(set(stems)) < len(stems):
         stems = [f"{v:03d}_{s}" for v, s in enumerate(stems)]
     return [f"{s}.png" for s in stems]
@@ -101,8 +104,8 @@ def export_main(argv: list[str]) -> int:
     p = argparse.ArgumentParser(prog="anycity export", description="Export a predicted scene for other tools.")
     p.add_argument("--from", dest="src", required=True, help="predict scene folder or scene.ply")
     p.add_argument("--format", required=True, choices=FORMATS, help="splat: antimatter15 .splat; colmap: text "
-                   "model (sparse/0); nerfstudio: transforms.json + scene.ply; ply: the standard 3DGS PLY without "
-                   "the provenance columns")
+                   "model (sparse/0); nerfstudio: transforms.json + scene.ply; ply: graphdeco's exact 3DGS PLY record "
+                   "(no provenance columns, SH padded to degree 3) for every reader, SIBR's included")
     p.add_argument("--out", default=None, help="output folder (default: <from>/export_<format>)")
     p.add_argument("--overwrite", action="store_true", help="write into an --out folder that is not empty")
     a = p.parse_args(argv)

@@ -16,21 +16,26 @@ from anycity.structures import Gaussians
 
 
 def gaussians_to_ply_arrays(g: Gaussians, index: int = 0, max_degree: int = 3,
-                            extra: dict[str, Tensor] | None = None) -> tuple[dict[str, np.ndarray], int]:
+                            extra: dict[str, Tensor] | None = None,
+                            pad_degree: int | None = None) -> tuple[dict[str, np.ndarray], int]:
     """Columns of scene ``index`` of ``g`` as float32 arrays; returns ``(columns, dropped)``.
 
     ``extra``: more per-Gaussian columns ``{name: [B, N]}`` (e.g. provenance) appended after the standard ones;
-    standard viewers ignore them.
+    readers that find columns by name in the header ignore them (SuperSplat, gsplat, graphdeco's Python loader);
+    fixed-record readers such as SIBR's gaussianViewer do not. ``pad_degree`` zero-pads the SH up to that degree,
+    for readers that expect one (SIBR and graphdeco's loader: 3, 45 ``f_rest``).
 
     Invalid, non-finite and zero-norm-rotation Gaussians are dropped (their count is returned). SH above
     ``max_degree`` (at most 3, the format's limit) are cut per band, then written channel-major.
     """
-    if not 0 <= max_degree <= 3:
-        raise ValueError(f"max_degree: the PLY format holds SH degree 0..3, got {max_degree}")
+    if not 0 <= max_degree <= 3 or not 0 <= (pad_degree or 0) <= 3:
+        raise ValueError(f"max_degree, pad_degree: the PLY format holds SH degree 0..3, got {max_degree}, {pad_degree}")
     means, quats = g.means[index].float(), g.quats[index].float()
     scales, opac, sh = g.scales[index].float(), g.opacities[index].float(), g.sh[index].float()
     deg = min(g.sh_degree, max_degree)
     sh = sh[:, : (deg + 1) ** 2]  # bands are stored in order, so cutting keeps the lower degrees intact
+    if pad_degree is not None and pad_degree > deg:
+        sh = torch.cat([sh, sh.new_zeros(sh.shape[0], (pad_degree + 1) ** 2 - sh.shape[1], 3)], 1)
     keep = torch.ones(means.shape[0], dtype=torch.bool, device=means.device)
     if g.valid is not None:
         keep &= g.valid[index]
@@ -61,10 +66,10 @@ def gaussians_to_ply_arrays(g: Gaussians, index: int = 0, max_degree: int = 3,
 
 
 def save_ply(g: Gaussians, path: str | Path, index: int = 0, max_degree: int = 3,
-             extra: dict[str, Tensor] | None = None) -> int:
+             extra: dict[str, Tensor] | None = None, pad_degree: int | None = None) -> int:
     """Write scene ``index`` of ``g`` to ``path`` as a binary little-endian 3DGS PLY; returns rows dropped.
-    ``extra`` as in :func:`gaussians_to_ply_arrays`."""
-    cols, dropped = gaussians_to_ply_arrays(g, index, max_degree, extra)
+    ``extra`` and ``pad_degree`` as in :func:`gaussians_to_ply_arrays`."""
+    cols, dropped = gaussians_to_ply_arrays(g, index, max_degree, extra, pad_degree)
     n = len(cols["x"])
     data = np.empty(n, dtype=[(k, "f4") for k in cols])
     for k, v in cols.items():

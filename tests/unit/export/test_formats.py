@@ -135,6 +135,9 @@ def test_exports_carry_a_photo_folders_input_images(tmp_path):
     from anycity.export.cli import image_names
 
     assert image_names(["a.jpg", "a.png", "b"]) == ["000_a.png", "001_a.png", "002_b.png"]
+    # COLMAP's images.txt is split on spaces: a photo named with one would lose the rest of its name there
+    assert image_names(["DJI 0001.JPG", "DJI_0001.png"]) == ["000_DJI_0001.png", "001_DJI_0001.png"]
+    assert image_names(["IMG 7 .jpg"]) == ["IMG_7.png"]
 
 
 def test_ply_export_and_errors(tmp_path, capsys):
@@ -144,6 +147,18 @@ def test_ply_export_and_errors(tmp_path, capsys):
 
     back = load_ply(tmp_path / "o" / "scene.ply")
     torch.testing.assert_close(back.means, g.means)
+    # graphdeco's record, which fixed-record readers (SIBR's gaussianViewer: 62 floats) read without the header:
+    # no provenance columns, SH zero-padded to degree 3
+    from plyfile import PlyData
+
+    names = [p.name for p in PlyData.read(str(tmp_path / "o" / "scene.ply"))["vertex"].properties]
+    assert names == ["x", "y", "z", "nx", "ny", "nz", *(f"f_dc_{i}" for i in range(3)),
+                     *(f"f_rest_{i}" for i in range(45)), "opacity", *(f"scale_{i}" for i in range(3)),
+                     *(f"rot_{i}" for i in range(4))]
+    k = (g.sh_degree + 1) ** 2
+    assert g.sh_degree < 3 and back.sh_degree == 3
+    torch.testing.assert_close(back.sh[..., :k, :], g.sh)
+    assert (back.sh[..., k:, :] == 0).all()
     assert "scene.ply" in capsys.readouterr().out
     # never silently over an earlier export or the scene itself: --overwrite writes into a folder that is not empty
     with pytest.raises(FileExistsError, match="o exists and is not empty; pass --overwrite"):
