@@ -48,18 +48,37 @@ def interpolate_path(w2c: Tensor, K: Tensor, per_segment: int) -> tuple[Tensor, 
     return torch.linalg.inv(torch.stack(poses)), torch.stack(Ks)
 
 
-def orbit_path(w2c: Tensor, K: Tensor, centre: Tensor, frames: int) -> tuple[Tensor, Tensor]:
-    """``frames`` cameras on a circle around ``centre`` at the mean camera distance and height, looking at it;
-    the circle lies in the plane orthogonal to the mean camera "up" (-y)."""
+def scene_up(means: Tensor, eyes: Tensor, camera_up: Tensor, flat: float = 0.25) -> Tensor:
+    """World "up" ``[3]`` for an aerial scene: the normal of the Gaussians' principal plane (``means [N, 3]``), turned
+    towards the cameras (``eyes [V, 3]``), when the scene is flat (its least spread below ``flat`` of the next);
+    otherwise ``camera_up [3]``. The cameras' own mean "up" (-y) lies on the ground for a nadir flight."""
+    pts = means.double()[:: max(1, len(means) // 100_000)]
+    d = pts - pts.median(0).values
+    evals, evecs = torch.linalg.eigh(d.T @ d / max(len(d), 1))
+    if len(d) < 3 or evals[0] > flat * evals[1]:
+        return camera_up / camera_up.norm()
+    up = evecs[:, 0]
+    return up if float((eyes.double().mean(0) - pts.median(0).values) @ up) >= 0 else -up
+
+
+def orbit_path(w2c: Tensor, K: Tensor, centre: Tensor, frames: int, up: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """``frames`` cameras on a circle around ``centre`` at the cameras' mean distance from the ``up`` axis through it
+    and their mean height, looking at it; the circle lies in the plane orthogonal to ``up`` (default: the mean camera
+    "up", -y; :func:`scene_up` gives a better one) and starts on the side of the mean camera (of the first camera
+    when they surround the centre)."""
     c2w = torch.linalg.inv(w2c.double())
     eyes = c2w[:, :3, 3]
-    up = -c2w[:, :3, 1].mean(0)
+    up = -c2w[:, :3, 1].mean(0) if up is None else up.double()
     up = up / up.norm()
-    rel = eyes.mean(0) - centre.double()
-    height = (rel @ up) * up
-    radial = rel - height
-    r = max(float(radial.norm()), 1e-6)
-    a = radial / r if radial.norm() > 1e-9 else torch.linalg.svd(up[None])[2][1]
+    rel = eyes - centre.double()  # [V, 3]
+    heights = rel @ up
+    radial = rel - heights[:, None] * up
+    # Per camera, not of the mean camera: an orbit or a grid flight around the site has its mean camera above the
+    # centre, whose radius would be ~0.
+    r = max(float(radial.norm(dim=-1).mean()), 1e-6)
+    height = heights.mean() * up
+    start = radial.mean(0) if radial.mean(0).norm() > 0.25 * r else radial[0]
+    a = start / start.norm() if start.norm() > 1e-9 else torch.linalg.svd(up[None])[2][1]
     b = torch.linalg.cross(up, a)
     out = []
     for i in range(frames):
@@ -100,8 +119,10 @@ def render_video(path: str | Path, out: str | Path, per_segment: int = 12, orbit
                          "pass the predict scene folder")
     w2c, K = interpolate_path(scene.w2c, scene.K, per_segment)
     if orbit > 0:
-        centre = scene.gaussians.means[0].median(0).values
-        ow, oK = orbit_path(scene.w2c, scene.K, centre, orbit)
+        means = scene.gaussians.means[0]
+        c2w = torch.linalg.inv(scene.w2c.double())
+        up = scene_up(means, c2w[:, :3, 3], -c2w[:, :3, 1].mean(0))
+        ow, oK = orbit_path(scene.w2c, scene.K, means.median(0).values, orbit, up)
         w2c, K = torch.cat([w2c, ow]), torch.cat([K, oK])
     width = width or scene.width
     width -= width % 2  # yuv420p needs even sizes
@@ -118,17 +139,27 @@ def render_video(path: str | Path, out: str | Path, per_segment: int = 12, orbit
     return n
 
 
+def _int_at_least(low: int):
+    def parse(text: str) -> int:
+        value = int(text)
+        if value < low:
+            raise argparse.ArgumentTypeError(f"{value} is below {low}")
+        return value
+    parse.__name__ = "int"  # argparse names the type in its "invalid int value" message
+    return parse
+
+
 def render_video_main(argv: list[str]) -> int:
     p = argparse.ArgumentParser(prog="anycity render-video",
                                 description="Render an mp4 fly-through along the predicted cameras.")
     p.add_argument("path", help="predict scene folder (scene.ply + cameras.json)")
     p.add_argument("--out", default=None, help="mp4 path (default: <path>/flythrough.mp4)")
-    p.add_argument("--per-segment", type=int, default=12,
+    p.add_argument("--per-segment", type=_int_at_least(1), default=12,
                    help="frames between consecutive cameras (default: %(default)s)")
-    p.add_argument("--orbit", type=int, default=0,
+    p.add_argument("--orbit", type=_int_at_least(0), default=0,
                    help="frames of an orbit around the scene centre (default: %(default)s: none)")
-    p.add_argument("--width", type=int, default=None, help="frame width (default: the input width)")
-    p.add_argument("--fps", type=int, default=24, help="frames per second (default: %(default)s)")
+    p.add_argument("--width", type=_int_at_least(2), default=None, help="frame width (default: the input width)")
+    p.add_argument("--fps", type=_int_at_least(1), default=24, help="frames per second (default: %(default)s)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     a = p.parse_args(argv)
     src = Path(a.path)

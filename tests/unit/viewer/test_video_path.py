@@ -1,0 +1,79 @@
+"""``anycity render-video``'s camera paths: the orbit's radius, height and start, and its argument checks."""
+
+import math
+
+import pytest
+import torch
+
+from anycity.viewer.video import orbit_path, render_video_main, scene_up
+
+
+def _look_at(eye, target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0)):
+    """OpenCV w2c of a camera at ``eye`` looking at ``target`` with world ``up`` (z)."""
+    eye, target, up = (torch.tensor(v, dtype=torch.float64) for v in (eye, target, up))
+    z = (target - eye) / (target - eye).norm()
+    x = torch.linalg.cross(z, up)
+    x = x / x.norm()
+    y = torch.linalg.cross(z, x)
+    c2w = torch.eye(4, dtype=torch.float64)
+    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = x, y, z, eye
+    return torch.linalg.inv(c2w)
+
+
+def _orbit_eyes(w2c):
+    return torch.linalg.inv(w2c)[:, :3, 3]
+
+
+K = torch.tensor([[50.0, 0, 32], [0, 50.0, 24], [0, 0, 1]])
+
+
+def test_an_orbit_flight_gives_an_orbit_at_its_radius_and_height():
+    # 24 cameras circling the site: their mean position is above the centre, and the orbit must not collapse there.
+    w2c = torch.stack([_look_at((10 * math.cos(t), 10 * math.sin(t), 6.0))
+                       for t in torch.linspace(0, 2 * math.pi, 25)[:-1].tolist()])
+    ow, oK = orbit_path(w2c, K.expand(24, 3, 3), torch.zeros(3), 8)
+    eyes = _orbit_eyes(ow)
+    assert torch.allclose(eyes[:, :2].norm(dim=-1), torch.full((8,), 10.0, dtype=torch.float64), atol=1e-6)
+    assert torch.allclose(eyes[:, 2], torch.full((8,), 6.0, dtype=torch.float64), atol=1e-6)
+    assert torch.allclose(eyes[0], torch.tensor([10.0, 0, 6], dtype=torch.float64), atol=1e-6)  # the first camera
+    optical = torch.linalg.inv(ow)[:, :3, 2]
+    toward = -eyes / eyes.norm(dim=-1, keepdim=True)
+    assert torch.allclose(optical, toward, atol=1e-6)  # each frame looks at the centre
+    assert oK.shape == (8, 3, 3) and torch.equal(oK[3], K.double())
+
+
+def test_cameras_on_one_side_start_the_orbit_on_their_side():
+    w2c = torch.stack([_look_at((8.0, y, 5.0)) for y in (-1.0, 0.0, 1.0)])
+    eyes = _orbit_eyes(orbit_path(w2c, K.expand(3, 3, 3), torch.zeros(3), 4, torch.tensor([0.0, 0, 1]))[0])
+    assert torch.allclose(eyes[:, 2], torch.full((4,), 5.0, dtype=torch.float64), atol=1e-6)
+    r = torch.tensor([65.0, 64.0, 65.0]).sqrt().mean().item()
+    assert torch.allclose(eyes[:, :2].norm(dim=-1), torch.full((4,), r, dtype=torch.float64), atol=1e-6)
+    assert eyes[0, 0] > 8.0 and abs(eyes[0, 1]) < 1e-6
+
+
+def test_a_nadir_grid_orbits_above_the_ground():
+    """Straight-down cameras: their own "up" (-y) lies on the ground, so the orbit's axis comes from the scene: the
+    normal of the Gaussians' ground plane, turned towards the cameras."""
+    w2c = torch.stack([_look_at((x, y, 20.0), (x, y, 0.0), up=(0.0, 1.0, 0.0))
+                       for x in (-6.0, 0.0, 6.0) for y in (-6.0, 0.0, 6.0)])
+    g = torch.Generator().manual_seed(0)
+    means = torch.cat([torch.rand(2000, 2, generator=g) * 20 - 10, torch.rand(2000, 1, generator=g)], -1)
+    c2w = torch.linalg.inv(w2c)
+    camera_up = -c2w[:, :3, 1].mean(0)
+    assert abs(float(camera_up[2])) < 1e-6  # the cameras' mean "up" is horizontal here
+    up = scene_up(means, c2w[:, :3, 3], camera_up)
+    assert torch.allclose(up, torch.tensor([0.0, 0, 1], dtype=torch.float64), atol=0.05)
+    centre = means.median(0).values
+    eyes = _orbit_eyes(orbit_path(w2c, K.expand(9, 3, 3), centre, 6, up)[0])
+    assert (eyes[:, 2] > 15).all()  # at the flight's height, not through the ground
+    # a tall, narrow scene is not flat: the cameras' own "up" is kept
+    tower = torch.cat([torch.rand(2000, 2, generator=g), torch.rand(2000, 1, generator=g) * 30], -1)
+    assert torch.allclose(scene_up(tower, c2w[:, :3, 3], camera_up), camera_up / camera_up.norm())
+
+
+@pytest.mark.parametrize("args, name", [(["--per-segment", "0"], "--per-segment"), (["--fps", "0"], "--fps"),
+                                        (["--orbit", "-1"], "--orbit"), (["--width", "1"], "--width")])
+def test_nonsense_arguments_stop_with_the_option_named(tmp_path, capsys, args, name):
+    with pytest.raises(SystemExit):
+        render_video_main([str(tmp_path), *args])
+    assert f"argument {name}: " in capsys.readouterr().err
