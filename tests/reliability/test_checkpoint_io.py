@@ -6,6 +6,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from helpers.faults import fail_writes_midway
 
 from anycity.lit.checkpoint_io import SafeCheckpointIO, atomic_write_bytes, safe_torch_load
 
@@ -51,33 +52,7 @@ def test_disk_full_keeps_previous_and_names_path_and_bytes(tmp_path, monkeypatch
     io.save_checkpoint({"w": torch.ones(4)}, path)
     before = path.read_bytes()
 
-    real_open = open
-
-    class _Full:
-        def __init__(self, f):
-            self.f = f
-
-        def __enter__(self):
-            return self
-
-        def __exit__(self, *a):
-            self.f.close()
-
-        def write(self, data):
-            self.f.write(bytes(data)[:10])
-            raise OSError(errno.ENOSPC, "No space left on device")
-
-        def flush(self):
-            pass
-
-        def fileno(self):
-            return self.f.fileno()
-
-    def fake_open(p, mode="r", *a, **k):
-        f = real_open(p, mode, *a, **k)
-        return _Full(f) if "w" in mode and ".tmp-" in str(p) else f
-
-    monkeypatch.setattr("builtins.open", fake_open)
+    fail_writes_midway(monkeypatch, ".tmp-")
     with pytest.raises(OSError, match=r"disk full writing .*last\.ckpt: \d+ bytes needed") as e:
         io.save_checkpoint({"w": torch.zeros(1000)}, path)
     assert e.value.errno == errno.ENOSPC

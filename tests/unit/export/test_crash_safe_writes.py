@@ -6,15 +6,14 @@ merge's streamed ``scene.ply`` (:class:`anycity.city.PlyStream`) and the city sp
 
 from __future__ import annotations
 
-import builtins
 import errno
-import io
 import os
 import shutil
 import stat
 
 import pytest
 import torch
+from helpers.faults import fail_writes_midway
 
 from anycity.city import ChunkedScene, PlyStream
 from anycity.export.formats import save_colmap, save_scale, save_splat, save_transforms
@@ -26,38 +25,6 @@ def _gaussians(n: int) -> Gaussians:
     return Gaussians(torch.randn(1, n, 3, generator=gen), torch.randn(1, n, 4, generator=gen),
                      torch.rand(1, n, 3, generator=gen) + 0.01, torch.rand(1, n, generator=gen),
                      torch.randn(1, n, 4, 3, generator=gen))
-
-
-class _HalfThenFull:
-    """A file whose ``write`` writes half of what it is given, then fails as a full disk does."""
-
-    def __init__(self, f):
-        self.f = f
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *a):
-        self.f.close()
-
-    def __getattr__(self, name):
-        return getattr(self.f, name)
-
-    def write(self, data):
-        self.f.write(data[: len(data) // 2])
-        raise OSError(errno.ENOSPC, "No space left on device")
-
-
-def _fail_writes_to(monkeypatch, name: str) -> None:
-    """Every file opened for writing whose name contains ``name`` (under any temp name) fails midway."""
-    real_open = builtins.open
-
-    def fake_open(p, mode="r", *a, **k):
-        f = real_open(p, mode, *a, **k)
-        return _HalfThenFull(f) if "w" in mode and name in os.fspath(p) else f
-
-    monkeypatch.setattr(builtins, "open", fake_open)
-    monkeypatch.setattr(io, "open", fake_open)  # pathlib's write_bytes / write_text
 
 
 def _files(root) -> list[str]:
@@ -78,7 +45,7 @@ WRITERS = {
 
 @pytest.mark.parametrize("name", list(WRITERS))
 def test_export_write_failing_midway_leaves_no_file_under_the_final_name(tmp_path, monkeypatch, name):
-    _fail_writes_to(monkeypatch, name)
+    fail_writes_midway(monkeypatch, name)
     with pytest.raises(OSError, match=f"disk full writing .*{name}"):
         WRITERS[name](tmp_path)
     monkeypatch.undo()

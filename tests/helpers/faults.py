@@ -1,0 +1,41 @@
+"""Injected faults: a disk that fills up in the middle of a write."""
+
+from __future__ import annotations
+
+import builtins
+import errno
+import io
+import os
+
+
+class _HalfThenFull:
+    """A file whose ``write`` writes half of what it is given, then fails as a full disk does."""
+
+    def __init__(self, f):
+        self.f = f
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *a):
+        self.f.close()
+
+    def __getattr__(self, name):
+        return getattr(self.f, name)
+
+    def write(self, data):
+        data = bytes(data)
+        self.f.write(data[: len(data) // 2])
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+
+def fail_writes_midway(monkeypatch, name: str) -> None:
+    """Every file opened for writing whose path contains ``name`` fails half-way through its first write."""
+    real_open = builtins.open
+
+    def fake_open(p, mode="r", *a, **k):
+        f = real_open(p, mode, *a, **k)
+        return _HalfThenFull(f) if "w" in mode and name in os.fspath(p) else f
+
+    monkeypatch.setattr(builtins, "open", fake_open)
+    monkeypatch.setattr(io, "open", fake_open)  # pathlib's write_bytes / write_text
