@@ -389,3 +389,15 @@ def test_a_padded_chunk_scores_each_held_out_view_once(batch):
     assert {"psnr_scaffold", "psnr_weak_scaffold", "abs_rel_scaffold"} <= res[0].keys()
     for k in res[0]:
         assert res[1][k] == pytest.approx(res[0][k], rel=1e-5, abs=1e-6), k
+
+
+def test_training_renders_with_the_fused_cpu_kernels_when_asked(batch):
+    """The fused kernels refuse cameras that require grad; training passes its predicted cameras detached to them
+    (as CPU training always treated them), instead of failing or leaving them for the slower torch backend."""
+    from anycity.render.api import _cpu_backend_available
+
+    if not _cpu_backend_available():
+        pytest.skip("numba is not installed")
+    torch.manual_seed(0)
+    for m in (ScaffoldModule(depth_warmup_steps=0, render_backend="cpu"), RefinementModule(render_backend="cpu")):
+        assert torch.isfinite(_no_log(m).training_step(batch, 0))
