@@ -40,6 +40,7 @@ RenderBackend = Literal["auto", "torch", "cpu", "gsplat"]
 BackgroundMode = Literal["fixed", "context_mean"]
 PretrainedKind = Literal["vggt", "anysplat"]
 
+
 def float32_outside_net(step):
     """Run a LightningModule step with autocast off, except in :meth:`AnyCityModule.forward_net`, which keeps the
     trainer's precision (``bf16-mixed``) for the network's trunk. Lightning runs every step under autocast; left on,

@@ -137,7 +137,10 @@ class RefinementModule(AnyCityModule):
                 f"model.init_from: {self.hparams.init_from} not found; pass the Stage I checkpoint (e.g. "
                 "runs/stage1/checkpoints/last.ckpt)"))
         else:  # loaded here, before the strategy wraps the model; a resumed fit's checkpoint then replaces it
-            self.load_stage1(self.hparams.init_from)
+            try:
+                self.load_stage1(self.hparams.init_from)
+            except ValueError as e:  # unreadable, or another network's scaffold: a resumed fit does not need it
+                self._fresh_fit_problems.append(e)
 
     def on_fit_start(self) -> None:
         if not self.trainer.strategy.restore_checkpoint_after_setup:

@@ -363,6 +363,10 @@ def test_a_resumed_stage2_fit_needs_no_stage1_file(batch, tmp_path):
     assert fit(2, str(tmp_path / "stage2.ckpt")).global_step == 2
     with pytest.raises(FileNotFoundError, match="model.init_from: .*stage1.ckpt not found"):
         fit(1)
+    torch.save({"state_dict": ScaffoldModule(net={"sh_degree": 0}).state_dict()}, stage1)  # another network's
+    assert fit(2, str(tmp_path / "stage2.ckpt")).global_step == 2
+    with pytest.raises(ValueError, match="model.init_from: .*stage1.ckpt does not fit this network's scaffold"):
+        fit(1)
 
 
 def test_a_padded_chunk_scores_each_held_out_view_once(batch):
