@@ -18,14 +18,18 @@ from anycity.lit.datamodule import AerialDataModule
 from anycity.structures import Gaussians, RenderOutput
 
 
-def test_photo_folder_chunks_merge_into_one_scene(tmp_path, capsys):
-    photos = tmp_path / "city"
+def _chunked_photo_folder(photos, n: int, h: int, w: int, shade: int) -> AerialDataModule:
+    """``n`` flat ``h`` x ``w`` photos (grey ``shade * i``) in ``photos``, predicted in chunks of 4 overlapping by 2."""
     photos.mkdir()
-    n, h, w = 10, 8, 8
     for i in range(n):
-        Image.fromarray(np.full((h, w, 3), 20 * i, np.uint8)).save(photos / f"p{i}.png")
-    dm = AerialDataModule(predict_images=str(photos), image_size=(h, w), patch_size=8, predict_chunk_size=4,
-                          predict_chunk_overlap=2, num_workers=0)
+        Image.fromarray(np.full((h, w, 3), shade * i, np.uint8)).save(photos / f"p{i}.png")
+    return AerialDataModule(predict_images=str(photos), image_size=(h, w), patch_size=8, predict_chunk_size=4,
+                            predict_chunk_overlap=2, num_workers=0)
+
+
+def test_photo_folder_chunks_merge_into_one_scene(tmp_path, capsys):
+    n, h, w = 10, 8, 8
+    dm = _chunked_photo_folder(tmp_path / "city", n, h, w, shade=20)
     batches = list(dm.predict_dataloader())
     assert [b["chunk"]["views"] for b in batches] == plan_chunks(n, 4, 2)
 
@@ -104,13 +108,8 @@ def test_city_spill_goes_under_the_output_folder_and_is_gone_after_success(tmp_p
     system_tmp = tmp_path / "system_tmp"
     system_tmp.mkdir()
     monkeypatch.setattr(tempfile, "tempdir", str(system_tmp))
-    photos = tmp_path / "flight"
-    photos.mkdir()
     n, h, w = 6, 8, 8
-    for i in range(n):
-        Image.fromarray(np.full((h, w, 3), 30 * i, np.uint8)).save(photos / f"p{i}.png")
-    dm = AerialDataModule(predict_images=str(photos), image_size=(h, w), patch_size=8, predict_chunk_size=4,
-                          predict_chunk_overlap=2, num_workers=0)
+    dm = _chunked_photo_folder(tmp_path / "flight", n, h, w, shade=30)
     gt, _ = orbit_scene(n)
     K = torch.tensor([[8.0, 0, 4], [0, 8, 4], [0, 0, 1]])
     cb = PredictionExport(out_dir=str(tmp_path / "out"), save_renders=False, smooth_3d=0)
