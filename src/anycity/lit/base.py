@@ -167,13 +167,11 @@ class AnyCityModule(pl.LightningModule):
         """Render ``gaussians`` into cameras ``w2c [B, V, 4, 4]``, ``K`` (``anycity.render.render`` itself runs in
         float32 outside autocast); ``context [B, V', 3, H', W']`` are the input images (for
         ``background_mode="context_mean"``)."""
-        from anycity.render import render, resolve_backend
+        from anycity.render import render
 
-        if resolve_backend(self.hparams.render_backend, w2c.device, gaussians.means.dtype) == "cpu":
-            # The fused CPU kernels give cameras no gradient (render refuses to drop one silently): training on them
-            # treats the render cameras as constants, as it always has, rather than leave them for the 3x slower
-            # torch backend. gsplat and the torch backend pass camera gradients.
-            w2c, K = w2c.detach(), K.detach()
+        # The render loss reaches the predicted poses (w2c) on every backend, but not the intrinsics: gsplat, the
+        # training backend on GPUs, gives K no gradient, and CPU training should train the same way.
+        K = K.detach()
         if self.hparams.background_mode == "context_mean":
             bg = context.detach().float().mean(dim=(1, 3, 4))[:, None].expand(-1, w2c.shape[1], -1).contiguous()
         else:

@@ -125,8 +125,7 @@ def align_target_poses(render_rgb, gaussians: Gaussians, w2c: Tensor, images: Te
     A pose-free model's scene sits in its own frame, so each held-out camera is refined photometrically before it
     is scored: Adam on a camera-frame rotation (axis-angle) and translation delta, Gaussians frozen, MSE against the
     target image (per sample, summed over the batch: a sample's fit does not depend on its batch-mates). The camera
-    moves by moving the scene the opposite way, so every render backend works (the fused CPU kernels have no camera
-    gradients).
+    moves by moving the scene the opposite way (the same image, and it needs no camera gradient from the backend).
 
     Args:
         render_rgb: ``f(gaussians [B*T scenes], w2c [B*T, 1, 4, 4]) -> rgb [B*T, 1, 3, H, W]``.

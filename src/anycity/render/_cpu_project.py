@@ -201,9 +201,11 @@ def project_fwd(means, quats, scales, opac, sh, valid, cams, V, width, height, n
 
 @njit(parallel=True, cache=True)
 def project_bwd(means, quats, scales, opac, sh, cams, V, pstart, G,
-                g_means, g_quats, g_scales, g_opac, g_sh):
+                g_means, g_quats, g_scales, g_opac, g_sh, cam_grad, g_cam):
     """Chain the per-pair 2-D gradients G ``[n_pairs, 6+D]`` (rows of entry e at pstart[e]:pstart[e+1])
-    back through projection and SH into the per-Gaussian gradients (overwritten)."""
+    back through projection and SH into the per-Gaussian gradients (overwritten). With ``cam_grad``, also into
+    ``g_cam [N_CHUNKS, C, 16]`` (float64, overwritten): each work chunk's camera gradients, R (9, row-major), t (3),
+    fx, fy, cx, cy; the caller sums the chunks, so the result does not depend on the thread count either."""
     B, N = means.shape[:2]
     K = sh.shape[2]
     D = G.shape[1] - QBASE
@@ -215,6 +217,8 @@ def project_bwd(means, quats, scales, opac, sh, cams, V, pstart, G,
         basis = np.empty(25)
         s = np.empty(25)
         g = np.empty(QBASE + 7)
+        gcam = g_cam[chunk]
+        gcam[:] = 0.0
         for bn in range(chunk * step, min(total, (chunk + 1) * step)):
             b = bn // N
             n = bn - b * N
@@ -237,7 +241,7 @@ def project_bwd(means, quats, scales, opac, sh, cams, V, pstart, G,
                 for row in range(pstart[e], pstart[e + 1]):
                     for d in range(QBASE + D):
                         g[d] += G[row, d]
-                    x = cams[c, 0] * m0 + cams[c, 1] * m1 + cams[c, 2] * m2 + cams[c, 9]
+                x = cams[c, 0] * m0 + cams[c, 1] * m1 + cams[c, 2] * m2 + cams[c, 9]
                 y = cams[c, 3] * m0 + cams[c, 4] * m1 + cams[c, 5] * m2 + cams[c, 10]
                 z = cams[c, 6] * m0 + cams[c, 7] * m1 + cams[c, 8] * m2 + cams[c, 11]
                 fx, fy = cams[c, 12], cams[c, 13]
@@ -276,6 +280,12 @@ def project_bwd(means, quats, scales, opac, sh, cams, V, pstart, G,
                         gs2 += r0 * gw0 + r1 * gw1 + r2 * gw2
                     for i in range(3):  # d rot[i, k] += s_k (Rᵀ gw)_i
                         grot[3 * i + k] += sc[k] * (cams[c, i] * gw0 + cams[c, 3 + i] * gw1 + cams[c, 6 + i] * gw2)
+                    if cam_grad:  # d W[i, j] += gw_i M[j, k], M = rot diag(s)
+                        for j in range(3):
+                            mjk = rot[3 * j + k] * sc[k]
+                            gcam[c, j] += gw0 * mjk
+                            gcam[c, 3 + j] += gw1 * mjk
+                            gcam[c, 6 + j] += gw2 * mjk
                 gx = g[0] * fx * iz
                 gy = g[1] * fy * iz
                 gz = -(g[0] * fx * x + g[1] * fy * y) * iz * iz + g[9]
@@ -284,9 +294,20 @@ def project_bwd(means, quats, scales, opac, sh, cams, V, pstart, G,
                 if cams[c, 19] <= xz <= cams[c, 20]:
                     gx += gu * iz
                     gz -= gu * x * iz * iz
+                elif cam_grad:  # u sits on a clamp limit, -(cx + 0.15 W)/fx or (1.15 W - cx)/fx: d/dfx = -u/fx
+                    gcam[c, 12] -= gu * u / fx
+                    gcam[c, 14] -= gu / fx
                 if cams[c, 21] <= yz <= cams[c, 22]:
                     gy += gv * iz
                     gz -= gv * y * iz * iz
+                elif cam_grad:
+                    gcam[c, 13] -= gv * vv / fy
+                    gcam[c, 15] -= gv / fy
+                if cam_grad:  # mean2d = f x/z + c; J's entries f/z and -f u/z
+                    gcam[c, 12] += g[0] * xz + (gj00 - gj02 * u) * iz
+                    gcam[c, 13] += g[1] * yz + (gj11 - gj12 * vv) * iz
+                    gcam[c, 14] += g[0]
+                    gcam[c, 15] += g[1]
                 go += g[5]
                 # colour (SH + 0.5, clamped at 0)
                 if K == 1:
@@ -310,9 +331,17 @@ def project_bwd(means, quats, scales, opac, sh, cams, V, pstart, G,
                             s[k] += gcol * sh[b, n, k, ch]
                     gd0, gd1, gd2 = _sh_dir_grad(d0, d1, d2, K, s)
                     dot = gd0 * d0 + gd1 * d1 + gd2 * d2
-                    gm0 += (gd0 - d0 * dot) / dn
-                    gm1 += (gd1 - d1 * dot) / dn
-                    gm2 += (gd2 - d2 * dot) / dn
+                    gd0, gd1, gd2 = (gd0 - d0 * dot) / dn, (gd1 - d1 * dot) / dn, (gd2 - d2 * dot) / dn
+                    gm0 += gd0
+                    gm1 += gd1
+                    gm2 += gd2
+                    if cam_grad:  # the view direction's origin, the camera centre -Rᵀ t, takes -gd
+                        for i in range(3):
+                            ti = cams[c, 9 + i]
+                            gcam[c, 3 * i] += gd0 * ti
+                            gcam[c, 3 * i + 1] += gd1 * ti
+                            gcam[c, 3 * i + 2] += gd2 * ti
+                            gcam[c, 9 + i] += cams[c, 3 * i] * gd0 + cams[c, 3 * i + 1] * gd1 + cams[c, 3 * i + 2] * gd2
                 if D == 7:
                     k = 0 if (sc[0] <= sc[1] and sc[0] <= sc[2]) else (1 if sc[1] <= sc[2] else 2)
                     nx = cams[c, 0] * rot[k] + cams[c, 1] * rot[3 + k] + cams[c, 2] * rot[6 + k]
@@ -321,6 +350,19 @@ def project_bwd(means, quats, scales, opac, sh, cams, V, pstart, G,
                     sgn = -1.0 if nx * x + ny * y + nz * z > 0 else 1.0
                     for i in range(3):
                         grot[3 * i + k] += sgn * (cams[c, i] * g[10] + cams[c, 3 + i] * g[11] + cams[c, 6 + i] * g[12])
+                    if cam_grad:  # normal = sgn W rot[:, k]
+                        for i in range(3):
+                            for j in range(3):
+                                gcam[c, 3 * i + j] += sgn * g[10 + i] * rot[3 * j + k]
+                if cam_grad:  # camera-frame point p = W m + t
+                    for j in range(3):
+                        mj = m0 if j == 0 else (m1 if j == 1 else m2)
+                        gcam[c, j] += gx * mj
+                        gcam[c, 3 + j] += gy * mj
+                        gcam[c, 6 + j] += gz * mj
+                    gcam[c, 9] += gx
+                    gcam[c, 10] += gy
+                    gcam[c, 11] += gz
                 # camera-frame point -> world mean: Rᵀ (gx, gy, gz)
                 gm0 += cams[c, 0] * gx + cams[c, 3] * gy + cams[c, 6] * gz
                 gm1 += cams[c, 1] * gx + cams[c, 4] * gy + cams[c, 7] * gz

@@ -38,11 +38,10 @@ def _module_available(name: str) -> bool:
     return True
 
 
-def resolve_backend(backend: str, device: torch.device, dtype: torch.dtype = torch.float32,
-                    camera_grad: bool = False) -> str:
+def resolve_backend(backend: str, device: torch.device, dtype: torch.dtype = torch.float32) -> str:
     """The backend ``render`` would use for ``dtype`` tensors on ``device``: "auto" -> gsplat for float32 CUDA
-    tensors when installed, else the fused "cpu" kernels for float32 CPU tensors when numba is installed and
-    ``camera_grad`` is False (w2c, K and background need no gradient: the kernels give none), else "torch"."""
+    tensors when installed, else the fused "cpu" kernels for float32 CPU tensors when numba is installed, else
+    "torch"."""
     if backend not in ("auto", *_BACKENDS):
         raise ValueError(f"backend: expected one of {['auto', *_BACKENDS]}, got {backend!r}")
     if backend != "auto":
@@ -53,7 +52,7 @@ def resolve_backend(backend: str, device: torch.device, dtype: torch.dtype = tor
         if _module_available("gsplat"):
             return "gsplat"
         _warn_no_gsplat()
-    if device.type == "cpu" and not camera_grad and _cpu_backend_available():
+    if device.type == "cpu" and _cpu_backend_available():
         return "cpu"
     return "torch"
 
@@ -133,16 +132,15 @@ def render(
         near, far: culling planes on camera z.
         render_normals: also return ``normal``.
         backend: "torch" (tiled pure PyTorch, CPU and CUDA, float32/float64), "gsplat" (CUDA float32, needs the
-            ``gsplat`` extra), "cpu" (fused numba kernels, float32 CPU, gradients for the Gaussians only: raises
-            when w2c, K or background require grad), or "auto" (gsplat for float32 CUDA tensors when installed;
-            cpu for float32 CPU tensors when numba is installed and no camera/background gradient is wanted, so
-            that such gradients are never dropped silently; else torch).
+            ``gsplat`` extra; gsplat gives ``K`` no gradient, so a ``K`` that requires grad is refused rather than
+            dropped), "cpu" (fused numba kernels, float32 CPU), or "auto" (gsplat for float32 CUDA tensors when
+            installed; cpu for float32 CPU tensors when numba is installed; else torch).
 
     Returns:
         ``RenderOutput`` with rgb ``[B, V, 3, H, W]``, depth ``[B, V, 1, H, W]``, alpha ``[B, V, 1, H, W]``
         and normal ``[B, V, 3, H, W]`` or None, float32 when any Gaussian field is float16/bfloat16 (each such
-        field is upcast). Differentiable w.r.t. means, quats, scales, opacities and sh, and (torch backend)
-        w2c, K and background.
+        field is upcast). Differentiable w.r.t. means, quats, scales, opacities, sh, w2c (its top three rows),
+        K (fx, fy, cx, cy; not on gsplat) and background, on every backend.
 
     Example::
 
@@ -202,8 +200,7 @@ def _render(gaussians, w2c, K, width, height, background, near, far, render_norm
     valid = gaussians.valid
     if valid is None:
         valid = torch.ones(means.shape[:2], dtype=torch.bool, device=means.device)
-    camera_grad = torch.is_grad_enabled() and any(t.requires_grad for t in (w2c, K, bg))
-    name = resolve_backend(backend, means.device, dtype, camera_grad)
+    name = resolve_backend(backend, means.device, dtype)
     fn = _load(name)
     rgb, depth, alpha, normal = fn(
         means, gaussians.quats, gaussians.scales, gaussians.opacities, gaussians.sh, valid,

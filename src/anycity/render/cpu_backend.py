@@ -9,9 +9,11 @@ One ``torch.autograd.Function`` runs, on float32 CPU tensors:
    its pairs in a fixed order and chains through projection and SH). No atomics: gradients are bitwise identical
    for any thread count.
 
-Semantics are those of ``anycity.render.api.render`` (the torch backend is the reference), except that gradients
-reach the Gaussians only: ``w2c``, ``K`` or ``background`` that require grad are refused. Outputs are ordinary
-tensors (in-place ops on them work) and backward keeps its own copies, so editing them cannot change gradients.
+Semantics, gradients included, are those of ``anycity.render.api.render`` (the torch backend is the reference):
+the Gaussians, ``w2c`` (its top three rows), ``K`` (fx, fy, cx, cy) and ``background`` all get theirs. Camera
+gradients are summed over fixed work chunks, so they too are bitwise identical for any thread count. Outputs are
+ordinary tensors (in-place ops on them work) and backward keeps its own copies, so editing them cannot change
+gradients.
 Kernels compile on first use (a few seconds, announced once on stderr) and are cached next to this file's
 ``__pycache__`` or in ``NUMBA_CACHE_DIR``. Threads follow ``torch.get_num_threads()``. numba's OpenMP pool is
 not fork-safe, so calling this in a child forked after the kernels ran (e.g. ``DataLoader(num_workers>0)``
@@ -151,7 +153,7 @@ class _FusedRender(torch.autograd.Function):
         # backward reads depth: keep a private copy, so that edits of the returned depth (or a detached view of it)
         # cannot change the gradients
         ctx.state = (cams, V, D, tiles_x, tiles_y, width, height, pstart, Q, tile_off, slot, bg, t_final,
-                     last, depth.copy() if any(ctx.needs_input_grad[:5]) else None)
+                     last, depth.copy() if any(ctx.needs_input_grad) else None)
         if not normals:
             ctx.mark_non_differentiable(out[3])
         return tuple(out)
@@ -174,33 +176,37 @@ class _FusedRender(torch.autograd.Function):
             grad(g_rgb, img3), grad(g_depth, img1), grad(g_alpha, img1),
             grad(g_normal, img3) if D == 7 else grad(None, (1, 3, 1, 1)), G)
         outs = [torch.empty_like(t) for t in (means, quats, scales, opacities, sh)]
+        want_w2c, want_K, want_bg = (ctx.needs_input_grad[i] for i in (6, 7, 10))
+        g_cam = np.empty((_proj.N_CHUNKS, C, 16) if want_w2c or want_K else (_proj.N_CHUNKS, 1, 16))
         _proj.project_bwd(*[_np(t) for t in (means, quats, scales, opacities, sh)], cams, V, pstart, G,
-                          *[o.numpy() for o in outs])
-        return (*outs, None, None, None, None, None, None, None, None, None)
-
-
-def _refuse_camera_grads(**tensors: Tensor) -> None:
-    """The fused kernels differentiate the Gaussians only: refuse, rather than silently drop, wanted gradients."""
-    if not torch.is_grad_enabled():
-        return
-    for name, t in tensors.items():
-        if t.requires_grad:
-            raise ValueError(f"backend='cpu': {name} requires grad, but the fused kernels give gradients for the "
-                             "Gaussians only; use backend='torch' (or 'auto') for camera/background gradients, or "
-                             f"pass {name}.detach()")
+                          *[o.numpy() for o in outs], want_w2c or want_K, g_cam)
+        g_w2c = g_K = g_bg = None
+        if want_w2c or want_K:
+            g_cam = torch.from_numpy(g_cam.sum(0)).float()  # [C, 16]: R (9), t (3), fx, fy, cx, cy
+            B = means.shape[0]
+            if want_w2c:
+                g_w2c = torch.zeros(C, 4, 4)
+                g_w2c[:, :3, :3] = g_cam[:, :9].reshape(C, 3, 3)
+                g_w2c[:, :3, 3] = g_cam[:, 9:12]
+                g_w2c = g_w2c.reshape(B, V, 4, 4)
+            if want_K:
+                g_K = torch.zeros(C, 3, 3)
+                g_K[:, 0, 0], g_K[:, 1, 1], g_K[:, 0, 2], g_K[:, 1, 2] = g_cam[:, 12:].unbind(-1)
+                g_K = g_K.reshape(B, V, 3, 3)
+        if want_bg and g_rgb is not None:  # rgb = ... + T_final * background
+            g_bg = torch.einsum("ckhw,chw->ck", g_rgb.float().reshape(C, 3, height, width),
+                                torch.from_numpy(t_final)).reshape(-1, V, 3)
+        return (*outs, None, g_w2c, g_K, None, None, g_bg, None, None, None)
 
 
 def render_cpu(means, quats, scales, opacities, sh, valid, w2c, K, width, height, background, near, far,
                render_normals):
-    """Backend entry point (contract in ``anycity.render.api``); float32 CPU tensors only. Differentiable w.r.t.
-    the Gaussians only: raises a ValueError when ``w2c``, ``K`` or ``background`` require grad (``render``'s
-    "auto" sends such calls to the torch backend instead)."""
+    """Backend entry point (contract in ``anycity.render.api``); float32 CPU tensors only."""
     for name, t in (("means", means), ("quats", quats), ("scales", scales), ("opacities", opacities), ("sh", sh),
                     ("w2c", w2c)):
         if t.device.type != "cpu" or t.dtype != torch.float32:
             raise ValueError(f"backend='cpu': {name} must be a float32 CPU tensor, got {t.dtype} on {t.device}; "
                              "use backend='torch' for other dtypes or devices")
-    _refuse_camera_grads(w2c=w2c, K=K, background=background)
     if sh.shape[2] > 25:
         raise ValueError(f"backend='cpu': sh has K={sh.shape[2]} coefficients, at most 25 (degree 4) are supported; "
                          "use backend='torch' or a lower SH degree")

@@ -1,8 +1,9 @@
 """Thin adapter over ``gsplat.rasterization`` (CUDA), imported lazily; same outputs as the torch backend.
 
-One call per scene (``[N, ...]`` Gaussians, ``[V, 4, 4]`` cameras), which works across gsplat 1.x. Differences
-from our semantics that remain: gsplat 1.5.x caps α at 0.999 (≥ 1.6 uses 0.99, as we do) and uses an
-opacity-aware footprint on CUDA; both only change pixels near saturation or the footprint edge.
+One call per scene (``[N, ...]`` Gaussians, ``[V, 4, 4]`` cameras), which works across gsplat 1.x. Gradients
+reach the Gaussians, ``w2c`` and the background, not ``K`` (refused). Differences from our semantics that
+remain: gsplat 1.5.x caps α at 0.999 (≥ 1.6 uses 0.99, as we do) and uses an opacity-aware footprint on CUDA;
+both only change pixels near saturation or the footprint edge.
 """
 
 from __future__ import annotations
@@ -22,7 +23,11 @@ def _gsplat():
 
 def render_gsplat(means, quats, scales, opacities, sh, valid, w2c, K, width, height, background, near, far,
                   render_normals):
-    """Backend entry point (contract in ``anycity.render.api``)."""
+    """Backend entry point (contract in ``anycity.render.api``). gsplat's projection returns no gradient for
+    ``Ks``: a ``K`` that requires grad is refused rather than silently left without one."""
+    if torch.is_grad_enabled() and K.requires_grad:
+        raise ValueError("backend='gsplat': K requires grad, but gsplat gives intrinsics no gradient; pass "
+                         "K.detach(), or use backend='torch' for intrinsics gradients")
     if means.device.type != "cuda":
         raise ValueError(f"backend='gsplat' needs CUDA tensors, got {means.device}; use backend='torch' or 'cpu'")
     gsplat = _gsplat()

@@ -395,13 +395,34 @@ def test_a_padded_chunk_scores_each_held_out_view_once(batch):
         assert res[1][k] == pytest.approx(res[0][k], rel=1e-5, abs=1e-6), k
 
 
-def test_training_renders_with_the_fused_cpu_kernels_when_asked(batch):
-    """The fused kernels refuse cameras that require grad; training passes its predicted cameras detached to them
-    (as CPU training always treated them), instead of failing or leaving them for the slower torch backend."""
+def test_training_gives_the_same_gradients_on_the_fused_cpu_kernels_as_on_the_torch_backend(batch, monkeypatch):
+    """The render loss reaches the predicted poses on every backend (the fused kernels give camera gradients), and
+    never the intrinsics (gsplat, the GPU training backend, gives K none): CPU training trains as GPU training."""
+    import anycity.render as render_pkg
     from anycity.render.api import _cpu_backend_available
 
     if not _cpu_backend_available():
         pytest.skip("numba is not installed")
+    seen = []
+    real = render_pkg.render
+
+    def spy(gaussians, w2c, K, *args, **kwargs):
+        seen.append((w2c.requires_grad, K.requires_grad))
+        return real(gaussians, w2c, K, *args, **kwargs)
+
+    monkeypatch.setattr(render_pkg, "render", spy)
+    grads = {}
+    for backend in ("cpu", "torch"):
+        torch.manual_seed(0)
+        m = _no_log(ScaffoldModule(depth_warmup_steps=0, render_backend=backend))
+        m.training_step(batch, 0).backward()
+        grads[backend] = {n: p.grad for n, p in m.named_parameters() if n.startswith("net.camera_head")}
+    assert (True, False) in seen and not any(k for _, k in seen)  # poses with gradient, intrinsics without
+    assert any(g is not None and g.abs().sum() > 0 for g in grads["cpu"].values())
+    for n, g in grads["torch"].items():
+        if g is None:
+            assert grads["cpu"][n] is None, n
+        else:
+            torch.testing.assert_close(grads["cpu"][n], g, rtol=1e-3, atol=1e-6, msg=n)
     torch.manual_seed(0)
-    for m in (ScaffoldModule(depth_warmup_steps=0, render_backend="cpu"), RefinementModule(render_backend="cpu")):
-        assert torch.isfinite(_no_log(m).training_step(batch, 0))
+    assert torch.isfinite(_no_log(RefinementModule(render_backend="cpu")).training_step(batch, 0))

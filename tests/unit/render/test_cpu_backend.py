@@ -21,6 +21,7 @@ from anycity.render import render, resolve_backend  # noqa: E402
 from anycity.structures import Gaussians  # noqa: E402
 
 PARAMS = ("means", "quats", "scales", "opacities", "sh")
+CAMS = ("w2c", "K", "background")
 
 
 def make_scene(B=1, V=1, N=120, W=40, H=32, sh_degree=0, seed=0, scale=0.06, z_range=(2.0, 5.0)):
@@ -59,15 +60,20 @@ def loss_fn(out, weights):
     return loss
 
 
-def run(backend, gauss, w2c, K, W, H, weights, dtype=torch.float32, **kw):
+def run(backend, gauss, w2c, K, W, H, weights, dtype=torch.float32, background=None, **kw):
+    """Render and differentiate ``loss_fn`` w.r.t. the Gaussians (PARAMS) and the cameras and background (CAMS)."""
     g = cast(gauss, dtype)
-    args = (g, w2c.to(dtype), K.to(dtype), W, H)
+    B, V = w2c.shape[:2]
+    bg = torch.zeros(3) if background is None else background
+    cams = [t.detach().to(dtype).clone().requires_grad_(True) for t in (w2c, K, bg.expand(B, V, 3))]
+    args = (g, cams[0], cams[1], W, H)
+    kw["background"] = cams[2]
     out = render_reference(*args, **kw) if backend == "reference" else render(*args, backend=backend, **kw)
-    params = [getattr(g, k) for k in PARAMS]
+    params = [getattr(g, k) for k in PARAMS] + cams
     grads = torch.autograd.grad(loss_fn(out, {k: w.to(dtype) for k, w in weights.items()}), params,
                                 allow_unused=True)
     grads = [torch.zeros_like(p) if gr is None else gr for p, gr in zip(params, grads)]
-    return out, dict(zip(PARAMS, grads))
+    return out, dict(zip(PARAMS + CAMS, grads))
 
 
 def make_weights(B, V, W, H, seed=1):
@@ -97,7 +103,7 @@ def compare(gauss, w2c, K, W, H, *, grad_tol=2e-3, img_tol=2e-5, against=("refer
         hit = ref.alpha > 0.5
         dz = (out.depth.double() - ref.depth.double()).abs() / ref.depth.double().abs().clamp_min(1e-6)
         assert dz[hit].max() < 1e-4 if hit.any() else True, name
-        for k in PARAMS:
+        for k in PARAMS + CAMS:
             a, b = grads[k].double(), ref_grads[k].double()
             scale = b.norm()
             if scale == 0:
@@ -141,6 +147,25 @@ def test_huge_gaussians_and_saturated_pixels():
     assert (out.alpha > 0.99).float().mean() > 0.5
 
 
+@pytest.mark.parametrize("degree", [0, 3])
+def test_camera_gradients_where_the_jacobian_is_clamped(degree):
+    """Large Gaussians centred beyond the clamp limit (x/z past the image plus 15 % of the field of view) still
+    cover the image: their Jacobian is taken at the limit, which moves with fx and cx; and each camera's SH view
+    direction moves with its pose."""
+    W, H = 32, 24
+    gauss, w2c, K = make_scene(B=1, V=2, N=60, W=W, H=H, sh_degree=degree, seed=11, scale=0.5)
+    side = torch.arange(60) % 4  # push a quarter of the means beyond each clamp limit
+    z = gauss.means.data[0, :, 2]
+    gauss.means.data[0, side == 0, 0] = 1.05 * z[side == 0]
+    gauss.means.data[0, side == 1, 0] = -1.0 * z[side == 1]
+    gauss.means.data[0, side == 2, 1] = 0.95 * z[side == 2]
+    gauss.means.data[0, side == 3, 1] = -0.95 * z[side == 3]
+    u = gauss.means[0, :, :2] / z[:, None] * K[0, 0, [0, 1], [0, 1]] + K[0, 0, [0, 1], [2, 2]]
+    assert ((u[:, 0] > 1.15 * W) | (u[:, 0] < -0.15 * W) | (u[:, 1] > 1.15 * H) | (u[:, 1] < -0.15 * H)).all()
+    out, grads = compare(gauss, w2c, K, W, H)
+    assert out.alpha.max() > 0.3 and grads["K"].abs().sum() > 0
+
+
 def test_empty_tiles_and_masked_gaussians():
     gauss, w2c, K = make_scene(N=60, W=48, H=40, seed=6, scale=0.02)
     gauss.means.data[..., :2] = gauss.means.data[..., :2].abs()  # lower-right quadrant only: empty tiles
@@ -162,7 +187,7 @@ def test_no_gaussians_and_all_behind_camera():
     gauss, w2c, K = make_scene(N=30, z_range=(-3.0, -1.0))
     out, grads = run("cpu", gauss, w2c, K, 40, 32, make_weights(1, 1, 40, 32))
     assert out.alpha.max() == 0 and out.depth.max() == 0
-    assert all(g.abs().max() == 0 for g in grads.values())
+    assert all(grads[k].abs().max() == 0 for k in PARAMS + ("w2c", "K"))
 
 
 def test_thread_count_does_not_change_bits():
