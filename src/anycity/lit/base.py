@@ -89,6 +89,10 @@ class AnyCityModule(pl.LightningModule):
         warmup_steps: linear LR warm-up steps; the cosine decay spans the rest of the run.
         min_lr_ratio: final LR as a fraction of ``lr``.
         render_backend: renderer backend ("auto" picks gsplat on CUDA, the fused CPU kernels on CPU).
+        render_pose_grad: the render losses reach the predicted poses (``w2c``) they render with, as in AnySplat;
+            False renders at detached poses (the poses then learn only from the camera loss and from placing the
+            Gaussians). Either way the intrinsics render detached (gsplat gives them no gradient), and every
+            backend trains the same way.
         background: RGB background of the renders (``background_mode="fixed"``).
         background_mode: "fixed" uses ``background``; "context_mean" fills pixels no Gaussian covers with the
             mean colour of the scene's context images (a prediction from the inputs alone).
@@ -127,6 +131,7 @@ class AnyCityModule(pl.LightningModule):
         warmup_steps: int = 100,
         min_lr_ratio: float = 0.1,
         render_backend: RenderBackend = "auto",
+        render_pose_grad: bool = True,
         background: tuple[float, float, float] = (0.0, 0.0, 0.0),
         background_mode: BackgroundMode = "fixed",
         eval_align: AlignMode = "sim3",
@@ -169,9 +174,11 @@ class AnyCityModule(pl.LightningModule):
         ``background_mode="context_mean"``)."""
         from anycity.render import render
 
-        # The render loss reaches the predicted poses (w2c) on every backend, but not the intrinsics: gsplat, the
-        # training backend on GPUs, gives K no gradient, and CPU training should train the same way.
+        # Never the intrinsics: gsplat, the training backend on GPUs, gives K no gradient, and CPU training should
+        # train the same way.
         K = K.detach()
+        if not self.hparams.render_pose_grad:
+            w2c = w2c.detach()
         if self.hparams.background_mode == "context_mean":
             bg = context.detach().float().mean(dim=(1, 3, 4))[:, None].expand(-1, w2c.shape[1], -1).contiguous()
         else:

@@ -426,3 +426,6 @@ def test_training_gives_the_same_gradients_on_the_fused_cpu_kernels_as_on_the_to
             torch.testing.assert_close(grads["cpu"][n], g, rtol=1e-3, atol=1e-6, msg=n)
     torch.manual_seed(0)
     assert torch.isfinite(_no_log(RefinementModule(render_backend="cpu")).training_step(batch, 0))
+    seen.clear()  # render_pose_grad=False: the poses render detached too (the quickstart's setting)
+    _no_log(ScaffoldModule(depth_warmup_steps=0, render_backend="cpu", render_pose_grad=False)).training_step(batch, 0)
+    assert seen and set(seen) == {(False, False)}
