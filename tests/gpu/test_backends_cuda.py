@@ -57,3 +57,23 @@ def test_gsplat_matches_torch_backend():
     for a, b in zip(go, gr):
         cos = torch.nn.functional.cosine_similarity(a.flatten(), b.flatten(), dim=0)
         assert cos > 0.98, cos.item()
+
+
+def test_gsplat_pose_and_background_gradients_match_the_torch_backend():
+    """What training's render_pose_grad relies on: gsplat gives w2c and the background the torch backend's
+    gradients (the fused CPU kernels are held to the same in tests/unit/render), so a config trains its poses the
+    same way on a GPU as on a CPU."""
+    pytest.importorskip("gsplat")
+    g, w2c, K, W, H = _scene()
+    got = {}
+    for name in ("gsplat", "torch"):
+        params = [p.detach().to(DEV) for p in (g.means, g.quats, g.scales, g.opacities, g.sh)]
+        cams = [w2c.to(DEV).requires_grad_(True), torch.full((3,), 0.3, device=DEV).requires_grad_(True)]
+        out = render(Gaussians(*params), cams[0], K.to(DEV), W, H, background=cams[1], backend=name)
+        gen = torch.Generator().manual_seed(0)
+        loss = sum((getattr(out, n) * torch.randn(getattr(out, n).shape, generator=gen).to(DEV)).sum()
+                   for n in ("rgb", "depth", "alpha"))
+        got[name] = [x.cpu() for x in torch.autograd.grad(loss, cams)]
+    for a, b in zip(got["gsplat"], got["torch"]):
+        cos = torch.nn.functional.cosine_similarity(a.flatten(), b.flatten(), dim=0)
+        assert cos > 0.98, cos.item()
