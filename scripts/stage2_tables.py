@@ -60,6 +60,8 @@ ROWS = {r.name: r for r in (
     Row("frozen_aa", "frozen AA (its own Stage I)", stage1="frozen_aa"),
     Row("frozen_all", "frozen-all (its own Stage I)", stage1="frozen_all"),
     Row("cameras", "full + re-placed cameras (beyond the paper)", CAMERAS),
+    Row("cameras_pose_grad", "full + re-placed cameras, the render losses reaching their poses (beyond the paper)",
+        (*CAMERAS, "--model.init_args.render_pose_grad", "true")),
     Row("prior_cameras", "full + re-placed cameras + pose prior (beyond the paper)", CAMERAS, pose_prior=True),
     Row("prior_mix", "full + re-placed cameras + pose prior, poses mixed towards it (beyond the paper)",
         (*CAMERAS, *MIX), pose_prior=True),
@@ -69,7 +71,7 @@ ROWS = {r.name: r for r in (
 TABLES = {  # title -> its rows; "full" is named for its place in each table
     "Table 2 order (cumulative)": ("scaffold", "tokens", "d2s", "full"),
     "Table 3 order (ablations)": ("full", "wo_lora", "wo_pres", "frozen_aa", "frozen_all"),
-    "Beyond the paper": ("full", "cameras", "prior_cameras", "prior_mix", "prior_mix_unordered"),
+    "Beyond the paper": ("full", "cameras", "cameras_pose_grad", "prior_cameras", "prior_mix", "prior_mix_unordered"),
 }
 FULL_LABEL = {"Table 3 order (ablations)": "full", "Beyond the paper": "full (the paper's Stage II)"}
 DEFAULT_ROWS = ("tokens", "d2s", "full", "wo_lora", "wo_pres", "frozen_aa", "frozen_all")
