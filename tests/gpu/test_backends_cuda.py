@@ -25,13 +25,20 @@ def _scene(B=2, V=3, N=3000, K=4, W=96, H=64):
     return g, w2c, Kmat, W, H
 
 
-def _run(backend, g, w2c, K, W, H, device, normals=True):
-    params = [p.detach().to(device).requires_grad_(True) for p in (g.means, g.quats, g.scales, g.opacities, g.sh)]
-    out = render(Gaussians(*params), w2c.to(device), K.to(device), W, H, render_normals=normals, backend=backend)
+def _run(backend, g, w2c, K, W, H, device, normals=True, wrt="gaussians"):
+    """Render and differentiate a random weighting of the outputs w.r.t. the Gaussians (black background), or
+    (``wrt="cameras"``) w.r.t. ``w2c`` and a background of 0.3."""
+    params = [p.detach().to(device).requires_grad_(wrt == "gaussians")
+              for p in (g.means, g.quats, g.scales, g.opacities, g.sh)]
+    cams = [w2c.to(device)]
+    if wrt == "cameras":
+        cams = [cams[0].requires_grad_(True), torch.full((3,), 0.3, device=device, requires_grad=True)]
+    out = render(Gaussians(*params), cams[0], K.to(device), W, H, background=cams[1] if wrt == "cameras" else None,
+                 render_normals=normals, backend=backend)
     gen = torch.Generator().manual_seed(0)
-    loss = sum((getattr(out, n) * torch.randn(getattr(out, n).shape, generator=gen).to(device)).sum()
-               for n in ("rgb", "depth", "alpha", "normal"))
-    grads = torch.autograd.grad(loss, params)
+    names = ("rgb", "depth", "alpha", "normal") if normals else ("rgb", "depth", "alpha")
+    loss = sum((getattr(out, n) * torch.randn(getattr(out, n).shape, generator=gen).to(device)).sum() for n in names)
+    grads = torch.autograd.grad(loss, params if wrt == "gaussians" else cams)
     return out, [x.cpu() for x in grads]
 
 
@@ -65,15 +72,8 @@ def test_gsplat_pose_and_background_gradients_match_the_torch_backend():
     same way on a GPU as on a CPU."""
     pytest.importorskip("gsplat")
     g, w2c, K, W, H = _scene()
-    got = {}
-    for name in ("gsplat", "torch"):
-        params = [p.detach().to(DEV) for p in (g.means, g.quats, g.scales, g.opacities, g.sh)]
-        cams = [w2c.to(DEV).requires_grad_(True), torch.full((3,), 0.3, device=DEV).requires_grad_(True)]
-        out = render(Gaussians(*params), cams[0], K.to(DEV), W, H, background=cams[1], backend=name)
-        gen = torch.Generator().manual_seed(0)
-        loss = sum((getattr(out, n) * torch.randn(getattr(out, n).shape, generator=gen).to(DEV)).sum()
-                   for n in ("rgb", "depth", "alpha"))
-        got[name] = [x.cpu() for x in torch.autograd.grad(loss, cams)]
-    for a, b in zip(got["gsplat"], got["torch"]):
+    _, gr = _run("torch", g, w2c, K, W, H, DEV, normals=False, wrt="cameras")
+    _, go = _run("gsplat", g, w2c, K, W, H, DEV, normals=False, wrt="cameras")
+    for a, b in zip(go, gr):
         cos = torch.nn.functional.cosine_similarity(a.flatten(), b.flatten(), dim=0)
         assert cos > 0.98, cos.item()
