@@ -1,13 +1,15 @@
 """Crash-safe file writes: temp file + fsync + rename, and disk-full errors that name the path and the size.
 
-A reader (or a rerun after SIGKILL / power loss) sees the old file or the new one, never a partial one. Files an
-earlier run left are moved aside to :func:`free_name`, never overwritten (:mod:`anycity.lit.keep`).
+A reader (or a rerun after SIGKILL / power loss) sees the old file or the new one, never a partial one; a folder
+written by :func:`staged_folder` appears whole or not at all. Files an earlier run left are moved aside to
+:func:`free_name`, never overwritten (:mod:`anycity.lit.keep`).
 """
 
 from __future__ import annotations
 
 import errno
 import os
+import shutil
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -61,6 +63,28 @@ def publish(src: str | os.PathLike, dst: str | os.PathLike) -> None:
     new name survives a power loss."""
     os.replace(src, dst)
     _fsync_dir(Path(dst).parent)
+
+
+@contextmanager
+def staged_folder(path: str | os.PathLike) -> Iterator[Path]:
+    """A folder to fill that appears as ``path`` only when the block ends without an exception: it is written as
+    the hidden sibling ``.<name>.partial`` and renamed to ``path``, which must not exist. On an exception, or after
+    a kill, there is no ``path``. A ``.<name>.partial`` that a killed run left is never read and is dropped here, as
+    the shard writer drops its ``*.tar.partial`` files. Write the files inside fsynced (:func:`atomic_write_bytes`),
+    so that the renamed folder also survives a power loss."""
+    path = Path(path)
+    stage = path.parent / f".{path.name}.partial"
+    shutil.rmtree(stage, ignore_errors=True)
+    stage.mkdir(parents=True)
+    try:
+        yield stage
+    except BaseException:
+        shutil.rmtree(stage, ignore_errors=True)
+        raise
+    if path.exists():  # rename() would replace an empty folder that appeared meanwhile
+        raise FileExistsError(f"{path} appeared while it was being written; the new one is kept as {stage}")
+    os.rename(stage, path)
+    _fsync_dir(path.parent)
 
 
 def _fsync_dir(d: Path) -> None:

@@ -7,7 +7,6 @@ Gaussian formats can be written). No Lightning import: this runs in a second.
 from __future__ import annotations
 
 import argparse
-import shutil
 import warnings
 from pathlib import Path
 
@@ -45,17 +44,40 @@ def camera_tensors(cams: dict) -> tuple[torch.Tensor, torch.Tensor, int, int, li
 
 def export(src: str | Path, fmt: str, out: str | Path, overwrite: bool = False) -> Path:
     """Write scene ``src`` in format ``fmt`` under ``out``; returns the main file or folder written. An ``out`` that
-    exists and is not empty is refused unless ``overwrite`` (it may be an earlier export, or the scene itself)."""
-    from anycity.export.formats import save_colmap, save_scale, save_splat, save_transforms
-    from anycity.export.ply import save_ply
+    exists and is not empty is refused unless ``overwrite`` (it may be an earlier export, or the scene itself).
+
+    An ``out`` that does not exist yet is written as ``.<out>.partial`` and renamed when complete
+    (:func:`anycity.atomic.staged_folder`), so an export that fails or is killed leaves no ``out`` behind and a rerun
+    needs no ``--overwrite``. Into an existing folder (empty, or with ``overwrite``) the files are written in place,
+    each one whole."""
+    from anycity.atomic import staged_folder
 
     if fmt not in FORMATS:
         raise ValueError(f"--format: expected one of {', '.join(FORMATS)}, got {fmt!r}")
     out = Path(out)
-    if not overwrite and out.is_dir() and any(out.iterdir()):  # before reading the scene: a refusal costs nothing
+    if out.exists() and not out.is_dir():
+        raise FileExistsError(f"anycity export: {out} is a file, not a folder; pass --out NEW_DIR")
+    filled = out.is_dir() and any(out.iterdir())
+    if filled and not overwrite:  # before reading the scene: a refusal costs nothing
         raise FileExistsError(f"anycity export: {out} exists and is not empty; pass --overwrite to write into it, or "
                               "--out NEW_DIR")
     g, cams = load_scene(src)
+    if cams is None and fmt in ("colmap", "nerfstudio"):
+        raise ValueError(f"{src}: no cameras.json beside the scene; --format {fmt} needs the predicted cameras, "
+                         "pass the predict scene folder")
+    if out.is_dir():
+        return _write(g, cams, Path(src), fmt, out)
+    with staged_folder(out) as stage:
+        target = _write(g, cams, Path(src), fmt, stage)
+    return out / target.relative_to(stage)
+
+
+def _write(g, cams: dict | None, src: Path, fmt: str, out: Path) -> Path:
+    """The files of format ``fmt`` in the folder ``out``; returns the main file or folder written."""
+    from anycity.atomic import atomic_write_bytes
+    from anycity.export.formats import save_colmap, save_scale, save_splat, save_transforms
+    from anycity.export.ply import save_ply
+
     out.mkdir(parents=True, exist_ok=True)
     scale = cams.get("metres_per_unit") if cams else None
     save_scale(out / "scale.json", scale, fmt)
@@ -67,20 +89,16 @@ def export(src: str | Path, fmt: str, out: str | Path, overwrite: bool = False) 
         target = out / "scene.ply"
         save_ply(g, target, pad_degree=3)
         return target
-    if cams is None:
-        raise ValueError(f"{src}: no cameras.json beside the scene; --format {fmt} needs the predicted cameras, "
-                         "pass the predict scene folder")
     w2c, K, w, h, names = camera_tensors(cams)
-    src_dir = Path(src) if Path(src).is_dir() else Path(src).parent
+    src_dir = src if src.is_dir() else src.parent
     images = image_names(names)
     inputs = [view_png(src_dir, "inputs", v) for v in range(len(names))]  # the images the cameras belong to
     if all(f.is_file() for f in inputs):
-        (out / "images").mkdir(exist_ok=True)
         for f, name in zip(inputs, images, strict=True):
-            shutil.copyfile(f, out / "images" / name)
+            atomic_write_bytes(out / "images" / name, f.read_bytes())
     else:
         warnings.warn(f"{src_dir}: no inputs/ images for all {len(names)} cameras (predict with --export.save_renders "
-                      f"false?); the {fmt} export names images/{images[0]} etc. without writing them", stacklevel=2)
+                      f"false?); the {fmt} export names images/{images[0]} etc. without writing them", stacklevel=3)
     if fmt == "colmap":
         return save_colmap(out / "sparse" / "0", w2c, K, w, h, images, g)
     save_ply(g, out / "scene.ply")

@@ -1,7 +1,8 @@
 """A write that dies midway (full disk, kill) leaves the old file or none under the final name, and no temp file.
 
-Covers the ``anycity export`` writers (``.splat``, COLMAP text, ``transforms.json``, ``scale.json``), the city
-merge's streamed ``scene.ply`` (:class:`anycity.city.PlyStream`) and the city spill folder.
+Covers the ``anycity export`` writers (``.splat``, COLMAP text, ``transforms.json``, ``scale.json``) and its output
+folder as a whole, the city merge's streamed ``scene.ply`` (:class:`anycity.city.PlyStream`) and the city spill
+folder.
 """
 
 from __future__ import annotations
@@ -9,14 +10,21 @@ from __future__ import annotations
 import errno
 import os
 import shutil
+import signal
 import stat
+import subprocess
+import sys
+import textwrap
 
 import pytest
 import torch
 from helpers.faults import fail_writes_midway
 
 from anycity.city import ChunkedScene, PlyStream
+from anycity.export import save_cameras, save_ply
+from anycity.export.cli import export
 from anycity.export.formats import save_colmap, save_scale, save_splat, save_transforms
+from anycity.export.views import save_view_pngs
 from anycity.structures import Gaussians
 
 
@@ -114,3 +122,55 @@ def test_city_spill_of_a_killed_run_is_hidden_and_removed_by_the_next_run(tmp_pa
     assert _files(tmp_path) == [] and rerun.spill.parent == tmp_path
     rerun.close()
     assert list(tmp_path.iterdir()) == []
+
+
+def _predict_folder(root):
+    d = root / "pred" / "sceneA"
+    save_ply(_gaussians(20), d / "scene.ply")
+    save_cameras(d / "cameras.json", *_cams(), 48, 32)
+    save_view_pngs(d, "inputs", torch.rand(3, 3, 32, 48), range(3))
+    return d
+
+
+def test_an_export_that_dies_midway_leaves_no_out_folder_and_the_rerun_needs_no_overwrite(tmp_path, monkeypatch):
+    src, out = _predict_folder(tmp_path), tmp_path / "o"
+    fail_writes_midway(monkeypatch, "points3D.txt")  # the colmap export's last file, after scale.json and images/
+    with pytest.raises(OSError, match="disk full writing"):
+        export(src, "colmap", out)
+    monkeypatch.undo()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["pred"]  # no out folder, no staging folder
+    assert export(src, "colmap", out) == out / "sparse" / "0"  # not refused as "not empty"
+    assert _files(out) == ["images/000.png", "images/001.png", "images/002.png", "scale.json",
+                           "sparse/0/cameras.txt", "sparse/0/images.txt", "sparse/0/points3D.txt"]
+
+
+def test_the_staging_folder_a_killed_export_left_is_dropped_and_an_empty_out_is_filled(tmp_path):
+    src, out = _predict_folder(tmp_path), tmp_path / "o"
+    killed = tmp_path / ".o.partial"  # what SIGKILL during the export leaves: hidden, never an --out folder
+    (killed / "sparse").mkdir(parents=True)
+    (killed / "scale.json").write_text("{}")
+    assert export(src, "splat", out) == out / "scene.splat"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["o", "pred"]
+    assert _files(out) == ["scale.json", "scene.splat"]
+    (tmp_path / "empty").mkdir()  # an existing empty --out folder is written into, not refused
+    assert export(src, "ply", tmp_path / "empty") == tmp_path / "empty" / "scene.ply"
+    assert _files(tmp_path / "empty") == ["scale.json", "scene.ply"]
+    (tmp_path / "f").write_text("x")
+    with pytest.raises(FileExistsError, match="f is a file, not a folder; pass --out NEW_DIR"):
+        export(src, "splat", tmp_path / "f")
+
+
+def test_an_export_killed_midway_leaves_only_its_hidden_staging_folder(tmp_path):
+    src, out = _predict_folder(tmp_path), tmp_path / "o"
+    code = textwrap.dedent(f"""
+        import os, signal
+        import anycity.export.formats as formats
+        from anycity.export.cli import export
+        formats.save_colmap = lambda *a, **k: os.kill(os.getpid(), signal.SIGKILL)  # after scale.json and images/
+        export({str(src)!r}, "colmap", {str(out)!r})
+    """)
+    assert subprocess.run([sys.executable, "-c", code], timeout=120).returncode == -signal.SIGKILL
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".o.partial", "pred"]
+    assert "scale.json" in _files(tmp_path / ".o.partial")  # it died with files written
+    export(src, "colmap", out)  # the rerun is not refused and drops the staging folder
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["o", "pred"] and "sparse/0/points3D.txt" in _files(out)

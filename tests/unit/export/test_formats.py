@@ -171,6 +171,7 @@ def test_ply_export_and_errors(tmp_path, capsys):
     (d / "cameras.json").unlink()
     with pytest.raises(ValueError, match="cameras.json"):
         export(d, "colmap", tmp_path / "o2")
+    assert not (tmp_path / "o2").exists()  # refused before writing anything
     with pytest.raises(FileNotFoundError, match="scene.ply"):
         export(tmp_path, "splat", tmp_path / "o3")
 
