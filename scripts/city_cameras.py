@@ -40,7 +40,7 @@ def compare(pred: dict[str, torch.Tensor], ref: dict[str, torch.Tensor]) -> dict
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0], allow_abbrev=False)
     ap.add_argument("pred", type=Path, help="predict output folder (holding cameras.json)")
     ap.add_argument("--colmap", type=Path, help="COLMAP scene folder of the reference cameras")
     ap.add_argument("--cameras", type=Path, help="reference cameras.json")

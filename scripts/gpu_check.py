@@ -203,7 +203,7 @@ def _guarded(rows: list, name: str, fn):
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0], allow_abbrev=False)
     ap.add_argument("--vggt", help="VGGT-1B model.pt for Stage I (default: random init)")
     ap.add_argument("--wan-dir", help="local Wan2.2-TI2V-5B-Diffusers folder (default: random Wan of that shape)")
     ap.add_argument("--steps", type=int, default=20)

@@ -23,7 +23,7 @@ from pathlib import Path
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], allow_abbrev=False)
     p.add_argument("--data", default="data/quickstart", help="shard directory (its index.json names the splits)")
     p.add_argument("--out", default="runs/pose_prior.pt")
     p.add_argument("--steps", type=int, default=12000,

@@ -51,7 +51,7 @@ def _banner(text: str, t0: float) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], allow_abbrev=False)
     p.add_argument("--data", default="data/quickstart", help="shard directory (generated when absent)")
     p.add_argument("--out", default="runs/quickstart", help="run directory")
     p.add_argument("--scenes", type=int, default=80, help="synthetic cities to generate when the data is absent")

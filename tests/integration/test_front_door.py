@@ -170,3 +170,15 @@ def test_light_subcommand_help_is_readable(cmd, capsys):
     text = capsys.readouterr().out
     assert "<function" not in text and " at 0x" not in text, text
     assert text.count("--") >= 3, text
+
+
+@pytest.mark.parametrize("cmd, abbrev", [(["data", "synth"], "--ou"), (["data", "convert"], "--sr"),
+                                         (["export"], "--fro"), (["view"], "--ho"), (["render-video"], "--fp")])
+def test_light_subcommands_refuse_abbreviated_options(cmd, abbrev, capsys):
+    """An option is taken only by its full name: a prefix (argparse's default) would silently change meaning when
+    a later option shares it."""
+    with pytest.raises(SystemExit) as stop:
+        cli.main([*cmd, "x", abbrev, "1"] if cmd[0] in ("view", "render-video") else [*cmd, abbrev, "1"])
+    assert stop.value.code == 2
+    err = capsys.readouterr().err
+    assert abbrev in err, err

@@ -15,7 +15,7 @@ from jsonargparse import ActionYesNo, ArgumentParser
 
 
 def _synth_parser() -> ArgumentParser:
-    p = ArgumentParser(description="Render procedural aerial cities into webdataset shards.")
+    p = ArgumentParser(description="Render procedural aerial cities into webdataset shards.", allow_abbrev=False)
     p.add_argument("--out", type=str, required=True, help="output shard directory")
     p.add_argument("--overwrite", action=ActionYesNo, default=False,
                    help="replace a shard set already in --out (default: refuse)")
@@ -44,7 +44,7 @@ def _synth_parser() -> ArgumentParser:
 def _convert_parser() -> ArgumentParser:
     from anycity.data.parsers import PARSERS
 
-    p = ArgumentParser(description="Convert a posed multi-view dataset into webdataset shards.")
+    p = ArgumentParser(description="Convert a posed multi-view dataset into webdataset shards.", allow_abbrev=False)
     p.add_argument("--format", required=True, choices=sorted(PARSERS), help="source format")
     p.add_argument("--src", type=str, required=True, help="source dataset folder (or pose file)")
     p.add_argument("--out", type=str, required=True, help="output shard directory")
@@ -59,7 +59,7 @@ def _convert_parser() -> ArgumentParser:
 
 
 def build_parser() -> ArgumentParser:
-    parser = ArgumentParser(prog="anycity data", description="Build anycity webdataset shards.")
+    parser = ArgumentParser(prog="anycity data", description="Build anycity webdataset shards.", allow_abbrev=False)
     sub = parser.add_subcommands(dest="command")
     sub.add_subcommand("synth", _synth_parser(), help="procedural aerial cities")
     sub.add_subcommand("convert", _convert_parser(), help="convert COLMAP, nerfstudio, MatrixCity, ... data")

@@ -119,7 +119,8 @@ def image_names(names: list[str]) -> list[str]:
 
 
 def export_main(argv: list[str]) -> int:
-    p = argparse.ArgumentParser(prog="anycity export", description="Export a predicted scene for other tools.")
+    p = argparse.ArgumentParser(prog="anycity export", description="Export a predicted scene for other tools.",
+                                allow_abbrev=False)
     p.add_argument("--from", dest="src", required=True, help="predict scene folder or scene.ply")
     p.add_argument("--format", required=True, choices=FORMATS, help="splat: antimatter15 .splat; colmap: text "
                    "model (sparse/0); nerfstudio: transforms.json + scene.ply; ply: graphdeco's exact 3DGS PLY record "

@@ -124,7 +124,8 @@ def _share_text(scene: ViewScene) -> str:
 
 
 def view_main(argv: list[str]) -> int:
-    p = argparse.ArgumentParser(prog="anycity view", description="Open a predicted scene in the browser (viser).")
+    p = argparse.ArgumentParser(prog="anycity view", description="Open a predicted scene in the browser (viser).",
+                                allow_abbrev=False)
     p.add_argument("path", help="scene.ply or a predict output folder (predictions/<scene>/)")
     p.add_argument("--host", default="127.0.0.1",
                    help="interface to listen on (default: %(default)s; 0.0.0.0 serves the network)")

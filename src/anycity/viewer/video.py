@@ -151,7 +151,8 @@ def _int_at_least(low: int):
 
 def render_video_main(argv: list[str]) -> int:
     p = argparse.ArgumentParser(prog="anycity render-video",
-                                description="Render an mp4 fly-through along the predicted cameras.")
+                                description="Render an mp4 fly-through along the predicted cameras.",
+                                allow_abbrev=False)
     p.add_argument("path", help="predict scene folder (scene.ply + cameras.json)")
     p.add_argument("--out", default=None, help="mp4 path (default: <path>/flythrough.mp4)")
     p.add_argument("--per-segment", type=_int_at_least(1), default=12,
