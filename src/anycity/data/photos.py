@@ -49,12 +49,13 @@ def list_photos(folder: str | Path) -> list[Path]:
                       f"({shown}); export them as JPEG to use them", stacklevel=2)
     if len(files) < 2:
         only = f" (only {files[0].name})" if files else ""
+        photos = "1 photo" if files else "no photos"
         scenes = [d.name for d in visible if d.is_dir() and any(map(_is_photo, d.iterdir()))]
         if scenes:  # the parent of several scenes' folders
             shown = ", ".join(scenes[:5]) + (" ..." if len(scenes) > 5 else "")
-            raise ValueError(f"predict_images: {folder} holds {len(files)} photos{only} but sub-folders of photos "
+            raise ValueError(f"predict_images: {folder} holds {photos}{only} but sub-folders of photos "
                              f"({shown}); pass one of them: a predict reconstructs one scene")
-        raise ValueError(f"predict_images: {folder} holds {len(files)} photos{only} ({'/'.join(PHOTO_SUFFIXES)}); "
+        raise ValueError(f"predict_images: {folder} holds {photos}{only} ({'/'.join(PHOTO_SUFFIXES)}); "
                          "a scene needs at least 2 overlapping photos, so add more views of it")
     return files
 

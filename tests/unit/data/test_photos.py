@@ -106,7 +106,7 @@ def test_folder_errors_name_the_problem(tmp_path):
         load_photo_folder(tmp_path / "missing", (32, 32))
     one = tmp_path / "one"
     _write(one, "a.png", 32, 32)
-    with pytest.raises(ValueError, match="holds 1 photos"):
+    with pytest.raises(ValueError, match="holds 1 photo "):
         load_photo_folder(one, (32, 32))
     bad = tmp_path / "bad"
     _write(bad, "a.png", 32, 32)
@@ -114,14 +114,14 @@ def test_folder_errors_name_the_problem(tmp_path):
     with pytest.raises(ValueError, match=r"b\.jpg: not a readable image.*re-save it"):
         load_photo_folder(bad, (32, 32))
     (bad / "a.png").unlink()
-    with pytest.raises(ValueError, match="holds 1 photos .only b.jpg.*add more"):
+    with pytest.raises(ValueError, match="holds 1 photo .only b.jpg.*add more"):
         load_photo_folder(bad, (32, 32))
     flights = tmp_path / "flights"  # the parent of two scenes' folders
     _write(flights / "north", "a.png", 32, 32)
     _write(flights / "south", "a.png", 32, 32)
     (flights / "west").mkdir()  # only a Mac's metadata of a photo: not a folder of photos
     (flights / "west" / "._a.jpg").write_bytes(b"\x00\x05\x16\x07Mac OS X")
-    with pytest.raises(ValueError, match=r"holds 0 photos but sub-folders of photos \(north, south\); pass one"):
+    with pytest.raises(ValueError, match=r"holds no photos but sub-folders of photos \(north, south\); pass one"):
         load_photo_folder(flights, (32, 32))
 
 
