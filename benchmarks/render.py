@@ -2,6 +2,7 @@
 
     python benchmarks/render.py [--threads 2] [--repeats 5] [--cases 10k,100k,800k] [--backends torch,cpu]
     python benchmarks/render.py --device cuda [--backends torch,gsplat]    # on a GPU: peak is CUDA memory
+    python benchmarks/render.py --cold-compile    # the cpu backend's first-use compile, per kernel
 
 Each case runs in its own subprocess so that the peak RSS is that case's alone. Times are the minimum over
 ``--repeats`` runs after one warm-up. Scenes: random anisotropic Gaussians filling the view frustum, sized so that
@@ -16,8 +17,12 @@ from __future__ import annotations
 import argparse
 import json
 import multiprocessing as mp
+import os
 import resource
+import subprocess
 import sys
+import tempfile
+import textwrap
 import time
 from pathlib import Path
 
@@ -123,6 +128,44 @@ def run_case(case: str, backend: str, threads: int, repeats: int, queue, device:
                    peak_rss_mb=rss_mb))
 
 
+_COLD = textwrap.dedent("""
+    import json, time
+    import torch
+    from numba.core import event
+    from anycity.render import render
+    from anycity.render.cpu_backend import _dispatchers
+    from anycity.structures import Gaussians
+    g = Gaussians(means=torch.tensor([[[0.0, 0.0, 3.0]]], requires_grad=True), quats=torch.tensor([[[1.0, 0, 0, 0]]]),
+                  scales=torch.full((1, 1, 3), 0.2), opacities=torch.ones(1, 1), sh=torch.ones(1, 1, 1, 3))
+    K = torch.tensor([[[[16.0, 0, 8], [0, 16.0, 8], [0, 0, 1]]]])
+    t = time.perf_counter()
+    with event.install_recorder("numba:compile") as rec:
+        render(g, torch.eye(4)[None, None], K, 16, 16, backend="cpu").rgb.sum().backward()
+    total = time.perf_counter() - t
+    kernels, start = {d.py_func for d in _dispatchers(4)}, {}
+    per = {}
+    for ts, ev in rec.buffer:
+        f = ev.data["dispatcher"].py_func
+        if f in kernels:
+            if ev.is_start:
+                start[f] = ts
+            else:
+                per[f.__name__] = per.get(f.__name__, 0.0) + ts - start[f]
+    print(json.dumps({"total": total, "per_kernel": per}))
+""")
+
+
+def cold_compile() -> None:
+    """First use of the cpu backend in a fresh process with an empty numba cache: wall time and each kernel's
+    compile time (a kernel's own includes the serial functions it calls)."""
+    with tempfile.TemporaryDirectory() as cache:
+        env = dict(os.environ, NUMBA_CACHE_DIR=cache, PYTHONPATH=str(ROOT / "src"))
+        res = subprocess.run([sys.executable, "-c", _COLD], env=env, capture_output=True, text=True, check=True)
+    r = json.loads(res.stdout.strip().splitlines()[-1])
+    kernels = ", ".join(f"{k} {v:.1f} s" for k, v in sorted(r["per_kernel"].items(), key=lambda kv: -kv[1]))
+    print(f"cpu backend, first use with an empty cache: {r['total']:.1f} s ({kernels})")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--threads", type=int, default=2)
@@ -131,7 +174,10 @@ def main() -> None:
     ap.add_argument("--backends", default="auto-available")
     ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     ap.add_argument("--json", help="also write the rows to this file")
+    ap.add_argument("--cold-compile", action="store_true", help="only time the cpu backend's first-use compile")
     args = ap.parse_args()
+    if args.cold_compile:
+        return cold_compile()
     sys.path.insert(0, str(ROOT / "src"))
     from anycity.render.api import _cpu_backend_available
 

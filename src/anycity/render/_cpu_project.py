@@ -118,6 +118,82 @@ def _cov2d(cams, c, rot, s0, s1, s2, j00, j02, j11, j12):
     return ca + EPS2D, cb, cc + EPS2D
 
 
+@njit(cache=True)
+def _project_fwd_chunk(chunk, step, total, means, quats, scales, opac, sh, valid, cams, V, width, height, near, far,
+                       P, z_out, rect, ntiles, ext_y):
+    """Entries ``chunk * step`` up to ``(chunk + 1) * step`` of :func:`project_fwd`: a serial function that its
+    parallel loop calls, which numba compiles several times faster than the same body inlined in the loop."""
+    N = means.shape[1]
+    K = sh.shape[2]
+    normals = P.shape[1] - QBASE == 7
+    rot = np.empty(9)
+    basis = np.empty(25)
+    for e in range(chunk * step, min(total, (chunk + 1) * step)):
+        c = e // N
+        n = e - c * N
+        b = c // V
+        ntiles[e] = 0
+        z_out[e] = 1.0
+        m0, m1, m2 = means[b, n, 0], means[b, n, 1], means[b, n, 2]
+        x = cams[c, 0] * m0 + cams[c, 1] * m1 + cams[c, 2] * m2 + cams[c, 9]
+        y = cams[c, 3] * m0 + cams[c, 4] * m1 + cams[c, 5] * m2 + cams[c, 10]
+        z = cams[c, 6] * m0 + cams[c, 7] * m1 + cams[c, 8] * m2 + cams[c, 11]
+        o = opac[b, n]
+        if not (valid[b, n] and z > 0 and z >= near and z <= far and o >= ALPHA_MIN):
+            continue
+        fx, fy, cx, cy = cams[c, 12], cams[c, 13], cams[c, 14], cams[c, 15]
+        _quat_rot(quats[b, n, 0], quats[b, n, 1], quats[b, n, 2], quats[b, n, 3], rot)
+        s0, s1, s2 = scales[b, n, 0], scales[b, n, 1], scales[b, n, 2]
+        iz = 1.0 / z
+        u = min(max(x * iz, cams[c, 19]), cams[c, 20])
+        v = min(max(y * iz, cams[c, 21]), cams[c, 22])
+        # rows of J R (J = [[fx/z, 0, -fx u/z], [0, fy/z, -fy v/z]])
+        j00, j02, j11, j12 = fx * iz, -fx * u * iz, fy * iz, -fy * v * iz
+        ca, cb, cc = _cov2d(cams, c, rot, s0, s1, s2, j00, j02, j11, j12)
+        det = ca * cc - cb * cb
+        if not det > 0:
+            continue
+        mx, my = fx * x * iz + cx, fy * y * iz + cy
+        ext = min(RADIUS_SIGMAS, math.sqrt(2.0 * math.log(255.0 * o))) * 1.001 + 1e-3
+        rx, ry = ext * math.sqrt(ca) + 1e-3, ext * math.sqrt(cc) + 1e-3
+        # pixels whose centre (p + 0.5) lies within [m - r, m + r], clamped to the image
+        px0 = max(math.ceil(max(mx - rx - 0.5, -1.0)), 0)
+        px1 = min(math.floor(min(mx + rx - 0.5, width + 1.0)), width - 1)
+        py0 = max(math.ceil(max(my - ry - 0.5, -1.0)), 0)
+        py1 = min(math.floor(min(my + ry - 0.5, height + 1.0)), height - 1)
+        if px1 < px0 or py1 < py0:
+            continue
+        rect[e, 0], rect[e, 1] = px0 // TX, px1 // TX + 1
+        rect[e, 2], rect[e, 3] = py0 // TY, py1 // TY + 1
+        ntiles[e] = (rect[e, 1] - rect[e, 0]) * (rect[e, 3] - rect[e, 2])
+        ext_y[e] = ry
+        z_out[e] = z
+        P[e, 0], P[e, 1] = mx, my
+        idet = 1.0 / det
+        P[e, 2], P[e, 3], P[e, 4] = cc * idet, -cb * idet, ca * idet
+        P[e, 5] = o
+        if K == 1:
+            for ch in range(3):
+                P[e, 6 + ch] = max(C0 * sh[b, n, 0, ch] + 0.5, 0.0)
+        else:
+            d0, d1, d2 = m0 - cams[c, 16], m1 - cams[c, 17], m2 - cams[c, 18]
+            dn = max(math.sqrt(d0 * d0 + d1 * d1 + d2 * d2), 1e-12)
+            _sh_basis(d0 / dn, d1 / dn, d2 / dn, K, basis)
+            for ch in range(3):
+                acc = 0.5
+                for k in range(K):
+                    acc += basis[k] * sh[b, n, k, ch]
+                P[e, 6 + ch] = max(acc, 0.0)
+        P[e, 9] = z
+        if normals:
+            k = 0 if (s0 <= s1 and s0 <= s2) else (1 if s1 <= s2 else 2)
+            nx = cams[c, 0] * rot[k] + cams[c, 1] * rot[3 + k] + cams[c, 2] * rot[6 + k]
+            ny = cams[c, 3] * rot[k] + cams[c, 4] * rot[3 + k] + cams[c, 5] * rot[6 + k]
+            nz = cams[c, 6] * rot[k] + cams[c, 7] * rot[3 + k] + cams[c, 8] * rot[6 + k]
+            sgn = -1.0 if nx * x + ny * y + nz * z > 0 else 1.0
+            P[e, 10], P[e, 11], P[e, 12] = sgn * nx, sgn * ny, sgn * nz
+
+
 @njit(parallel=True, cache=True)
 def project_fwd(means, quats, scales, opac, sh, valid, cams, V, width, height, near, far, tiles_x, tiles_y,
                 P, z_out, rect, ntiles, ext_y):
@@ -126,77 +202,194 @@ def project_fwd(means, quats, scales, opac, sh, valid, cams, V, width, height, n
     opacity-aware extent min(3.33, sqrt(2 ln(255 o))) σ: outside it α < 1/255, so it culls exactly what
     compositing would skip."""
     B, N = means.shape[:2]
-    K = sh.shape[2]
-    normals = P.shape[1] - QBASE == 7
     total = B * V * N
     step = (total + N_CHUNKS - 1) // N_CHUNKS
     for chunk in prange(N_CHUNKS):
-        rot = np.empty(9)
-        basis = np.empty(25)
-        for e in range(chunk * step, min(total, (chunk + 1) * step)):
-            c = e // N
-            n = e - c * N
-            b = c // V
-            ntiles[e] = 0
-            z_out[e] = 1.0
-            m0, m1, m2 = means[b, n, 0], means[b, n, 1], means[b, n, 2]
+        _project_fwd_chunk(np.int64(chunk), step, total, means, quats, scales, opac, sh, valid, cams, V, width,
+                           height, near, far, P, z_out, rect, ntiles, ext_y)
+
+
+@njit(cache=True)
+def _project_bwd_chunk(chunk, step, total, means, quats, scales, opac, sh, cams, V, pstart, G, g_means, g_quats,
+                       g_scales, g_opac, g_sh, cam_grad, g_cam):
+    """Entries ``chunk * step`` up to ``(chunk + 1) * step`` of :func:`project_bwd`: a serial function that its
+    parallel loop calls, which numba compiles several times faster than the same body inlined in the loop."""
+    N = means.shape[1]
+    K = sh.shape[2]
+    D = G.shape[1] - QBASE
+    rot = np.empty(9)
+    grot = np.empty(9)
+    basis = np.empty(25)
+    s = np.empty(25)
+    g = np.empty(QBASE + 7)
+    gcam = g_cam[chunk]
+    gcam[:] = 0.0
+    for bn in range(chunk * step, min(total, (chunk + 1) * step)):
+        b = bn // N
+        n = bn - b * N
+        for k in range(K):
+            for ch in range(3):
+                g_sh[b, n, k, ch] = 0.0
+        gm0 = gm1 = gm2 = gs0 = gs1 = gs2 = go = 0.0
+        for k in range(9):
+            grot[k] = 0.0
+        qn = _quat_rot(quats[b, n, 0], quats[b, n, 1], quats[b, n, 2], quats[b, n, 3], rot)
+        m0, m1, m2 = means[b, n, 0], means[b, n, 1], means[b, n, 2]
+        sc = (scales[b, n, 0], scales[b, n, 1], scales[b, n, 2])
+        for v in range(V):
+            c = b * V + v
+            e = c * N + n
+            if pstart[e + 1] == pstart[e]:
+                continue
+            for d in range(QBASE + D):
+                g[d] = 0.0
+            for row in range(pstart[e], pstart[e + 1]):
+                for d in range(QBASE + D):
+                    g[d] += G[row, d]
             x = cams[c, 0] * m0 + cams[c, 1] * m1 + cams[c, 2] * m2 + cams[c, 9]
             y = cams[c, 3] * m0 + cams[c, 4] * m1 + cams[c, 5] * m2 + cams[c, 10]
             z = cams[c, 6] * m0 + cams[c, 7] * m1 + cams[c, 8] * m2 + cams[c, 11]
-            o = opac[b, n]
-            if not (valid[b, n] and z > 0 and z >= near and z <= far and o >= ALPHA_MIN):
-                continue
-            fx, fy, cx, cy = cams[c, 12], cams[c, 13], cams[c, 14], cams[c, 15]
-            _quat_rot(quats[b, n, 0], quats[b, n, 1], quats[b, n, 2], quats[b, n, 3], rot)
-            s0, s1, s2 = scales[b, n, 0], scales[b, n, 1], scales[b, n, 2]
+            fx, fy = cams[c, 12], cams[c, 13]
             iz = 1.0 / z
-            u = min(max(x * iz, cams[c, 19]), cams[c, 20])
-            v = min(max(y * iz, cams[c, 21]), cams[c, 22])
-            # rows of J R (J = [[fx/z, 0, -fx u/z], [0, fy/z, -fy v/z]])
-            j00, j02, j11, j12 = fx * iz, -fx * u * iz, fy * iz, -fy * v * iz
-            ca, cb, cc = _cov2d(cams, c, rot, s0, s1, s2, j00, j02, j11, j12)
+            xz, yz = x * iz, y * iz
+            u = min(max(xz, cams[c, 19]), cams[c, 20])
+            vv = min(max(yz, cams[c, 21]), cams[c, 22])
+            j00, j02, j11, j12 = fx * iz, -fx * u * iz, fy * iz, -fy * vv * iz
+            ca, cb, cc = _cov2d(cams, c, rot, sc[0], sc[1], sc[2], j00, j02, j11, j12)  # forward again
             det = ca * cc - cb * cb
-            if not det > 0:
-                continue
-            mx, my = fx * x * iz + cx, fy * y * iz + cy
-            ext = min(RADIUS_SIGMAS, math.sqrt(2.0 * math.log(255.0 * o))) * 1.001 + 1e-3
-            rx, ry = ext * math.sqrt(ca) + 1e-3, ext * math.sqrt(cc) + 1e-3
-            # pixels whose centre (p + 0.5) lies within [m - r, m + r], clamped to the image
-            px0 = max(math.ceil(max(mx - rx - 0.5, -1.0)), 0)
-            px1 = min(math.floor(min(mx + rx - 0.5, width + 1.0)), width - 1)
-            py0 = max(math.ceil(max(my - ry - 0.5, -1.0)), 0)
-            py1 = min(math.floor(min(my + ry - 0.5, height + 1.0)), height - 1)
-            if px1 < px0 or py1 < py0:
-                continue
-            rect[e, 0], rect[e, 1] = px0 // TX, px1 // TX + 1
-            rect[e, 2], rect[e, 3] = py0 // TY, py1 // TY + 1
-            ntiles[e] = (rect[e, 1] - rect[e, 0]) * (rect[e, 3] - rect[e, 2])
-            ext_y[e] = ry
-            z_out[e] = z
-            P[e, 0], P[e, 1] = mx, my
             idet = 1.0 / det
-            P[e, 2], P[e, 3], P[e, 4] = cc * idet, -cb * idet, ca * idet
-            P[e, 5] = o
+            qa, qb, qc = cc * idet, -cb * idet, ca * idet
+            # conic -> Σ2D: H = -Q Gq Q with Gq = [[ga, gb/2], [gb/2, gc]]
+            ga, gb, gc = g[2], 0.5 * g[3], g[4]
+            t00, t01 = qa * ga + qb * gb, qa * gb + qb * gc
+            t10, t11 = qb * ga + qc * gb, qb * gb + qc * gc
+            h00, h01, h11 = -(t00 * qa + t01 * qb), -(t00 * qb + t01 * qc), -(t10 * qb + t11 * qc)
+            gj00 = gj02 = gj11 = gj12 = 0.0
+            for k in range(3):
+                r0 = cams[c, 0] * rot[k] + cams[c, 1] * rot[3 + k] + cams[c, 2] * rot[6 + k]
+                r1 = cams[c, 3] * rot[k] + cams[c, 4] * rot[3 + k] + cams[c, 5] * rot[6 + k]
+                r2 = cams[c, 6] * rot[k] + cams[c, 7] * rot[3 + k] + cams[c, 8] * rot[6 + k]
+                w0, w1, w2 = r0 * sc[k], r1 * sc[k], r2 * sc[k]
+                a0, a1 = j00 * w0 + j02 * w2, j11 * w1 + j12 * w2
+                ga0, ga1 = 2 * (h00 * a0 + h01 * a1), 2 * (h01 * a0 + h11 * a1)  # dL/dA = 2 H A
+                gj00 += ga0 * w0
+                gj02 += ga0 * w2
+                gj11 += ga1 * w1
+                gj12 += ga1 * w2
+                gw0, gw1, gw2 = j00 * ga0, j11 * ga1, j02 * ga0 + j12 * ga1
+                if k == 0:
+                    gs0 += r0 * gw0 + r1 * gw1 + r2 * gw2
+                elif k == 1:
+                    gs1 += r0 * gw0 + r1 * gw1 + r2 * gw2
+                else:
+                    gs2 += r0 * gw0 + r1 * gw1 + r2 * gw2
+                for i in range(3):  # d rot[i, k] += s_k (Rᵀ gw)_i
+                    grot[3 * i + k] += sc[k] * (cams[c, i] * gw0 + cams[c, 3 + i] * gw1 + cams[c, 6 + i] * gw2)
+                if cam_grad:  # d W[i, j] += gw_i M[j, k], M = rot diag(s)
+                    for j in range(3):
+                        mjk = rot[3 * j + k] * sc[k]
+                        gcam[c, j] += gw0 * mjk
+                        gcam[c, 3 + j] += gw1 * mjk
+                        gcam[c, 6 + j] += gw2 * mjk
+            gx = g[0] * fx * iz
+            gy = g[1] * fy * iz
+            gz = -(g[0] * fx * x + g[1] * fy * y) * iz * iz + g[9]
+            gz += -(gj00 * fx + gj11 * fy) * iz * iz + (gj02 * fx * u + gj12 * fy * vv) * iz * iz
+            gu, gv = -gj02 * fx * iz, -gj12 * fy * iz
+            if cams[c, 19] <= xz <= cams[c, 20]:
+                gx += gu * iz
+                gz -= gu * x * iz * iz
+            elif cam_grad:  # u sits on a clamp limit, -(cx + 0.15 W)/fx or (1.15 W - cx)/fx: d/dfx = -u/fx
+                gcam[c, 12] -= gu * u / fx
+                gcam[c, 14] -= gu / fx
+            if cams[c, 21] <= yz <= cams[c, 22]:
+                gy += gv * iz
+                gz -= gv * y * iz * iz
+            elif cam_grad:
+                gcam[c, 13] -= gv * vv / fy
+                gcam[c, 15] -= gv / fy
+            if cam_grad:  # mean2d = f x/z + c; J's entries f/z and -f u/z
+                gcam[c, 12] += g[0] * xz + (gj00 - gj02 * u) * iz
+                gcam[c, 13] += g[1] * yz + (gj11 - gj12 * vv) * iz
+                gcam[c, 14] += g[0]
+                gcam[c, 15] += g[1]
+            go += g[5]
+            # colour (SH + 0.5, clamped at 0)
             if K == 1:
                 for ch in range(3):
-                    P[e, 6 + ch] = max(C0 * sh[b, n, 0, ch] + 0.5, 0.0)
+                    if C0 * sh[b, n, 0, ch] + 0.5 >= 0.0:
+                        g_sh[b, n, 0, ch] += C0 * g[6 + ch]
             else:
                 d0, d1, d2 = m0 - cams[c, 16], m1 - cams[c, 17], m2 - cams[c, 18]
                 dn = max(math.sqrt(d0 * d0 + d1 * d1 + d2 * d2), 1e-12)
-                _sh_basis(d0 / dn, d1 / dn, d2 / dn, K, basis)
+                d0, d1, d2 = d0 / dn, d1 / dn, d2 / dn
+                _sh_basis(d0, d1, d2, K, basis)
+                for k in range(K):
+                    s[k] = 0.0
                 for ch in range(3):
                     acc = 0.5
                     for k in range(K):
                         acc += basis[k] * sh[b, n, k, ch]
-                    P[e, 6 + ch] = max(acc, 0.0)
-            P[e, 9] = z
-            if normals:
-                k = 0 if (s0 <= s1 and s0 <= s2) else (1 if s1 <= s2 else 2)
+                    gcol = g[6 + ch] if acc >= 0.0 else 0.0
+                    for k in range(K):
+                        g_sh[b, n, k, ch] += basis[k] * gcol
+                        s[k] += gcol * sh[b, n, k, ch]
+                gd0, gd1, gd2 = _sh_dir_grad(d0, d1, d2, K, s)
+                dot = gd0 * d0 + gd1 * d1 + gd2 * d2
+                gd0, gd1, gd2 = (gd0 - d0 * dot) / dn, (gd1 - d1 * dot) / dn, (gd2 - d2 * dot) / dn
+                gm0 += gd0
+                gm1 += gd1
+                gm2 += gd2
+                if cam_grad:  # the view direction's origin, the camera centre -Rᵀ t, takes -gd
+                    for i in range(3):
+                        ti = cams[c, 9 + i]
+                        gcam[c, 3 * i] += gd0 * ti
+                        gcam[c, 3 * i + 1] += gd1 * ti
+                        gcam[c, 3 * i + 2] += gd2 * ti
+                        gcam[c, 9 + i] += cams[c, 3 * i] * gd0 + cams[c, 3 * i + 1] * gd1 + cams[c, 3 * i + 2] * gd2
+            if D == 7:
+                k = 0 if (sc[0] <= sc[1] and sc[0] <= sc[2]) else (1 if sc[1] <= sc[2] else 2)
                 nx = cams[c, 0] * rot[k] + cams[c, 1] * rot[3 + k] + cams[c, 2] * rot[6 + k]
                 ny = cams[c, 3] * rot[k] + cams[c, 4] * rot[3 + k] + cams[c, 5] * rot[6 + k]
                 nz = cams[c, 6] * rot[k] + cams[c, 7] * rot[3 + k] + cams[c, 8] * rot[6 + k]
                 sgn = -1.0 if nx * x + ny * y + nz * z > 0 else 1.0
-                P[e, 10], P[e, 11], P[e, 12] = sgn * nx, sgn * ny, sgn * nz
+                for i in range(3):
+                    grot[3 * i + k] += sgn * (cams[c, i] * g[10] + cams[c, 3 + i] * g[11] + cams[c, 6 + i] * g[12])
+                if cam_grad:  # normal = sgn W rot[:, k]
+                    for i in range(3):
+                        for j in range(3):
+                            gcam[c, 3 * i + j] += sgn * g[10 + i] * rot[3 * j + k]
+            if cam_grad:  # camera-frame point p = W m + t
+                for j in range(3):
+                    mj = m0 if j == 0 else (m1 if j == 1 else m2)
+                    gcam[c, j] += gx * mj
+                    gcam[c, 3 + j] += gy * mj
+                    gcam[c, 6 + j] += gz * mj
+                gcam[c, 9] += gx
+                gcam[c, 10] += gy
+                gcam[c, 11] += gz
+            # camera-frame point -> world mean: Rᵀ (gx, gy, gz)
+            gm0 += cams[c, 0] * gx + cams[c, 3] * gy + cams[c, 6] * gz
+            gm1 += cams[c, 1] * gx + cams[c, 4] * gy + cams[c, 7] * gz
+            gm2 += cams[c, 2] * gx + cams[c, 5] * gy + cams[c, 8] * gz
+        g_means[b, n, 0], g_means[b, n, 1], g_means[b, n, 2] = gm0, gm1, gm2
+        g_scales[b, n, 0], g_scales[b, n, 1], g_scales[b, n, 2] = gs0, gs1, gs2
+        g_opac[b, n] = go
+        # rotation matrix -> normalised quaternion -> raw quaternion
+        w, qx, qy, qz = quats[b, n, 0] / qn, quats[b, n, 1] / qn, quats[b, n, 2] / qn, quats[b, n, 3] / qn
+        r = grot
+        gw = 2 * (-qz * r[1] + qy * r[2] + qz * r[3] - qx * r[5] - qy * r[6] + qx * r[7])
+        gx_ = 2 * (qy * r[1] + qz * r[2] + qy * r[3] - 2 * qx * r[4] - w * r[5] + qz * r[6] + w * r[7]
+                   - 2 * qx * r[8])
+        gy_ = 2 * (-2 * qy * r[0] + qx * r[1] + w * r[2] + qx * r[3] + qz * r[5] - w * r[6] + qz * r[7]
+                   - 2 * qy * r[8])
+        gz_ = 2 * (-2 * qz * r[0] - w * r[1] + qx * r[2] + w * r[3] - 2 * qz * r[4] + qy * r[5] + qx * r[6]
+                   + qy * r[7])
+        dot = gw * w + gx_ * qx + gy_ * qy + gz_ * qz
+        g_quats[b, n, 0] = (gw - w * dot) / qn
+        g_quats[b, n, 1] = (gx_ - qx * dot) / qn
+        g_quats[b, n, 2] = (gy_ - qy * dot) / qn
+        g_quats[b, n, 3] = (gz_ - qz * dot) / qn
 
 
 @njit(parallel=True, cache=True)
@@ -207,181 +400,8 @@ def project_bwd(means, quats, scales, opac, sh, cams, V, pstart, G,
     ``g_cam [N_CHUNKS, C, 16]`` (float64, overwritten): each work chunk's camera gradients, R (9, row-major), t (3),
     fx, fy, cx, cy; the caller sums the chunks, so the result does not depend on the thread count either."""
     B, N = means.shape[:2]
-    K = sh.shape[2]
-    D = G.shape[1] - QBASE
     total = B * N
     step = (total + N_CHUNKS - 1) // N_CHUNKS
     for chunk in prange(N_CHUNKS):
-        rot = np.empty(9)
-        grot = np.empty(9)
-        basis = np.empty(25)
-        s = np.empty(25)
-        g = np.empty(QBASE + 7)
-        gcam = g_cam[chunk]
-        gcam[:] = 0.0
-        for bn in range(chunk * step, min(total, (chunk + 1) * step)):
-            b = bn // N
-            n = bn - b * N
-            for k in range(K):
-                for ch in range(3):
-                    g_sh[b, n, k, ch] = 0.0
-            gm0 = gm1 = gm2 = gs0 = gs1 = gs2 = go = 0.0
-            for k in range(9):
-                grot[k] = 0.0
-            qn = _quat_rot(quats[b, n, 0], quats[b, n, 1], quats[b, n, 2], quats[b, n, 3], rot)
-            m0, m1, m2 = means[b, n, 0], means[b, n, 1], means[b, n, 2]
-            sc = (scales[b, n, 0], scales[b, n, 1], scales[b, n, 2])
-            for v in range(V):
-                c = b * V + v
-                e = c * N + n
-                if pstart[e + 1] == pstart[e]:
-                    continue
-                for d in range(QBASE + D):
-                    g[d] = 0.0
-                for row in range(pstart[e], pstart[e + 1]):
-                    for d in range(QBASE + D):
-                        g[d] += G[row, d]
-                x = cams[c, 0] * m0 + cams[c, 1] * m1 + cams[c, 2] * m2 + cams[c, 9]
-                y = cams[c, 3] * m0 + cams[c, 4] * m1 + cams[c, 5] * m2 + cams[c, 10]
-                z = cams[c, 6] * m0 + cams[c, 7] * m1 + cams[c, 8] * m2 + cams[c, 11]
-                fx, fy = cams[c, 12], cams[c, 13]
-                iz = 1.0 / z
-                xz, yz = x * iz, y * iz
-                u = min(max(xz, cams[c, 19]), cams[c, 20])
-                vv = min(max(yz, cams[c, 21]), cams[c, 22])
-                j00, j02, j11, j12 = fx * iz, -fx * u * iz, fy * iz, -fy * vv * iz
-                ca, cb, cc = _cov2d(cams, c, rot, sc[0], sc[1], sc[2], j00, j02, j11, j12)  # forward again
-                det = ca * cc - cb * cb
-                idet = 1.0 / det
-                qa, qb, qc = cc * idet, -cb * idet, ca * idet
-                # conic -> Σ2D: H = -Q Gq Q with Gq = [[ga, gb/2], [gb/2, gc]]
-                ga, gb, gc = g[2], 0.5 * g[3], g[4]
-                t00, t01 = qa * ga + qb * gb, qa * gb + qb * gc
-                t10, t11 = qb * ga + qc * gb, qb * gb + qc * gc
-                h00, h01, h11 = -(t00 * qa + t01 * qb), -(t00 * qb + t01 * qc), -(t10 * qb + t11 * qc)
-                gj00 = gj02 = gj11 = gj12 = 0.0
-                for k in range(3):
-                    r0 = cams[c, 0] * rot[k] + cams[c, 1] * rot[3 + k] + cams[c, 2] * rot[6 + k]
-                    r1 = cams[c, 3] * rot[k] + cams[c, 4] * rot[3 + k] + cams[c, 5] * rot[6 + k]
-                    r2 = cams[c, 6] * rot[k] + cams[c, 7] * rot[3 + k] + cams[c, 8] * rot[6 + k]
-                    w0, w1, w2 = r0 * sc[k], r1 * sc[k], r2 * sc[k]
-                    a0, a1 = j00 * w0 + j02 * w2, j11 * w1 + j12 * w2
-                    ga0, ga1 = 2 * (h00 * a0 + h01 * a1), 2 * (h01 * a0 + h11 * a1)  # dL/dA = 2 H A
-                    gj00 += ga0 * w0
-                    gj02 += ga0 * w2
-                    gj11 += ga1 * w1
-                    gj12 += ga1 * w2
-                    gw0, gw1, gw2 = j00 * ga0, j11 * ga1, j02 * ga0 + j12 * ga1
-                    if k == 0:
-                        gs0 += r0 * gw0 + r1 * gw1 + r2 * gw2
-                    elif k == 1:
-                        gs1 += r0 * gw0 + r1 * gw1 + r2 * gw2
-                    else:
-                        gs2 += r0 * gw0 + r1 * gw1 + r2 * gw2
-                    for i in range(3):  # d rot[i, k] += s_k (Rᵀ gw)_i
-                        grot[3 * i + k] += sc[k] * (cams[c, i] * gw0 + cams[c, 3 + i] * gw1 + cams[c, 6 + i] * gw2)
-                    if cam_grad:  # d W[i, j] += gw_i M[j, k], M = rot diag(s)
-                        for j in range(3):
-                            mjk = rot[3 * j + k] * sc[k]
-                            gcam[c, j] += gw0 * mjk
-                            gcam[c, 3 + j] += gw1 * mjk
-                            gcam[c, 6 + j] += gw2 * mjk
-                gx = g[0] * fx * iz
-                gy = g[1] * fy * iz
-                gz = -(g[0] * fx * x + g[1] * fy * y) * iz * iz + g[9]
-                gz += -(gj00 * fx + gj11 * fy) * iz * iz + (gj02 * fx * u + gj12 * fy * vv) * iz * iz
-                gu, gv = -gj02 * fx * iz, -gj12 * fy * iz
-                if cams[c, 19] <= xz <= cams[c, 20]:
-                    gx += gu * iz
-                    gz -= gu * x * iz * iz
-                elif cam_grad:  # u sits on a clamp limit, -(cx + 0.15 W)/fx or (1.15 W - cx)/fx: d/dfx = -u/fx
-                    gcam[c, 12] -= gu * u / fx
-                    gcam[c, 14] -= gu / fx
-                if cams[c, 21] <= yz <= cams[c, 22]:
-                    gy += gv * iz
-                    gz -= gv * y * iz * iz
-                elif cam_grad:
-                    gcam[c, 13] -= gv * vv / fy
-                    gcam[c, 15] -= gv / fy
-                if cam_grad:  # mean2d = f x/z + c; J's entries f/z and -f u/z
-                    gcam[c, 12] += g[0] * xz + (gj00 - gj02 * u) * iz
-                    gcam[c, 13] += g[1] * yz + (gj11 - gj12 * vv) * iz
-                    gcam[c, 14] += g[0]
-                    gcam[c, 15] += g[1]
-                go += g[5]
-                # colour (SH + 0.5, clamped at 0)
-                if K == 1:
-                    for ch in range(3):
-                        if C0 * sh[b, n, 0, ch] + 0.5 >= 0.0:
-                            g_sh[b, n, 0, ch] += C0 * g[6 + ch]
-                else:
-                    d0, d1, d2 = m0 - cams[c, 16], m1 - cams[c, 17], m2 - cams[c, 18]
-                    dn = max(math.sqrt(d0 * d0 + d1 * d1 + d2 * d2), 1e-12)
-                    d0, d1, d2 = d0 / dn, d1 / dn, d2 / dn
-                    _sh_basis(d0, d1, d2, K, basis)
-                    for k in range(K):
-                        s[k] = 0.0
-                    for ch in range(3):
-                        acc = 0.5
-                        for k in range(K):
-                            acc += basis[k] * sh[b, n, k, ch]
-                        gcol = g[6 + ch] if acc >= 0.0 else 0.0
-                        for k in range(K):
-                            g_sh[b, n, k, ch] += basis[k] * gcol
-                            s[k] += gcol * sh[b, n, k, ch]
-                    gd0, gd1, gd2 = _sh_dir_grad(d0, d1, d2, K, s)
-                    dot = gd0 * d0 + gd1 * d1 + gd2 * d2
-                    gd0, gd1, gd2 = (gd0 - d0 * dot) / dn, (gd1 - d1 * dot) / dn, (gd2 - d2 * dot) / dn
-                    gm0 += gd0
-                    gm1 += gd1
-                    gm2 += gd2
-                    if cam_grad:  # the view direction's origin, the camera centre -Rᵀ t, takes -gd
-                        for i in range(3):
-                            ti = cams[c, 9 + i]
-                            gcam[c, 3 * i] += gd0 * ti
-                            gcam[c, 3 * i + 1] += gd1 * ti
-                            gcam[c, 3 * i + 2] += gd2 * ti
-                            gcam[c, 9 + i] += cams[c, 3 * i] * gd0 + cams[c, 3 * i + 1] * gd1 + cams[c, 3 * i + 2] * gd2
-                if D == 7:
-                    k = 0 if (sc[0] <= sc[1] and sc[0] <= sc[2]) else (1 if sc[1] <= sc[2] else 2)
-                    nx = cams[c, 0] * rot[k] + cams[c, 1] * rot[3 + k] + cams[c, 2] * rot[6 + k]
-                    ny = cams[c, 3] * rot[k] + cams[c, 4] * rot[3 + k] + cams[c, 5] * rot[6 + k]
-                    nz = cams[c, 6] * rot[k] + cams[c, 7] * rot[3 + k] + cams[c, 8] * rot[6 + k]
-                    sgn = -1.0 if nx * x + ny * y + nz * z > 0 else 1.0
-                    for i in range(3):
-                        grot[3 * i + k] += sgn * (cams[c, i] * g[10] + cams[c, 3 + i] * g[11] + cams[c, 6 + i] * g[12])
-                    if cam_grad:  # normal = sgn W rot[:, k]
-                        for i in range(3):
-                            for j in range(3):
-                                gcam[c, 3 * i + j] += sgn * g[10 + i] * rot[3 * j + k]
-                if cam_grad:  # camera-frame point p = W m + t
-                    for j in range(3):
-                        mj = m0 if j == 0 else (m1 if j == 1 else m2)
-                        gcam[c, j] += gx * mj
-                        gcam[c, 3 + j] += gy * mj
-                        gcam[c, 6 + j] += gz * mj
-                    gcam[c, 9] += gx
-                    gcam[c, 10] += gy
-                    gcam[c, 11] += gz
-                # camera-frame point -> world mean: Rᵀ (gx, gy, gz)
-                gm0 += cams[c, 0] * gx + cams[c, 3] * gy + cams[c, 6] * gz
-                gm1 += cams[c, 1] * gx + cams[c, 4] * gy + cams[c, 7] * gz
-                gm2 += cams[c, 2] * gx + cams[c, 5] * gy + cams[c, 8] * gz
-            g_means[b, n, 0], g_means[b, n, 1], g_means[b, n, 2] = gm0, gm1, gm2
-            g_scales[b, n, 0], g_scales[b, n, 1], g_scales[b, n, 2] = gs0, gs1, gs2
-            g_opac[b, n] = go
-            # rotation matrix -> normalised quaternion -> raw quaternion
-            w, qx, qy, qz = quats[b, n, 0] / qn, quats[b, n, 1] / qn, quats[b, n, 2] / qn, quats[b, n, 3] / qn
-            r = grot
-            gw = 2 * (-qz * r[1] + qy * r[2] + qz * r[3] - qx * r[5] - qy * r[6] + qx * r[7])
-            gx_ = 2 * (qy * r[1] + qz * r[2] + qy * r[3] - 2 * qx * r[4] - w * r[5] + qz * r[6] + w * r[7]
-                       - 2 * qx * r[8])
-            gy_ = 2 * (-2 * qy * r[0] + qx * r[1] + w * r[2] + qx * r[3] + qz * r[5] - w * r[6] + qz * r[7]
-                       - 2 * qy * r[8])
-            gz_ = 2 * (-2 * qz * r[0] - w * r[1] + qx * r[2] + w * r[3] - 2 * qz * r[4] + qy * r[5] + qx * r[6]
-                       + qy * r[7])
-            dot = gw * w + gx_ * qx + gy_ * qy + gz_ * qz
-            g_quats[b, n, 0] = (gw - w * dot) / qn
-            g_quats[b, n, 1] = (gx_ - qx * dot) / qn
-            g_quats[b, n, 2] = (gy_ - qy * dot) / qn
-            g_quats[b, n, 3] = (gz_ - qz * dot) / qn
+        _project_bwd_chunk(np.int64(chunk), step, total, means, quats, scales, opac, sh, cams, V, pstart, G,
+                           g_means, g_quats, g_scales, g_opac, g_sh, cam_grad, g_cam)

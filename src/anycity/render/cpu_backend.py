@@ -75,7 +75,7 @@ def _announce_compile(D: int) -> None:
             cold.append(disp.__name__)
     if cold:
         _state["announced"] = True
-        _log.warning("anycity: compiling the fused CPU render kernels (%s); first use only, about 10-20 s, "
+        _log.warning("anycity: compiling the fused CPU render kernels (%s); first use only, up to about 40 s on 2 cores, "
                      "cached afterwards", ", ".join(cold))
 
 
