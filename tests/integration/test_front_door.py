@@ -174,9 +174,10 @@ def test_light_subcommand_help_is_readable(cmd, capsys):
 
 @pytest.mark.parametrize("cmd, abbrev", [(["data", "synth"], "--ou"), (["data", "convert"], "--sr"),
                                          (["export"], "--fro"), (["view"], "--ho"), (["render-video"], "--fp")])
-def test_light_subcommands_refuse_abbreviated_options(cmd, abbrev, capsys):
+def test_light_subcommands_refuse_abbreviated_options(cmd, abbrev, tmp_path, monkeypatch, capsys):
     """An option is taken only by its full name: a prefix (argparse's default) would silently change meaning when
     a later option shares it."""
+    monkeypatch.chdir(tmp_path)  # where an accepted abbreviation would write (data synth --ou 1: shards in ./1)
     with pytest.raises(SystemExit) as stop:
         cli.main([*cmd, "x", abbrev, "1"] if cmd[0] in ("view", "render-video") else [*cmd, abbrev, "1"])
     assert stop.value.code == 2

@@ -75,8 +75,8 @@ def _announce_compile(D: int) -> None:
             cold.append(disp.__name__)
     if cold:
         _state["announced"] = True
-        _log.warning("anycity: compiling the fused CPU render kernels (%s); first use only, up to about 40 s on 2 cores, "
-                     "cached afterwards", ", ".join(cold))
+        _log.warning("anycity: compiling the fused CPU render kernels (%s); first use only, up to about 40 s on 2 "
+                     "cores, cached afterwards", ", ".join(cold))
 
 
 def _guard_process() -> None:
