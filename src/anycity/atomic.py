@@ -59,8 +59,8 @@ def atomic_open(path: str | os.PathLike, tmp_dir: str | os.PathLike | None = Non
 
 
 def publish(src: str | os.PathLike, dst: str | os.PathLike) -> None:
-    """Rename the finished, fsynced file ``src`` to ``dst`` (same filesystem) and fsync ``dst``'s folder, so the
-    new name survives a power loss."""
+    """Rename the finished, fsynced file (or folder of them) ``src`` to ``dst`` (same filesystem) and fsync
+    ``dst``'s folder, so the new name survives a power loss."""
     os.replace(src, dst)
     _fsync_dir(Path(dst).parent)
 
@@ -81,10 +81,9 @@ def staged_folder(path: str | os.PathLike) -> Iterator[Path]:
     except BaseException:
         shutil.rmtree(stage, ignore_errors=True)
         raise
-    if path.exists():  # rename() would replace an empty folder that appeared meanwhile
+    if path.exists():  # the rename would replace an empty folder that appeared meanwhile
         raise FileExistsError(f"{path} appeared while it was being written; the new one is kept as {stage}")
-    os.rename(stage, path)
-    _fsync_dir(path.parent)
+    publish(stage, path)
 
 
 def _fsync_dir(d: Path) -> None:

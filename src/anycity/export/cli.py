@@ -61,14 +61,15 @@ def export(src: str | Path, fmt: str, out: str | Path, overwrite: bool = False) 
     if filled and not overwrite:  # before reading the scene: a refusal costs nothing
         raise FileExistsError(f"anycity export: {out} exists and is not empty; pass --overwrite to write into it, or "
                               "--out NEW_DIR")
+    src = Path(src)
     g, cams = load_scene(src)
     if cams is None and fmt in ("colmap", "nerfstudio"):
         raise ValueError(f"{src}: no cameras.json beside the scene; --format {fmt} needs the predicted cameras, "
                          "pass the predict scene folder")
     if out.is_dir():
-        return _write(g, cams, Path(src), fmt, out)
+        return _write(g, cams, src, fmt, out)
     with staged_folder(out) as stage:
-        target = _write(g, cams, Path(src), fmt, stage)
+        target = _write(g, cams, src, fmt, stage)
     return out / target.relative_to(stage)
 
 
