@@ -62,12 +62,26 @@ def run(args: list[str], log: Path, timeout: float = 600, **env_extra: str) -> i
         raise
 
 
-def kill_after(args: list[str], log: Path, seconds: float, timeout: float = 600) -> int:
-    """Start, SIGKILL after ``seconds`` (if still running); returns the exit code (-9 when killed)."""
+def kill_after(args: list[str], log: Path, seconds: float, after: bytes | None = None, count: int = 1,
+               timeout: float = 600) -> int:
+    """Start, SIGKILL ``seconds`` later (if still running); returns the exit code (-9 when killed).
+
+    ``after``: count the seconds from the ``count``-th time this launch's output holds these bytes (e.g. a
+    training step's progress line), not from the start. Imports alone take 3 to 9 s on 2 cores, so a kill timed from the
+    start can land before the run does anything; one timed from a step lands in training or a checkpoint write.
+    """
+    offset = log.stat().st_size if log.exists() else 0
     p = start(args, log)
+    if after is not None:
+        seen = b""
+        while p.poll() is None and seen.count(after) < count:
+            time.sleep(0.02)
+            with open(log, "rb") as f:
+                f.seek(offset)
+                seen = f.read()
     t0 = time.monotonic()
     while p.poll() is None and time.monotonic() - t0 < seconds:
-        time.sleep(0.05)
+        time.sleep(0.02)
     if p.poll() is None:
         os.kill(p.pid, signal.SIGKILL)
     return p.wait(timeout)

@@ -1,8 +1,9 @@
 """SIGKILL ``anycity fit`` (Stage I and II) and ``anycity data synth`` anywhere, rerun, lose nothing.
 
-Fast (``make test``): 2 kill points, one mid-checkpoint-write in Stage I, one at a random moment in Stage II.
-Slow (``-m slow``): >= 10 kill points per stage and for data synth. Each resumed run must reach the end and
-its final parameters must be bit-identical to an uninterrupted run's (CPU, num_workers=0, deterministic).
+Fast (``make test``): 2 kill points, one mid-checkpoint-write in Stage I, one in Stage II right after its second
+step (the rerun resumes from a checkpoint). Slow (``-m slow``): >= 10 kill points per stage and for data synth.
+Each resumed run must reach the end and its final parameters must be bit-identical to an uninterrupted run's (CPU,
+num_workers=0, deterministic).
 """
 
 import json
@@ -15,17 +16,21 @@ from anycity.data.writer import read_index
 
 from . import harness as H
 
+STEP_LINE = b"] step "  # the progress line a training step prints: "[ScaffoldModule] step 1/3 ..."
+
 
 def _resume_until_done(args, run, log, kills, rng, max_launches=60):
     """Run ``args`` again and again with ``--ckpt_path last``; the first ``len(kills)`` launches are killed per
-    ``kills`` (``("save", k)``: mid-write of the k-th checkpoint save; ``("time", s)``: SIGKILL after s seconds).
+    ``kills`` (``("save", k)``: mid-write of the k-th checkpoint save; ``("step", (k, s))``: SIGKILL s seconds after the
+    launch's k-th training step line, so never during its imports)
     After each launch every checkpoint must be readable. Returns (kill points that hit a live process, launches)."""
     hit = 0
     for launch in range(max_launches):
         a = args + (["--ckpt_path", "last"] if (run / "checkpoints" / "last.ckpt").exists() else [])
         if launch < len(kills):
             kind, v = kills[launch]
-            rc = H.run(a, log, ANYCITY_FAULT_KILL_IN_SAVE=str(v)) if kind == "save" else H.kill_after(a, log, v)
+            rc = H.run(a, log, ANYCITY_FAULT_KILL_IN_SAVE=str(v)) if kind == "save" else \
+                H.kill_after(a, log, v[1], after=STEP_LINE, count=v[0])
         else:
             rc = H.run(a, log)
         H.check_checkpoints(run / "checkpoints")  # never an unreadable checkpoint
@@ -55,15 +60,18 @@ def test_kill_two_points_stage1_mid_write_and_stage2_random(tiny_shards, tmp_pat
     assert hit1 == 1
     leftovers = list((tmp_path / "s1_killed" / "checkpoints").glob(".*.tmp-*"))
     assert not leftovers or all(p.stat().st_size > 0 for p in leftovers)  # the torn write stayed in a temp file
-    _, hit2, _ = _stage(tiny_shards, tmp_path, 3, [("time", 6.0)], stage2_from=ref1 / "checkpoints" / "last.ckpt",
-                        name="s2")
-    assert hit2 <= 1
+    _, hit2, _ = _stage(tiny_shards, tmp_path, 3, [("step", (2, 0.0))],
+                        stage2_from=ref1 / "checkpoints" / "last.ckpt", name="s2")
+    assert hit2 == 1  # killed while training, after its second step's line
+    assert (tmp_path / "s2_killed.log").read_text().count("] step 1/3 ") == 1  # the rerun resumed past step 1
 
 
 def _sweep_kills(rng, n):
-    # half mid-checkpoint-write (k-th save of that launch), half at random wall-clock moments
-    # (each launch only gets a step or two further, so the 40-step run outlives all n kills)
-    return [("save", rng.randint(1, 2)) if i % 2 == 0 else ("time", rng.uniform(3.0, 7.0)) for i in range(n)]
+    # half mid-checkpoint-write (k-th save of that launch), half at a random moment up to 0.4 s after the launch's
+    # first or second step (a step takes about 0.5 s; each launch gets 1 to 3 steps further, so the 40-step run
+    # outlives all n kills)
+    return [("save", rng.randint(1, 2)) if i % 2 == 0 else ("step", (rng.randint(1, 2), rng.uniform(0.0, 0.4)))
+            for i in range(n)]
 
 
 @pytest.mark.slow
