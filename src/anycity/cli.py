@@ -277,6 +277,34 @@ def config_error(message: str, argv: list[str]) -> str:
     return what + (f"; did you mean {hint}?" if hint else "; see anycity COMMAND --help")
 
 
+def check_config_files(args: list[str]) -> None:
+    """Raise one line for a ``-c``/``--config`` file that does not exist, before Lightning's imports (8 s on 2 cores),
+    naming the nearest YAML file beside it. A value that is not a path (inline YAML/JSON such as
+    ``--config '{trainer: {max_steps: 5}}'``, which jsonargparse accepts) is left to the parser."""
+    import difflib
+
+    for i, a in enumerate(args):
+        if a in ("-c", "--config") and i + 1 < len(args):
+            value = args[i + 1]
+        elif a.startswith("--config="):
+            value = a.split("=", 1)[1]
+        else:
+            continue
+        if Path(value).is_file() or any(ch in value for ch in ":{}\n"):
+            continue
+        path = Path(value)
+        if path.is_dir():
+            inside = sorted(q.name for q in path.glob("*.y*ml"))
+            shown = ", ".join(inside[:4]) + (" ..." if len(inside) > 4 else "")
+            raise FileNotFoundError(f"--config {value} is a folder; pass one of its YAML files"
+                                    + (f" ({shown})" if inside else ""))
+        beside = sorted(str(q) for q in path.parent.glob("*.y*ml")) if path.parent.is_dir() else []
+        near = difflib.get_close_matches(str(path), beside, n=1, cutoff=0.6)
+        hint = f"did you mean {near[0]}?" if near else "check the path (anycity's own configs are in the configs/ " \
+            "folder of its repository)"
+        raise FileNotFoundError(f"--config {value}: no such file; {hint}")
+
+
 def _dispatch(args: list[str], argv_given: bool) -> int:
     if not args or args[0] in ("-h", "--help", "help"):
         print(HELP, end="")
@@ -301,6 +329,7 @@ def _dispatch(args: list[str], argv_given: bool) -> int:
     if cmd in LIGHTNING or cmd.startswith("-"):
         import argparse
 
+        check_config_files(args)
         saved = sys.argv[:]
         sys.argv[1:] = args  # LightningCLI reads sys.argv itself (and warns when given args that differ from it)
         try:

@@ -183,3 +183,25 @@ def test_light_subcommands_refuse_abbreviated_options(cmd, abbrev, tmp_path, mon
     assert stop.value.code == 2
     err = capsys.readouterr().err
     assert abbrev in err, err
+
+
+def test_a_missing_config_file_is_one_line_before_lightning_is_imported(tmp_path):
+    (tmp_path / "stage1.yaml").write_text("trainer: {max_steps: 1}\n")
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "sub" / "a.yaml").write_text("{}\n")
+    code = ("import sys; from anycity.cli import main; "
+            f"rcs = [main(['fit', '-c', {str(tmp_path / 'stage1.yml')!r}]), "
+            f"main(['test', '--config={tmp_path / 'sub'}']), main(['fit', '--config', 'no/where.yaml'])]; "
+            "print(*rcs, 'lightning' in sys.modules)")
+    r = _run(code)
+    assert r.stdout.split() == ["2", "2", "2", "False"], r.stderr  # refused in 0.1 s, not after 8 s of imports
+    tail = "  (--debug for the traceback)"
+    assert r.stderr.strip().splitlines() == [
+        f"anycity: error: --config {tmp_path / 'stage1.yml'}: no such file; did you mean {tmp_path / 'stage1.yaml'}?"
+        + tail,
+        f"anycity: error: --config {tmp_path / 'sub'} is a folder; pass one of its YAML files (a.yaml)" + tail,
+        "anycity: error: --config no/where.yaml: no such file; check the path (anycity's own configs are in the "
+        "configs/ folder of its repository)" + tail]
+    # existing files and inline YAML (jsonargparse reads a --config value that is not a path as YAML) pass
+    cli.check_config_files(["fit", "-c", str(tmp_path / "stage1.yaml"), "--config", "{trainer: {max_steps: 2}}",
+                            "--config=trainer:\n  max_steps: 3"])
