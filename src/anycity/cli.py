@@ -277,32 +277,48 @@ def config_error(message: str, argv: list[str]) -> str:
     return what + (f"; did you mean {hint}?" if hint else "; see anycity COMMAND --help")
 
 
-def check_config_files(args: list[str]) -> None:
-    """Raise one line for a ``-c``/``--config`` file that does not exist, before Lightning's imports (8 s on 2 cores),
-    naming the nearest YAML file beside it. A value that is not a path (inline YAML/JSON such as
-    ``--config '{trainer: {max_steps: 5}}'``, which jsonargparse accepts) is left to the parser."""
+def _option_values(args: list[str], names: tuple[str, ...]) -> list[tuple[str, str]]:
+    """``(option, value)`` for every ``--name value`` or ``--name=value`` of ``names`` in ``args``."""
+    out = []
+    for i, a in enumerate(args):
+        name, eq, value = a.partition("=")
+        if name in names and eq:
+            out.append((name, value))
+        elif a in names and i + 1 < len(args):
+            out.append((a, args[i + 1]))
+    return out
+
+
+def _missing_file(option: str, value: str, pattern: str, kind: str, elsewhere: str) -> FileNotFoundError:
+    """One line for a file option naming a path that is not a file: a folder's ``pattern`` files, else the nearest
+    ``pattern`` file beside it."""
     import difflib
 
-    for i, a in enumerate(args):
-        if a in ("-c", "--config") and i + 1 < len(args):
-            value = args[i + 1]
-        elif a.startswith("--config="):
-            value = a.split("=", 1)[1]
-        else:
-            continue
-        if Path(value).is_file() or any(ch in value for ch in ":{}\n"):
-            continue
-        path = Path(value)
-        if path.is_dir():
-            inside = sorted(q.name for q in path.glob("*.y*ml"))
-            shown = ", ".join(inside[:4]) + (" ..." if len(inside) > 4 else "")
-            raise FileNotFoundError(f"--config {value} is a folder; pass one of its YAML files"
-                                    + (f" ({shown})" if inside else ""))
-        beside = sorted(str(q) for q in path.parent.glob("*.y*ml")) if path.parent.is_dir() else []
-        near = difflib.get_close_matches(str(path), beside, n=1, cutoff=0.6)
-        hint = f"did you mean {near[0]}?" if near else "check the path (anycity's own configs are in the configs/ " \
-            "folder of its repository)"
-        raise FileNotFoundError(f"--config {value}: no such file; {hint}")
+    path = Path(value)
+    if path.is_dir():
+        inside = sorted(q.name for q in path.glob(pattern))
+        shown = ", ".join(inside[:4]) + (" ..." if len(inside) > 4 else "")
+        return FileNotFoundError(f"{option} {value} is a folder; pass one of its {kind} files"
+                                 + (f" ({shown})" if inside else ""))
+    beside = sorted(str(q) for q in path.parent.glob(pattern)) if path.parent.is_dir() else []
+    near = difflib.get_close_matches(str(path), beside, n=1, cutoff=0.6)
+    return FileNotFoundError(f"{option} {value}: no such file; " + (f"did you mean {near[0]}?" if near else elsewhere))
+
+
+def check_input_files(args: list[str]) -> None:
+    """Raise one line for a ``-c``/``--config`` or ``--ckpt_path`` file that does not exist, before Lightning's
+    imports (8 s on 2 cores) and before the run writes its config. A ``--config`` value that is not a path (inline
+    YAML such as ``--config '{trainer: {max_steps: 5}}'``, which jsonargparse reads) goes to the parser, and so do
+    Lightning's ``--ckpt_path`` names (last, best, hpc, registry, null) and URLs."""
+    for _, value in _option_values(args, ("-c", "--config")):
+        if not Path(value).is_file() and not any(ch in value for ch in ":{}\n"):
+            raise _missing_file("--config", value, "*.y*ml", "YAML",
+                                "check the path (anycity's own configs are in the configs/ folder of its repository)")
+    for option, value in _option_values(args, ("--ckpt_path",)):
+        named = value.lower() in ("last", "best", "hpc", "null", "none", "") or value.startswith("registry")
+        if not named and "://" not in value and not Path(value).is_file():
+            raise _missing_file(option, value, "*.ckpt", "checkpoint", "check the path (a run's checkpoints are in its "
+                                "checkpoints/ folder, e.g. runs/quickstart/stage1/checkpoints/last.ckpt)")
 
 
 def _dispatch(args: list[str], argv_given: bool) -> int:
@@ -329,7 +345,7 @@ def _dispatch(args: list[str], argv_given: bool) -> int:
     if cmd in LIGHTNING or cmd.startswith("-"):
         import argparse
 
-        check_config_files(args)
+        check_input_files(args)
         saved = sys.argv[:]
         sys.argv[1:] = args  # LightningCLI reads sys.argv itself (and warns when given args that differ from it)
         try:

@@ -185,23 +185,43 @@ def test_light_subcommands_refuse_abbreviated_options(cmd, abbrev, tmp_path, mon
     assert abbrev in err, err
 
 
-def test_a_missing_config_file_is_one_line_before_lightning_is_imported(tmp_path):
+def test_a_missing_config_or_checkpoint_is_one_line_before_lightning_is_imported(tmp_path):
     (tmp_path / "stage1.yaml").write_text("trainer: {max_steps: 1}\n")
     (tmp_path / "sub").mkdir()
     (tmp_path / "sub" / "a.yaml").write_text("{}\n")
-    code = ("import sys; from anycity.cli import main; "
-            f"rcs = [main(['fit', '-c', {str(tmp_path / 'stage1.yml')!r}]), "
-            f"main(['test', '--config={tmp_path / 'sub'}']), main(['fit', '--config', 'no/where.yaml'])]; "
+    (tmp_path / "sub" / "last.ckpt").write_bytes(b"")
+    calls = [["fit", "-c", str(tmp_path / "stage1.yml")], ["test", f"--config={tmp_path / 'sub'}"],
+             ["fit", "--config", "no/where.yaml"], ["test", "--ckpt_path", str(tmp_path / "sub" / "lst.ckpt")],
+             ["predict", f"--ckpt_path={tmp_path / 'sub'}"]]
+    code = (f"import sys; from anycity.cli import main; rcs = [main(a) for a in {calls!r}]; "
             "print(*rcs, 'lightning' in sys.modules)")
     r = _run(code)
-    assert r.stdout.split() == ["2", "2", "2", "False"], r.stderr  # refused in 0.1 s, not after 8 s of imports
+    assert r.stdout.split() == ["2"] * 5 + ["False"], r.stderr  # refused in 0.1 s, not after 8 s of imports
     tail = "  (--debug for the traceback)"
     assert r.stderr.strip().splitlines() == [
         f"anycity: error: --config {tmp_path / 'stage1.yml'}: no such file; did you mean {tmp_path / 'stage1.yaml'}?"
         + tail,
         f"anycity: error: --config {tmp_path / 'sub'} is a folder; pass one of its YAML files (a.yaml)" + tail,
         "anycity: error: --config no/where.yaml: no such file; check the path (anycity's own configs are in the "
-        "configs/ folder of its repository)" + tail]
-    # existing files and inline YAML (jsonargparse reads a --config value that is not a path as YAML) pass
-    cli.check_config_files(["fit", "-c", str(tmp_path / "stage1.yaml"), "--config", "{trainer: {max_steps: 2}}",
-                            "--config=trainer:\n  max_steps: 3"])
+        "configs/ folder of its repository)" + tail,
+        f"anycity: error: --ckpt_path {tmp_path / 'sub' / 'lst.ckpt'}: no such file; did you mean "
+        f"{tmp_path / 'sub' / 'last.ckpt'}?" + tail,
+        f"anycity: error: --ckpt_path {tmp_path / 'sub'} is a folder; pass one of its checkpoint files (last.ckpt)"
+        + tail]
+    # existing files, inline YAML (jsonargparse reads a --config value that is not a path as YAML) and Lightning's
+    # checkpoint names pass
+    cli.check_input_files(["fit", "-c", str(tmp_path / "stage1.yaml"), "--config", "{trainer: {max_steps: 2}}",
+                           "--config=trainer:\n  max_steps: 3", "--ckpt_path", "last", "--ckpt_path=best",
+                           "--ckpt_path", str(tmp_path / "sub" / "last.ckpt")])
+
+
+def test_a_missing_data_root_is_one_line_and_the_run_writes_nothing(tmp_path, capsys, monkeypatch):
+    monkeypatch.delenv("ANYCITY_DEBUG", raising=False)
+    run = tmp_path / "run"
+    argv = ["fit", "--config", "configs/quickstart.yaml", "--data.root", str(tmp_path / "nope"),
+            "--trainer.default_root_dir", str(run), "--trainer.logger.init_args.save_dir", str(run)]
+    assert cli.main(argv) == 2
+    assert capsys.readouterr().err.strip() == (
+        f"anycity: error: data.root {tmp_path / 'nope'}: no such folder; fix the path, or write shards there with "
+        f"anycity data synth --out {tmp_path / 'nope'} (or anycity data convert)  (--debug for the traceback)")
+    assert not run.exists()  # refused when the data module is built: no config.yaml for the next run to move aside

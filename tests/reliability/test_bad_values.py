@@ -71,7 +71,7 @@ def test_check_finite_names_the_field():
         check_finite({"context": {"normal": normal, "mask": mask}}, "s1")
 
 
-def test_datamodule_skips_by_default():
+def test_datamodule_skips_by_default(tmp_path):
     from anycity.lit.datamodule import AerialDataModule
 
-    assert AerialDataModule(root="x").hparams.skip_corrupt is True
+    assert AerialDataModule(root=str(tmp_path)).hparams.skip_corrupt is True
