@@ -1,10 +1,13 @@
-"""Fuzz the other readers of files users hand us: ``load_ply``, shard tars and their members, photo folders.
+"""Fuzz the other readers of files users hand us: ``load_ply``, a predict folder's ``cameras.json`` (through
+``anycity export``), shard tars and their members, photo folders.
 
 Outcome: a correct result or the project's one-line ``ValueError``/``FileNotFoundError`` naming the file.
 """
 
 import io
+import re
 import struct
+import warnings
 import zlib
 
 import numpy as np
@@ -17,10 +20,13 @@ from anycity.data.photos import load_photo_folder
 from anycity.data.pipeline import SampleBuilder, make_pipeline
 from anycity.data.schema import SceneRecord, ViewRecord
 from anycity.data.writer import ShardSetWriter, shard_urls
+from anycity.export.cameras import load_cameras, save_cameras
+from anycity.export.cli import export
 from anycity.export.ply import load_ply, save_ply
+from anycity.geometry import camera_problem
 from anycity.structures import Gaussians
 
-from .test_fuzz_readers import CASES, mutate, mutations
+from .test_fuzz_readers import CASES, GT, K, mutate, mutations
 
 
 def _gaussians(n=20):
@@ -46,6 +52,27 @@ def _fuzz_ply(tmp_path_factory, ops):
         _one_line_naming(e, p)
         return
     assert torch.isfinite(g.means).all() and g.means.shape[-1] == 3
+
+
+def _fuzz_cameras(tmp_path_factory, ops):
+    d = tmp_path_factory.mktemp("pred")
+    save_ply(_gaussians(), d / "scene.ply", max_degree=1)
+    cams = d / "cameras.json"
+    save_cameras(cams, torch.tensor(np.stack(GT)), torch.tensor(K).expand(len(GT), 3, 3), 32, 24, scale=2.0)
+    cams.write_bytes(mutate(cams.read_bytes(), ops))
+    CASES["cameras_json"] = CASES.get("cameras_json", 0) + 1
+    try:
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=".*no inputs/ images")  # the fixture has no input images
+            out = export(d, "colmap", d / "colmap")
+    except (ValueError, FileNotFoundError) as e:
+        _one_line_naming(e, cams)
+        assert not (d / "colmap").exists()
+        return
+    views = load_cameras(cams)["views"]
+    assert all(camera_problem(v["w2c"], v["K"]) is None for v in views)
+    text = (out / "images.txt").read_text() + (out / "cameras.txt").read_text()
+    assert not re.search(r"nan|inf", text, re.IGNORECASE), text[:300]
 
 
 def _shard_dir(tmp_path_factory):
@@ -96,6 +123,18 @@ def _ply_slow(tmp_path_factory, ops):
 
 @_settings(50)
 @given(ops=mutations())
+def _cameras_fast(tmp_path_factory, ops):
+    _fuzz_cameras(tmp_path_factory, ops)
+
+
+@_settings(1000)
+@given(ops=mutations())
+def _cameras_slow(tmp_path_factory, ops):
+    _fuzz_cameras(tmp_path_factory, ops)
+
+
+@_settings(50)
+@given(ops=mutations())
 def _shard_fast(tmp_path_factory, ops):
     _fuzz_shard(tmp_path_factory, ops)
 
@@ -112,6 +151,16 @@ def test_fuzz_load_ply(tmp_path_factory):
 
 def test_fuzz_shard_tar(tmp_path_factory):
     _shard_fast(tmp_path_factory)
+
+
+def test_fuzz_cameras_json_through_export(tmp_path_factory):
+    _cameras_fast(tmp_path_factory)
+
+
+@pytest.mark.slow
+def test_fuzz_cameras_json_through_export_slow(tmp_path_factory):
+    _cameras_slow(tmp_path_factory)
+    print(f"\nfuzz cameras_json: {CASES['cameras_json']} cases")
 
 
 @pytest.mark.slow

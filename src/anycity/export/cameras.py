@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 from torch import Tensor
 
 from anycity.atomic import atomic_write_bytes
+from anycity.geometry.cameras import MAX_IMAGE_SIDE, camera_problem
 
 SCHEMA_VERSION = 1
 
@@ -37,8 +39,11 @@ def save_cameras(path: str | Path, w2c: Tensor, K: Tensor, width: int, height: i
 
 
 def load_cameras(path: str | Path) -> dict:
-    """Read and check a ``cameras.json``: a ``views`` list, each with ``name``, ``w2c`` (4x4), ``K`` (3x3) and a
-    positive ``width`` / ``height``. A file that is not that raises a one-line ``ValueError`` naming it."""
+    """Read and check a ``cameras.json``: a ``views`` list, each with ``name``, a finite rigid ``w2c`` (4x4), a finite
+    ``K`` (3x3) with focal lengths > 0 (:func:`anycity.geometry.camera_problem`) and the same ``width`` / ``height``
+    (1..65536) as the others, and a ``metres_per_unit`` that is positive or null. A file that is not that raises a
+    one-line ``ValueError`` naming it (JSON's ``NaN``, a zeroed rotation or a string scale would otherwise reach
+    the COLMAP and nerfstudio exports, the viewer and the fly-through)."""
     path = Path(path)
 
     def bad(what: str) -> ValueError:
@@ -61,9 +66,20 @@ def load_cameras(path: str | Path) -> dict:
                 isinstance(r, list) and len(r) == shape[1] and all(isinstance(x, (int, float)) for x in r) for r in m)
             if not ok:
                 raise bad(f"view {i} has no {shape[0]}x{shape[1]} numeric '{key}'")
+        problem = camera_problem(v["w2c"], v["K"])
+        if problem:
+            raise bad(f"view {i}: {problem}")
         for key in ("width", "height"):
-            if not isinstance(v.get(key), int) or v[key] <= 0:
-                raise bad(f"view {i} has no positive integer '{key}'")
+            side = v.get(key)
+            if not isinstance(side, int) or isinstance(side, bool) or not 0 < side <= MAX_IMAGE_SIDE:
+                raise bad(f"view {i} has no positive integer '{key}' (at most {MAX_IMAGE_SIDE})")
+        if (v["width"], v["height"]) != (views[0]["width"], views[0]["height"]):
+            raise bad(f"view {i} is {v['width']}x{v['height']}, view 0 {views[0]['width']}x{views[0]['height']} "
+                      "(one predict writes one image size)")
         if not isinstance(v.get("name", ""), str):
             raise bad(f"view {i}'s 'name' is not a string")
+    scale = cams.get("metres_per_unit")
+    if scale is not None and (isinstance(scale, bool) or not isinstance(scale, (int, float))
+                              or not math.isfinite(scale) or scale <= 0):
+        raise bad(f"'metres_per_unit' is {scale!r}, not a positive number or null")
     return cams

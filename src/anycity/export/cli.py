@@ -39,7 +39,8 @@ def camera_tensors(cams: dict) -> tuple[torch.Tensor, torch.Tensor, int, int, li
     views = cams["views"]
     w2c = torch.tensor([v["w2c"] for v in views], dtype=torch.float64)
     K = torch.tensor([v["K"] for v in views], dtype=torch.float64)
-    return w2c, K, int(views[0]["width"]), int(views[0]["height"]), [v["name"] for v in views]
+    names = [v.get("name", f"{i:03d}") for i, v in enumerate(views)]  # optional, as cameras_to_dict names them
+    return w2c, K, int(views[0]["width"]), int(views[0]["height"]), names
 
 
 def export(src: str | Path, fmt: str, out: str | Path, overwrite: bool = False) -> Path:

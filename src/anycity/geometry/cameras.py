@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import functools
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -90,3 +91,26 @@ def focal_to_fov(focal: Tensor, size: float | Tensor) -> Tensor:
 def fov_to_focal(fov: Tensor, size: float | Tensor) -> Tensor:
     """Full field of view (radians) and image side in pixels -> focal length in pixels."""
     return size / (2 * torch.tan(fov / 2))
+
+MAX_IMAGE_SIDE = 1 << 16  # image sides above this in a camera file are a corrupt header, not a photo
+
+
+def camera_problem(w2c, K, tol: float = 1e-3) -> str | None:
+    """What makes one pinhole camera unusable, or None when it is sound: a reader's check of cameras from a file.
+
+    ``w2c [4, 4]`` must be finite and rigid (``R`` orthonormal with det +1 within ``tol``, last row 0 0 0 1);
+    ``K [3, 3]`` finite with focal lengths > 0 and last row 0 0 1. Array-likes (lists, arrays, CPU tensors).
+    """
+    w2c, K = np.asarray(w2c, dtype=np.float64), np.asarray(K, dtype=np.float64)
+    if w2c.shape != (4, 4) or K.shape != (3, 3):
+        return f"expected w2c 4x4 and K 3x3, got {w2c.shape} and {K.shape}"
+    if not (np.isfinite(w2c).all() and np.isfinite(K).all()):
+        return "camera holds NaN/inf"
+    R = w2c[:3, :3]
+    with np.errstate(all="ignore"):  # a damaged matrix overflows quietly here, then fails the test below
+        ortho, det = np.abs(R @ R.T - np.eye(3)).max(), np.linalg.det(R)
+    if not (ortho <= tol and abs(det - 1) <= tol and np.abs(w2c[3] - [0, 0, 0, 1]).max() <= 1e-6):
+        return "camera pose is not a rigid rotation + translation"
+    if not (K[0, 0] > 0 and K[1, 1] > 0) or np.abs(K[2] - [0, 0, 1]).max() > 1e-6:
+        return f"intrinsics need focal lengths > 0 (got fx={K[0, 0]:g}, fy={K[1, 1]:g})"
+    return None

@@ -182,8 +182,22 @@ def test_a_malformed_cameras_json_is_one_line_naming_it(tmp_path):
     for broken, what in (("garbage{", "not JSON"), ('{"views": []}', "no 'views' list"),
                          (json.dumps({"views": [{**cams["views"][0], "w2c": [[1, 0, 0]]}]}), "no 4x4 numeric 'w2c'"),
                          (json.dumps({"views": [{**cams["views"][0], "K": None}]}), "no 3x3 numeric 'K'"),
-                         (json.dumps({"views": [{**cams["views"][0], "width": 0}]}), "positive integer 'width'")):
+                         (json.dumps({"views": [{**cams["views"][0], "width": 0}]}), "positive integer 'width'"),
+                         (json.dumps({"views": [{**cams["views"][0], "height": True}]}), "positive integer 'height'"),
+                         (json.dumps({"views": [{**cams["views"][0], "w2c": [[float("nan")] * 4] * 4}]}),
+                          "view 0: camera holds NaN/inf"),  # json writes and reads NaN
+                         (json.dumps({"views": [{**cams["views"][0], "w2c": [[0, 0, 0, 1]] * 3 + [[0, 0, 0, 1]]}]}),
+                          "view 0: camera pose is not a rigid"),  # a singular rotation: COLMAP's LinAlgError before
+                         (json.dumps({"views": [{**cams["views"][0], "K": [[0, 0, 8], [0, 0, 8], [0, 0, 1]]}]}),
+                          "view 0: intrinsics need focal lengths > 0"),
+                         (json.dumps({"views": [cams["views"][0], {**cams["views"][1], "width": 47}]}),
+                          "view 1 is 47x32, view 0 48x32"),
+                         (json.dumps({**cams, "metres_per_unit": "2"}), "'metres_per_unit' is '2', not a positive")):
         (d / "cameras.json").write_text(broken)
         with pytest.raises(ValueError, match=f"cameras.json: .*{what}.*not a cameras.json written by") as e:
             export(d, "colmap", tmp_path / "o")
         assert "\n" not in str(e.value)
+    (d / "cameras.json").write_text(json.dumps({"views": [{k: x for k, x in v.items() if k != "name"}
+                                                          for v in cams["views"]]}))  # names are optional
+    with pytest.warns(UserWarning, match="no inputs/ images"):  # the fixture has none
+        assert "IMAGE_ID" in (export(d, "colmap", tmp_path / "o") / "images.txt").read_text()

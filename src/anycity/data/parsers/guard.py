@@ -12,9 +12,8 @@ import functools
 from collections.abc import Callable
 from pathlib import Path
 
-import numpy as np
-
-MAX_SIDE = 1 << 16  # image sides above this are a corrupt header, not a photo
+from anycity.geometry import camera_problem
+from anycity.geometry.cameras import MAX_IMAGE_SIDE as MAX_SIDE
 
 
 def _one_line(msg: str) -> str:
@@ -26,21 +25,9 @@ def check_scene_cameras(scenes, src, fmt: str) -> None:
     for sc in scenes:
         for v in sc.views:
             where = f"{src}: {fmt} view {v.name!r} of scene {sc.name!r}"
-            w2c, K = np.asarray(v.w2c, dtype=np.float64), np.asarray(v.K, dtype=np.float64)
-            if w2c.shape != (4, 4) or K.shape != (3, 3):
-                raise ValueError(f"{where}: expected w2c 4x4 and K 3x3, got {w2c.shape} and {K.shape}; "
-                                 "the camera file is damaged, re-export it")
-            if not (np.isfinite(w2c).all() and np.isfinite(K).all()):
-                raise ValueError(f"{where}: camera holds NaN/inf; the camera file is damaged, re-export it")
-            R = w2c[:3, :3]
-            with np.errstate(all="ignore"):  # a damaged matrix overflows quietly here, then fails the test below
-                ortho, det = np.abs(R @ R.T - np.eye(3)).max(), np.linalg.det(R)
-            if not (ortho <= 1e-3 and abs(det - 1) <= 1e-3 and np.abs(w2c[3] - [0, 0, 0, 1]).max() <= 1e-6):
-                raise ValueError(f"{where}: camera pose is not a rigid rotation + translation; the camera file "
-                                 "is damaged, re-export it")
-            if not (K[0, 0] > 0 and K[1, 1] > 0) or np.abs(K[2] - [0, 0, 1]).max() > 1e-6:
-                raise ValueError(f"{where}: intrinsics need focal lengths > 0 (got fx={K[0, 0]:g}, "
-                                 f"fy={K[1, 1]:g}); the camera file is damaged, re-export it")
+            problem = camera_problem(v.w2c, v.K)
+            if problem:
+                raise ValueError(f"{where}: {problem}; the camera file is damaged, re-export it")
             if not (0 < int(v.width) <= MAX_SIDE and 0 < int(v.height) <= MAX_SIDE):
                 raise ValueError(f"{where}: image size {v.width}x{v.height} is outside 1..{MAX_SIDE}; "
                                  "the camera file is damaged, re-export it")
