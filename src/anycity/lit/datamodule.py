@@ -149,8 +149,10 @@ class AerialDataModule(pl.LightningDataModule):
             raise ValueError(f"predict_order: expected 'auto', 'time', 'name' or 'tokens', got {predict_order!r}")
         if len(image_size) != 2 or min(image_size) < 8:
             raise ValueError(f"image_size: expected [H, W] with sides >= 8, got {image_size!r}")
-        if isinstance(root, str) and "://" not in root and "{" not in root and not Path(root).exists():
-            # here, not when the first batch is read: before the run writes its config and logs
+        if (isinstance(root, str) and predict_images is None and "://" not in root and "{" not in root
+                and not Path(root).exists()):
+            # here, not when the first batch is read: before the run writes its config and logs (a predict from
+            # photos reads no shards, so a config's root may point nowhere then)
             raise FileNotFoundError(f"data.root {root}: no such folder; fix the path, or write shards there with "
                                     f"anycity data synth --out {root} (or anycity data convert)")
         self.save_hyperparameters()
