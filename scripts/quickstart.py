@@ -1,6 +1,6 @@
 """Quickstart: synthetic city shards -> Stage I -> Stage II (tiny preset, CPU) -> evaluation on unseen scenes.
 
-    python scripts/quickstart.py            # what `make quickstart` runs; 8 to 13 minutes on 2 CPU cores
+    python scripts/quickstart.py            # what `make quickstart` runs; 8 to 34 minutes on 2 CPU cores (README)
 
 Writes ``runs/quickstart/metrics.json``, ``runs/quickstart/preview.png`` (context | target | scaffold | refined |
 depth | regions for held-out views of test scenes) and prints two tables. All numbers come from the test split:
