@@ -79,7 +79,7 @@ def load_cameras(path: str | Path) -> dict:
         if not isinstance(v.get("name", ""), str):
             raise bad(f"view {i}'s 'name' is not a string")
     scale = cams.get("metres_per_unit")
-    if scale is not None and (isinstance(scale, bool) or not isinstance(scale, (int, float))
-                              or not math.isfinite(scale) or scale <= 0):
-        raise bad(f"'metres_per_unit' is {scale!r}, not a positive number or null")
+    if scale is not None and not (isinstance(scale, (int, float)) and not isinstance(scale, bool)
+                                  and 0 < scale < math.inf):  # no float(): a 400-digit JSON integer overflows it
+        raise bad(f"'metres_per_unit' is {str(scale)[:40]!r}, not a positive number or null")
     return cams

@@ -92,6 +92,7 @@ def fov_to_focal(fov: Tensor, size: float | Tensor) -> Tensor:
     """Full field of view (radians) and image side in pixels -> focal length in pixels."""
     return size / (2 * torch.tan(fov / 2))
 
+
 MAX_IMAGE_SIDE = 1 << 16  # image sides above this in a camera file are a corrupt header, not a photo
 
 
@@ -101,7 +102,10 @@ def camera_problem(w2c, K, tol: float = 1e-3) -> str | None:
     ``w2c [4, 4]`` must be finite and rigid (``R`` orthonormal with det +1 within ``tol``, last row 0 0 0 1);
     ``K [3, 3]`` finite with focal lengths > 0 and last row 0 0 1. Array-likes (lists, arrays, CPU tensors).
     """
-    w2c, K = np.asarray(w2c, dtype=np.float64), np.asarray(K, dtype=np.float64)
+    try:
+        w2c, K = np.asarray(w2c, dtype=np.float64), np.asarray(K, dtype=np.float64)
+    except OverflowError:  # a JSON integer of hundreds of digits
+        return "camera holds a number too large for a float"
     if w2c.shape != (4, 4) or K.shape != (3, 3):
         return f"expected w2c 4x4 and K 3x3, got {w2c.shape} and {K.shape}"
     if not (np.isfinite(w2c).all() and np.isfinite(K).all()):

@@ -192,6 +192,8 @@ def test_a_malformed_cameras_json_is_one_line_naming_it(tmp_path):
                           "view 0: intrinsics need focal lengths > 0"),
                          (json.dumps({"views": [cams["views"][0], {**cams["views"][1], "width": 47}]}),
                           "view 1 is 47x32, view 0 48x32"),
+                         (json.dumps({"views": [{**cams["views"][0], "K": [[10 ** 400, 0, 8], [0, 1, 8], [0, 0, 1]]}]}),
+                          "view 0: camera holds a number too large for a float"),  # was an OverflowError
                          (json.dumps({**cams, "metres_per_unit": "2"}), "'metres_per_unit' is '2', not a positive")):
         (d / "cameras.json").write_text(broken)
         with pytest.raises(ValueError, match=f"cameras.json: .*{what}.*not a cameras.json written by") as e:

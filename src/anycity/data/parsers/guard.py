@@ -13,7 +13,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from anycity.geometry import camera_problem
-from anycity.geometry.cameras import MAX_IMAGE_SIDE as MAX_SIDE
+from anycity.geometry.cameras import MAX_IMAGE_SIDE
 
 
 def _one_line(msg: str) -> str:
@@ -28,8 +28,8 @@ def check_scene_cameras(scenes, src, fmt: str) -> None:
             problem = camera_problem(v.w2c, v.K)
             if problem:
                 raise ValueError(f"{where}: {problem}; the camera file is damaged, re-export it")
-            if not (0 < int(v.width) <= MAX_SIDE and 0 < int(v.height) <= MAX_SIDE):
-                raise ValueError(f"{where}: image size {v.width}x{v.height} is outside 1..{MAX_SIDE}; "
+            if not (0 < int(v.width) <= MAX_IMAGE_SIDE and 0 < int(v.height) <= MAX_IMAGE_SIDE):
+                raise ValueError(f"{where}: image size {v.width}x{v.height} is outside 1..{MAX_IMAGE_SIDE}; "
                                  "the camera file is damaged, re-export it")
 
 
