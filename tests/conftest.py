@@ -12,3 +12,11 @@ def tiny_shards(tmp_path_factory):
     rc = data_main(["synth", "--out", str(out), "--scenes", "3", "--views", "8", "--size", "32x32", "--workers", "1"])
     assert rc in (0, None)
     return out
+
+
+@pytest.fixture(scope="session")
+def ddp_shards(tmp_path_factory):
+    """30 cities x 8 views at 32x32 (24 train, 3 val, 3 test scenes) for the two-process tests (DDP, SLURM)."""
+    from helpers.ddp_probe import make_shards
+
+    return make_shards(tmp_path_factory.mktemp("ddp_shards"))

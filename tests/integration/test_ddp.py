@@ -11,7 +11,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from helpers.ddp_probe import assert_params_equal, make_shards, subprocess_env
+from helpers.ddp_probe import assert_params_equal, subprocess_env
 
 ROOT = Path(__file__).resolve().parents[2]
 CFG = ROOT / "configs"
@@ -44,9 +44,9 @@ def _overlay(tmp: Path, name: str, probe: Path, **poison) -> Path:
     return path
 
 
-@pytest.fixture(scope="module")
-def shards(tmp_path_factory):
-    return make_shards(tmp_path_factory.mktemp("ddp_shards"))
+@pytest.fixture
+def shards(ddp_shards):
+    return ddp_shards  # tests/conftest.py: built once for test_ddp.py and test_slurm.py
 
 
 def _scored(probe: Path, split: str) -> list[list[tuple[str, int]]]:

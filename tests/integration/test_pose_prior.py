@@ -7,7 +7,7 @@ import pytest
 import torch
 from helpers.scripts import load_script
 
-from anycity.cli import build_cli
+from anycity.cli import build_cli, main
 
 
 @pytest.fixture(autouse=True)
@@ -15,7 +15,11 @@ def _argv(monkeypatch):
     monkeypatch.setattr("sys.argv", ["script.py"])
 
 
-def test_pretrain_then_stage2_row(tiny_shards, tmp_path, capsys):
+def _in_process(cmd: str, args: list[str], row: str) -> None:
+    assert main([cmd, *args]) == 0, f"row {row}: anycity {cmd} failed"
+
+
+def test_pretrain_then_stage2_row(tiny_shards, tmp_path, capsys, monkeypatch):
     pretrain = load_script("pose_prior")
     prior = tmp_path / "prior.pt"
     args = ["--data", str(tiny_shards), "--out", str(prior), "--steps", "4", "--val-every", "2", "--val-batches",
@@ -38,6 +42,9 @@ def test_pretrain_then_stage2_row(tiny_shards, tmp_path, capsys):
                "--trainer.max_steps", "2", "--trainer.default_root_dir", str(s1),
                "--trainer.logger.init_args.save_dir", str(s1)])
     tables = load_script("stage2_tables")
+    # each row's `anycity fit|test` in this process: 4 launches' imports (~8 s each on 2 cores) saved; the script's
+    # own subprocess launches are covered by test_stage2_tables.py
+    monkeypatch.setattr(tables, "_anycity", _in_process)
     out = tmp_path / "tables"
     argv = ["--stage1", str(s1 / "checkpoints" / "last.ckpt"), "--data", str(tiny_shards), "--out", str(out),
             "--steps", "2", "--rows", "prior_cameras", *extra]

@@ -12,14 +12,14 @@ from pathlib import Path
 
 import pytest
 import torch
-from helpers.ddp_probe import assert_params_equal, make_shards, subprocess_env
+from helpers.ddp_probe import assert_params_equal, subprocess_env
 
 ROOT = Path(__file__).resolve().parents[2]
 
 
-@pytest.fixture(scope="module")
-def shards(tmp_path_factory):
-    return make_shards(tmp_path_factory.mktemp("slurm_shards"))
+@pytest.fixture
+def shards(ddp_shards):
+    return ddp_shards  # tests/conftest.py: built once for test_ddp.py and test_slurm.py
 
 
 def _launch_line(script: str) -> list[str]:
