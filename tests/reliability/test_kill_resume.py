@@ -55,7 +55,7 @@ def _stage(shards, tmp_path, steps, kills, stage2_from=None, name="s"):
     return ref, hit, launches
 
 
-def test_kill_two_points_stage1_mid_write_and_stage2_random(tiny_shards, tmp_path):
+def test_kill_two_points_stage1_mid_write_and_stage2_after_a_step(tiny_shards, tmp_path):
     ref1, hit1, _ = _stage(tiny_shards, tmp_path, 3, [("save", 2)], name="s1")
     assert hit1 == 1
     leftovers = list((tmp_path / "s1_killed" / "checkpoints").glob(".*.tmp-*"))
