@@ -44,11 +44,6 @@ def _overlay(tmp: Path, name: str, probe: Path, **poison) -> Path:
     return path
 
 
-@pytest.fixture
-def shards(ddp_shards):
-    return ddp_shards  # tests/conftest.py: built once for test_ddp.py and test_slurm.py
-
-
 def _scored(probe: Path, split: str) -> list[list[tuple[str, int]]]:
     ranks = []
     for r in (0, 1):
@@ -58,11 +53,11 @@ def _scored(probe: Path, split: str) -> list[list[tuple[str, int]]]:
     return ranks
 
 
-def _held_out(shards: Path, split: str) -> list[tuple[str, int]]:
+def _held_out(ddp_shards: Path, split: str) -> list[tuple[str, int]]:
     """The target views of a split, read in one process (the reference for what the ranks must cover)."""
     from anycity.lit.datamodule import AerialDataModule
 
-    dm = AerialDataModule(root=str(shards), image_size=(32, 32), patch_size=8, num_context=2, num_targets=1,
+    dm = AerialDataModule(root=str(ddp_shards), image_size=(32, 32), patch_size=8, num_context=2, num_targets=1,
                           num_dense=2, num_workers=0)
     loader = {"val": dm.val_dataloader, "test": dm.test_dataloader}[split]()
     return [(s, int(i)) for b in loader for s, idx in zip(b.scene, b.target.index) for i in idx.tolist()]
@@ -75,8 +70,8 @@ def _skips(run: Path) -> float:
     return max(float(r["train/nonfinite_skipped"]) for r in rows if r.get("train/nonfinite_skipped"))
 
 
-def test_two_process_chain_stage1_stage2_test_predict(shards, tmp_path):
-    base = ["-c", str(CFG / "debug" / "cpu_ddp.yaml"), "--data.root", str(shards)]
+def test_two_process_chain_stage1_stage2_test_predict(ddp_shards, tmp_path):
+    base = ["-c", str(CFG / "debug" / "cpu_ddp.yaml"), "--data.root", str(ddp_shards)]
 
     # Stage I: rank 1 gets an inf gradient at step 1 -> both ranks skip that step, parameters stay identical
     p1 = tmp_path / "probe1"
@@ -85,7 +80,7 @@ def test_two_process_chain_stage1_stage2_test_predict(shards, tmp_path):
     assert "skipped optimiser step 1" in log and _skips(tmp_path / "s1") == 1.0
     assert_params_equal(p1)
     val = _scored(p1, "val")  # 2 validations x limit_val_batches 2 per rank, 3 val scenes
-    expected = _held_out(shards, "val")
+    expected = _held_out(ddp_shards, "val")
     assert sorted(val[0] + val[1]) == sorted(expected * 2)  # every val view exactly once per validation
     ckpt1 = tmp_path / "s1" / "checkpoints" / "last.ckpt"
     assert ckpt1.is_file()
@@ -104,7 +99,7 @@ def test_two_process_chain_stage1_stage2_test_predict(shards, tmp_path):
     log = _run(["test", "-c", str(CFG / "stage2.yaml"), *base, "--data.num_workers", "2",
                 "-c", str(_overlay(tmp_path, "t", p3)), "--ckpt_path", str(ckpt2)], tmp_path)
     scored = _scored(p3, "test")
-    expected = _held_out(shards, "test")
+    expected = _held_out(ddp_shards, "test")
     assert len(expected) == 3 and sorted(scored[0] + scored[1]) == sorted(expected)
     assert scored[0] and scored[1]  # both ranks took part
     assert "test/psnr_refined" in log
@@ -121,11 +116,11 @@ def test_two_process_chain_stage1_stage2_test_predict(shards, tmp_path):
 
 
 @pytest.mark.slow
-def test_a_nan_batch_on_one_rank_is_skipped_by_every_rank(shards, tmp_path):
+def test_a_nan_batch_on_one_rank_is_skipped_by_every_rank(ddp_shards, tmp_path):
     """A NaN input batch makes the whole forward NaN on rank 1 (rendering it would raise there alone)."""
     probe = tmp_path / "probe"
     log = _run(["fit", "-c", str(CFG / "stage1.yaml"), "-c", str(CFG / "debug" / "cpu_ddp.yaml"), "--data.root",
-                str(shards), "-c", str(_overlay(tmp_path, "s1", probe, poison_rank=1, poison_step=1,
+                str(ddp_shards), "-c", str(_overlay(tmp_path, "s1", probe, poison_rank=1, poison_step=1,
                                                 poison="input"))], tmp_path)
     assert "skipped optimiser step 1" in log and _skips(tmp_path / "s1") == 1.0
     assert_params_equal(probe)

@@ -17,11 +17,6 @@ from helpers.ddp_probe import assert_params_equal, subprocess_env
 ROOT = Path(__file__).resolve().parents[2]
 
 
-@pytest.fixture
-def shards(ddp_shards):
-    return ddp_shards  # tests/conftest.py: built once for test_ddp.py and test_slurm.py
-
-
 def _launch_line(script: str) -> list[str]:
     """The command srun runs in ``docker/slurm/<script>``, srun and its options removed."""
     line = next(ln for ln in (ROOT / "docker" / "slurm" / script).read_text().splitlines() if ln.startswith("srun "))
@@ -79,16 +74,16 @@ def _probe_overlay(tmp: Path, probe: Path) -> Path:
     return path
 
 
-def _run_stage1(shards, tmp_path, steps: int) -> list[str]:
+def _run_stage1(ddp_shards, tmp_path, steps: int) -> list[str]:
     words = _launch_line("stage1.sbatch")
     assert words[:3] == ["docker/slurm/launch.sh", "configs/stage1.yaml", "${RUN_DIR}"] and words[-1] == "$@"
-    extra = ["-c", str(ROOT / "configs" / "debug" / "cpu_ddp.yaml"), "--data.root", str(shards),
+    extra = ["-c", str(ROOT / "configs" / "debug" / "cpu_ddp.yaml"), "--data.root", str(ddp_shards),
              "-c", str(_probe_overlay(tmp_path, tmp_path / "probe")), "--trainer.max_steps", str(steps)]
     return _srun(words, tmp_path / "runs" / "stage1", extra, tmp_path)
 
 
-def test_sbatch_launch_line_one_node_two_tasks(shards, tmp_path):
-    outs = _run_stage1(shards, tmp_path, 2)
+def test_sbatch_launch_line_one_node_two_tasks(ddp_shards, tmp_path):
+    outs = _run_stage1(ddp_shards, tmp_path, 2)
     assert "GLOBAL_RANK: 0, MEMBER: 1/2" in outs[0] and "GLOBAL_RANK: 1, MEMBER: 2/2" in outs[1]
     assert_params_equal(tmp_path / "probe")  # both trained, in one process group (DDP kept them identical)
     ckpt = tmp_path / "runs" / "stage1" / "checkpoints" / "last.ckpt"
@@ -96,9 +91,9 @@ def test_sbatch_launch_line_one_node_two_tasks(shards, tmp_path):
 
 
 @pytest.mark.slow
-def test_requeued_job_resumes_from_last_ckpt(shards, tmp_path):
-    _run_stage1(shards, tmp_path, 2)
-    outs = _run_stage1(shards, tmp_path, 4)  # the same submission again, as after a requeue
+def test_requeued_job_resumes_from_last_ckpt(ddp_shards, tmp_path):
+    _run_stage1(ddp_shards, tmp_path, 2)
+    outs = _run_stage1(ddp_shards, tmp_path, 4)  # the same submission again, as after a requeue
     assert all(re.search(r"resuming from .*stage1/checkpoints/last.ckpt", o) for o in outs)
     ckpt = tmp_path / "runs" / "stage1" / "checkpoints" / "last.ckpt"
     assert torch.load(ckpt, map_location="cpu", weights_only=False)["global_step"] == 4
