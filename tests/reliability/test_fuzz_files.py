@@ -104,45 +104,20 @@ def _fuzz_shard(tmp_path_factory, ops):
         assert torch.isfinite(s["context"]["w2c"]).all() if isinstance(s.get("context"), dict) else True
 
 
-def _settings(n):
-    return settings(max_examples=n, deadline=10000, derandomize=True, database=None,
-                    suppress_health_check=list(HealthCheck))
+def _fuzzer(fuzz_one, n):
+    """``fuzz_one(tmp_path_factory, ops)`` over ``n`` derandomized mutation lists (as ``test_fuzz_readers._make``)."""
+    @settings(max_examples=n, deadline=10000, derandomize=True, database=None,
+              suppress_health_check=list(HealthCheck))
+    @given(ops=mutations())
+    def run(tmp_path_factory, ops):
+        fuzz_one(tmp_path_factory, ops)
+
+    return run
 
 
-@_settings(50)
-@given(ops=mutations())
-def _ply_fast(tmp_path_factory, ops):
-    _fuzz_ply(tmp_path_factory, ops)
-
-
-@_settings(1000)
-@given(ops=mutations())
-def _ply_slow(tmp_path_factory, ops):
-    _fuzz_ply(tmp_path_factory, ops)
-
-
-@_settings(50)
-@given(ops=mutations())
-def _cameras_fast(tmp_path_factory, ops):
-    _fuzz_cameras(tmp_path_factory, ops)
-
-
-@_settings(1000)
-@given(ops=mutations())
-def _cameras_slow(tmp_path_factory, ops):
-    _fuzz_cameras(tmp_path_factory, ops)
-
-
-@_settings(50)
-@given(ops=mutations())
-def _shard_fast(tmp_path_factory, ops):
-    _fuzz_shard(tmp_path_factory, ops)
-
-
-@_settings(1000)
-@given(ops=mutations())
-def _shard_slow(tmp_path_factory, ops):
-    _fuzz_shard(tmp_path_factory, ops)
+_ply_fast, _ply_slow = _fuzzer(_fuzz_ply, 50), _fuzzer(_fuzz_ply, 1000)
+_cameras_fast, _cameras_slow = _fuzzer(_fuzz_cameras, 50), _fuzzer(_fuzz_cameras, 1000)
+_shard_fast, _shard_slow = _fuzzer(_fuzz_shard, 50), _fuzzer(_fuzz_shard, 1000)
 
 
 def test_fuzz_load_ply(tmp_path_factory):
