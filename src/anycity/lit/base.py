@@ -65,6 +65,19 @@ _NET_HINTS = typing.get_type_hints(NetConfig)
 NetOverrides = TypedDict("NetOverrides", {f.name: _NET_HINTS[f.name] for f in fields(NetConfig)}, total=False)
 
 
+# Lightning refuses gradient clipping under mixed precision with an optimiser that unscales inside its own step, as
+# torch's fused AdamW does: those runs keep foreach
+FUSED_ADAMW_PRECISIONS = ("32-true", "64-true")
+
+
+def make_adamw(param_groups: list[dict], lr: float, fused: bool) -> torch.optim.AdamW:
+    """AdamW with betas (0.9, 0.95). ``fused``: torch's one-kernel step over all tensors (on 2 CPU cores 7.9 ms a
+    step for the tiny preset's 512 tensors, against 28 ms for foreach; the same update up to float rounding); else
+    foreach, torch's CUDA default (on CPU torch would otherwise loop per tensor: the same bits, 30 % slower)."""
+    kernel = {"fused": True} if fused else {"foreach": True}
+    return torch.optim.AdamW(param_groups, lr=lr, betas=(0.9, 0.95), **kernel)
+
+
 def warmup_cosine(step: int, warmup: int, total: int, min_ratio: float) -> float:
     """LR multiplier: linear warm-up over ``warmup`` steps, then cosine from 1 to ``min_ratio`` at ``total``."""
     if warmup > 0 and step < warmup:
@@ -212,12 +225,26 @@ class AnyCityModule(pl.LightningModule):
             raise ValueError("configure_optimizers: no trainable parameters; check the freeze patterns")
         param_groups = [{"params": ps, "lr": hp.lr * (scale if pre else 1.0),
                          "weight_decay": 0.0 if nd else hp.weight_decay} for (pre, nd), ps in groups.items()]
-        # foreach: CUDA's default; on CPU torch would loop per tensor, which computes the same bits 30% slower
-        opt = torch.optim.AdamW(param_groups, lr=hp.lr, betas=(0.9, 0.95), foreach=True)
+        opt = make_adamw(param_groups, hp.lr, fused=self.fused_adamw_allowed())
         total = int(self.trainer.estimated_stepping_batches)
         sched = torch.optim.lr_scheduler.LambdaLR(
             opt, lambda s: warmup_cosine(s, hp.warmup_steps, total, hp.min_lr_ratio))
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
+
+    def fused_adamw_allowed(self) -> bool:
+        """Full precision (:data:`FUSED_ADAMW_PRECISIONS`) and every trainable tensor on a CPU or CUDA device."""
+        precision = str(getattr(self._trainer, "precision", ""))
+        return precision in FUSED_ADAMW_PRECISIONS and all(
+            p.device.type in ("cpu", "cuda") for p in self.parameters() if p.requires_grad)
+
+    def on_train_start(self) -> None:
+        # a resumed optimiser takes its kernel flags from the checkpoint: one saved by a full-precision run is
+        # fused, which a mixed-precision run with gradient clipping cannot step
+        if not self.fused_adamw_allowed():
+            for opt in self.trainer.optimizers:
+                for group in opt.param_groups:
+                    if group.get("fused"):
+                        group["fused"], group["foreach"] = False, True
 
     def nonfinite_forward(self, out: dict) -> Tensor | None:
         """None when the network's Gaussians and cameras are finite; else a NaN loss wired to every trainable

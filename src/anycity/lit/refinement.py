@@ -147,6 +147,7 @@ class RefinementModule(AnyCityModule):
             self._check_fresh_fit()
 
     def on_train_start(self) -> None:
+        super().on_train_start()
         if self.trainer.strategy.restore_checkpoint_after_setup:  # FSDP, DeepSpeed: restored after on_fit_start
             self._check_fresh_fit()
 

@@ -44,7 +44,7 @@ _log = logging.getLogger(__name__)
 _BIN_CHUNKS = 8  # fixed split of the binning work: results do not depend on the thread count
 _kernels: dict[int, tuple] = {}
 _lock = threading.Lock()
-_state = {"pid": None, "announced": False}
+_state = {"pid": None, "announced": False, "checked": set()}
 
 
 def raster_kernels(D: int):
@@ -60,9 +60,11 @@ def _dispatchers(D: int) -> list:
 
 
 def _announce_compile(D: int) -> None:
-    """Tell the user once when the kernels are about to be compiled rather than loaded from the cache."""
-    if _state["announced"]:
+    """Tell the user once when the kernels are about to be compiled rather than loaded from the cache (looked up
+    once per channel count: reading the dispatchers' signatures costs more than a small render's kernels)."""
+    if _state["announced"] or D in _state["checked"]:
         return
+    _state["checked"].add(D)
     cold = []
     for disp in _dispatchers(D):
         if disp.signatures:
@@ -213,8 +215,7 @@ def render_cpu(means, quats, scales, opacities, sh, valid, w2c, K, width, height
     _guard_process()
     _set_threads()
     D = 7 if render_normals else 4
-    if not _state["announced"]:
-        _announce_compile(D)
+    _announce_compile(D)
     rgb, depth, alpha, normal = _FusedRender.apply(
         means, quats, scales, opacities, sh, valid, w2c, K, width, height, background, near, far, render_normals)
     return rgb, depth, alpha, (normal if render_normals else None)

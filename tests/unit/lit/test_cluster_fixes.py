@@ -253,3 +253,29 @@ def test_pretrained_lr_scale_applies_to_pretrained_weights_only_and_patterns_mus
         scratch.configure_optimizers()["optimizer"].param_groups)  # same groups: a resumed run's state fits
     with pytest.raises(ValueError, match="pretrained_patterns: 'net.agregator.\\*' matches no parameter"):
         lrs(ScaffoldModule(preset="tiny", pretrained_patterns=["agregator.*"]))
+
+
+def test_adamw_is_fused_in_full_precision_and_foreach_under_mixed_precision():
+    """Full precision steps with torch's fused AdamW (about 20 ms less per quickstart step on 2 cores). Under mixed
+    precision Lightning refuses to clip gradients for an optimiser that unscales inside its step, so foreach stays,
+    also for a resumed optimiser whose checkpoint came from a fused run (torch restores the saved flags)."""
+    def optimiser(m, precision):
+        m._trainer = SimpleNamespace(estimated_stepping_batches=10, precision=precision)
+        return m.configure_optimizers()["optimizer"]
+
+    def kernels(opt):
+        return {(bool(g["fused"]), bool(g["foreach"])) for g in opt.param_groups}
+
+    m = ScaffoldModule(preset="tiny")
+    fused = optimiser(m, "32-true")
+    assert kernels(fused) == {(True, False)}
+    mixed = optimiser(m, "bf16-mixed")
+    assert kernels(mixed) == {(False, True)}
+    mixed.load_state_dict(fused.state_dict())
+    assert kernels(mixed) == {(True, False)}
+    m._trainer.optimizers = [mixed]
+    m.on_train_start()
+    assert kernels(mixed) == {(False, True)}
+    for p in m.parameters():
+        p.grad = torch.ones_like(p)
+    mixed.step()  # the flipped groups step with foreach
