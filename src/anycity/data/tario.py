@@ -3,20 +3,23 @@
 A webdataset sample of a trajectory window holds every view's image and depth, but a training sample decodes
 only the views it selects. For local shard files :func:`tar_samples` yields samples whose members are
 :class:`Member` handles (``cameras.json`` is read eagerly); :func:`anycity.data.schema.member` reads the bytes
-with one ``pread`` when a view is chosen. Remote URLs (``pipe:``, ``http://``, ...) go through webdataset's own
-streaming reader and carry bytes. Grouping into samples is webdataset's ``group_by_keys``.
+with one ``pread`` (a seek and a read on Windows, which has no ``pread``) when a view is chosen. Remote URLs
+(``pipe:``, ``http://``, ...) go through webdataset's own streaming reader and carry bytes. Grouping into samples
+is webdataset's ``group_by_keys``.
 """
 
 from __future__ import annotations
 
 import os
 import tarfile
+import threading
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
 from webdataset import tariterators
 
 EAGER_SUFFIXES = (".json",)
+_pread = getattr(os, "pread", None)  # absent on Windows: seek + read under the file's lock there
 
 
 class _File:
@@ -24,7 +27,19 @@ class _File:
 
     def __init__(self, path: str) -> None:
         self.path = path
-        self.fd = os.open(path, os.O_RDONLY)
+        self.fd = os.open(path, os.O_RDONLY | getattr(os, "O_BINARY", 0))  # Windows: no newline translation
+        self.lock = threading.Lock()
+
+    def read(self, size: int, offset: int) -> bytes:
+        if _pread is not None:
+            return _pread(self.fd, size, offset)
+        parts = []
+        with self.lock:  # one file position shared by the threads that read this shard
+            os.lseek(self.fd, offset, os.SEEK_SET)
+            while size > 0 and (part := os.read(self.fd, size)):
+                parts.append(part)
+                size -= len(part)
+        return b"".join(parts)
 
     def __del__(self) -> None:
         fd = getattr(self, "fd", None)
@@ -41,7 +56,7 @@ class Member:
         self._file, self.offset, self.size, self.name = file, offset, size, name
 
     def read(self) -> bytes:
-        data = os.pread(self._file.fd, self.size, self.offset)
+        data = self._file.read(self.size, self.offset)
         if len(data) != self.size:
             raise ValueError(f"shard {self._file.path}: member {self.name!r} is truncated ({len(data)} of "
                              f"{self.size} bytes); re-create the shard")

@@ -7,6 +7,7 @@ import pytest
 import torch
 import webdataset as wds
 
+from anycity.data import tario
 from anycity.data.pipeline import SampleBuilder, _normals_from_depth, make_pipeline, to_float32
 from anycity.data.schema import SceneRecord, ViewRecord, decode_normals, encode_normals, encode_scene
 from anycity.data.synthetic import synth
@@ -21,15 +22,23 @@ def _raise(e):
     raise e
 
 
-def test_lazy_members_and_truncated_shard(synth_root, tmp_path):
+@pytest.mark.parametrize("pread", [True, False], ids=["pread", "seek_read"])
+def test_lazy_members_and_truncated_shard(synth_root, tmp_path, monkeypatch, pread):
+    """Both read paths: ``os.pread`` and, where it is missing (Windows), seek and read under the shard's lock."""
+    if not pread:
+        monkeypatch.setattr(tario, "_pread", None)
     url = shard_urls(synth_root, "train")[0]
     sample = next(tar_samples([{"url": url}], handler=_raise))
     assert isinstance(sample["cameras.json"], bytes) and isinstance(sample["000.jpg"], Member)
     ref = next(iter(wds.WebDataset(url, shardshuffle=False)))
-    assert sample["__key__"] == ref["__key__"] and sample["000.depth.npy"].read() == ref["000.depth.npy"]
+    assert sample["__key__"] == ref["__key__"]
+    members = [k for k, v in sample.items() if isinstance(v, Member)]
+    assert len(members) > 2 and all(sample[k].read() == ref[k] for k in members)
     cut = tmp_path / "train-000000.tar"
     data = open(url, "rb").read()
     cut.write_bytes(data[: data.find(b"cameras.json") - 3000])  # inside the last view's payload
+    with pytest.raises(ValueError, match=r"train-000000.tar: member 'x' is truncated \(10 of 100 bytes\)"):
+        Member(tario._File(str(cut)), cut.stat().st_size - 10, 100, "x").read()
     with pytest.raises(ValueError, match=r"train-000000.tar.*(truncated|unexpected end)"):
         list(make_pipeline([str(cut)], SampleBuilder(2, 2, 0, (16, 16), train=False), train=False))
 
