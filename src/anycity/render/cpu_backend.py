@@ -39,11 +39,13 @@ from torch import Tensor
 
 from anycity.render import _cpu_project as _proj
 from anycity.render import _cpu_raster as _rast
+from anycity.render._numba_cache import repair_cache
 
 _log = logging.getLogger(__name__)
 _BIN_CHUNKS = 8  # fixed split of the binning work: results do not depend on the thread count
 _kernels: dict[int, tuple] = {}
 _lock = threading.Lock()
+_first_use_lock = threading.Lock()
 _state = {"pid": None, "announced": False, "checked": set()}
 
 
@@ -59,12 +61,30 @@ def _dispatchers(D: int) -> list:
     return [_proj.project_fwd, _proj.project_bwd, _rast.depth_order, _rast.bin_pairs, *raster_kernels(D)]
 
 
-def _announce_compile(D: int) -> None:
-    """Tell the user once when the kernels are about to be compiled rather than loaded from the cache (looked up
-    once per channel count: reading the dispatchers' signatures costs more than a small render's kernels)."""
-    if _state["announced"] or D in _state["checked"]:
+def _all_dispatchers(D: int) -> list:
+    """The entry kernels and the jitted helpers they call (each has its own cache file)."""
+    found = {id(d): d for d in _dispatchers(D)}
+    for module in (_proj, _rast):
+        found.update({id(v): v for v in vars(module).values() if isinstance(v, numba.core.dispatcher.Dispatcher)})
+    return list(found.values())
+
+
+def _first_use(D: int) -> None:
+    """Once per process and channel count (reading the dispatchers' caches and signatures costs more than a small
+    render's kernels): repair the kernels' cache, then say whether they are about to be compiled."""
+    if D in _state["checked"]:
         return
-    _state["checked"].add(D)
+    with _first_use_lock:
+        if D not in _state["checked"]:
+            repair_cache(_all_dispatchers(D))
+            _announce_compile(D)
+            _state["checked"].add(D)
+
+
+def _announce_compile(D: int) -> None:
+    """Tell the user once when the kernels are about to be compiled rather than loaded from the cache."""
+    if _state["announced"]:
+        return
     cold = []
     for disp in _dispatchers(D):
         if disp.signatures:
@@ -215,7 +235,7 @@ def render_cpu(means, quats, scales, opacities, sh, valid, w2c, K, width, height
     _guard_process()
     _set_threads()
     D = 7 if render_normals else 4
-    _announce_compile(D)
+    _first_use(D)
     rgb, depth, alpha, normal = _FusedRender.apply(
         means, quats, scales, opacities, sh, valid, w2c, K, width, height, background, near, far, render_normals)
     return rgb, depth, alpha, (normal if render_normals else None)

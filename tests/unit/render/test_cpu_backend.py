@@ -276,6 +276,58 @@ def test_second_process_loads_the_compile_cache():
     assert "compiling" not in result["stderr"]
 
 
+_TINY_PROBE = textwrap.dedent("""
+    import importlib.util, json, sys
+    sys.path.insert(0, sys.argv[1])
+    import tiny_kernel
+    spec = importlib.util.spec_from_file_location("numba_cache", sys.argv[2])
+    numba_cache = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(numba_cache)
+    dropped = numba_cache.repair_cache([tiny_kernel.add_one]) if sys.argv[3] == "repair" else []
+    print(json.dumps({"dropped": dropped, "value": tiny_kernel.add_one(1)}))
+""")
+
+
+def test_an_unreadable_kernel_cache_is_dropped_and_compiled_again(tmp_path: Path):
+    """A truncated cache file (a disk that filled up, a copy cut short) made numba fail every call with an
+    UnpicklingError; repair_cache drops it with one warning naming it, numba compiles again, the next process loads.
+    A one-line kernel, imported without torch, keeps this fast."""
+    from anycity.render import cpu_backend
+
+    (tmp_path / "tiny_kernel.py").write_text("import numba\n\n\n@numba.njit(cache=True)\ndef add_one(x):\n"
+                                             "    return x + 1\n")
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "cache"))
+    module = Path(cpu_backend.__file__).with_name("_numba_cache.py")
+
+    def probe(mode):
+        return subprocess.run([sys.executable, "-c", _TINY_PROBE, str(tmp_path), str(module), mode], env=env,
+                              capture_output=True, text=True, timeout=120)
+
+    assert json.loads(probe("repair").stdout) == {"dropped": [], "value": 2}  # compiled, cache written
+    (data,) = (tmp_path / "cache").rglob("*.nbc")
+    data.write_bytes(data.read_bytes()[:100])
+    broken = probe("plain")
+    assert broken.returncode != 0 and "UnpicklingError" in broken.stderr
+    repaired = probe("repair")
+    dropped = json.loads(repaired.stdout)["dropped"]
+    assert json.loads(repaired.stdout)["value"] == 2 and len(dropped) == 1 and dropped[0].endswith(".nbi")
+    assert f"{dropped[0]} is unreadable (UnpicklingError: pickle data was truncated)" in repaired.stderr
+    assert json.loads(probe("plain").stdout) == {"dropped": [], "value": 2}  # the new cache loads
+
+
+def test_the_kernel_cache_is_checked_once_per_process_and_channel_count(monkeypatch):
+    from anycity.render import cpu_backend
+
+    seen = []
+    monkeypatch.setattr(cpu_backend, "repair_cache", lambda ds: seen.append({d.__name__ for d in ds}) or [])
+    monkeypatch.setitem(cpu_backend._state, "checked", set())
+    gauss, w2c, K = make_scene(N=5)
+    for normals in (False, False, True):
+        render(cast(gauss, torch.float32), w2c.float(), K.float(), 8, 8, backend="cpu", render_normals=normals)
+    assert len(seen) == 2  # D = 4, then D = 7
+    assert {"project_fwd", "project_bwd", "raster_fwd", "raster_bwd", "_project_fwd_chunk"} <= seen[0]
+
+
 @pytest.mark.slow
 def test_cold_cache_in_a_fresh_directory(tmp_path: Path):
     """NUMBA_CACHE_DIR is honoured: the first process compiles (and says so), the second only loads."""
