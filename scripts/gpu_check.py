@@ -88,7 +88,7 @@ def check_backends(dev: torch.device, n: int = 200_000, size: int = 448) -> str:
     if "gsplat" not in out:
         return f"gsplat NOT INSTALLED; torch backend fwd+bwd {times['torch']:.3f} s ({n} Gaussians, 4 x {size} px)"
     diff = (out["gsplat"] - out["torch"]).abs().max().item()
-    return f"max |rgb diff| {diff:.2e}; fwd+bwd gsplat {times['gsplat']:.3f} s, torch {times['torch']:.3f} s"
+    return f"max abs rgb difference {diff:.2e}; fwd+bwd gsplat {times['gsplat']:.3f} s, torch {times['torch']:.3f} s"
 
 
 class _StepStats:
