@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import logging
 
-_log = logging.getLogger("anycity.render.cpu_backend")
+_log = logging.getLogger(__name__)
 
 
 def repair_cache(dispatchers: list) -> list[str]:
