@@ -46,6 +46,15 @@ def _run_args(out: Path, name: str) -> list[str]:
     return ["--trainer.default_root_dir", d, "--trainer.logger.init_args.save_dir", d]
 
 
+def _forwardable(arg: str) -> bool:
+    """Whether an argument the script does not know may go to LightningCLI: a dotted override (``--trainer.x 1``,
+    ``--model.init_args.y=2``), ``--seed_everything``, or the value of the option before it."""
+    if not arg.startswith("-") or arg[1:2].isdigit() or arg[1:2] == ".":
+        return True  # a value, negative numbers included
+    name = arg.split("=", 1)[0]
+    return name == "--seed_everything" or (name.startswith("--") and "." in name and not name.startswith("--."))
+
+
 def _banner(text: str, t0: float) -> None:
     print(f"\n=== {text}  [{(time.monotonic() - t0) / 60:.1f} min]", flush=True)
 
@@ -57,9 +66,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--scenes", type=int, default=80, help="synthetic cities to generate when the data is absent")
     p.add_argument("--views", type=int, default=96, help="views per city (more = denser, overlapping views)")
     p.add_argument("--trajectory", default="orbit", choices=["orbit", "nadir", "mixed"], help="camera path")
-    p.add_argument("--stage1_steps", type=int, default=None, help="override configs/quickstart.yaml max_steps")
-    p.add_argument("--stage2_steps", type=int, default=None, help="override configs/quickstart_stage2.yaml")
+    p.add_argument("--stage1_steps", "--stage1-steps", type=int, default=None,
+                   help="override configs/quickstart.yaml max_steps")
+    p.add_argument("--stage2_steps", "--stage2-steps", type=int, default=None,
+                   help="override configs/quickstart_stage2.yaml")
     args, extra = p.parse_known_args(argv)  # unknown --x.y options go to every training CLI call
+    bad = next((a for a in extra if not _forwardable(a)), None)
+    if bad is not None:
+        p.error(f"unknown option {bad}: this script takes --data, --out, --scenes, "
+                f"--views, --trajectory, --stage1_steps and --stage2_steps; anything else must be a "
+                "LightningCLI override such as --trainer.max_epochs 2 or --model.init_args.lr 1e-4")
     sys.argv = sys.argv[:1]  # the training CLI below is driven by explicit argument lists
     t0 = time.monotonic()
     data, out = Path(args.data), Path(args.out)

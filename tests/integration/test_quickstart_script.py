@@ -38,3 +38,32 @@ def test_printed_tables_are_well_formed_markdown(capsys):
     assert [len(t) for t in tables] == [6, 5]
     for t in tables:
         assert len({len(r) for r in t}) == 1 and len({r.count("|") for r in t}) == 1, "\n".join(t)
+
+
+def test_an_option_it_does_not_know_stops_in_one_line_naming_its_own(tmp_path, capsys, monkeypatch):
+    """A typo used to reach LightningCLI, which printed its whole usage; hyphenated spellings of the script's own
+    flags are accepted, dotted overrides and their values (negative numbers too) still pass through."""
+    import re
+
+    import pytest
+
+    monkeypatch.setattr("sys.argv", ["quickstart.py"])
+    data = tmp_path / "qs"
+    data.mkdir()
+    (data / "index.json").write_text("{}")  # stops with code 2 after parsing, before any training
+    base = ["--data", str(data), "--out", str(tmp_path / "runs")]
+    for ok in (["--stage1-steps", "5", "--stage2-steps", "2"], ["--trainer.max_steps", "3", "--seed_everything=1"],
+               ["--model.init_args.lr", "-1e-4", "--data.eval_batch_size=2"]):
+        assert _quickstart().main([*base, *ok]) == 2, ok
+    capsys.readouterr()
+    for typo in ("--stage1-step", "--steps", "-x", "--.trainer"):
+        with pytest.raises(SystemExit) as e:
+            _quickstart().main([*base, typo, "3"])
+        assert e.value.code == 2
+        err = capsys.readouterr().err
+        message = [line for line in err.splitlines() if "error:" in line]
+        assert len(message) == 1 and f"unknown option {typo}:" in message[0], err
+        usage = err.split("error:")[0]
+        assert "LightningCLI" in message[0] and len(err.splitlines()) < 8, err
+        for flag in set(re.findall(r"--\w+", usage)):  # every flag of the parser is named in the message
+            assert flag in message[0], (flag, message[0])
