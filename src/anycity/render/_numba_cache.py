@@ -23,9 +23,10 @@ def repair_cache(dispatchers: list) -> list[str]:
             continue
         try:
             for name in cache_file._load_index().values():
-                cache_file._load_data(name)
-        except FileNotFoundError:  # an index naming a missing data file: numba itself recompiles that one
-            continue
+                try:
+                    cache_file._load_data(name)
+                except FileNotFoundError:  # an index naming a missing data file: numba recompiles that entry
+                    continue
         except Exception as e:  # noqa: BLE001 (whatever unpickling a damaged file raises)
             _log.warning("anycity: the compiled-kernel cache %s is unreadable (%s: %s); dropped it, the kernel is "
                          "compiled again", cache_file._index_path, type(e).__name__, e)

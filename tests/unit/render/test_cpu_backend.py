@@ -8,6 +8,7 @@ import subprocess
 import sys
 import textwrap
 from pathlib import Path
+from unittest.mock import ANY
 
 import pytest
 import torch
@@ -284,7 +285,8 @@ _TINY_PROBE = textwrap.dedent("""
     numba_cache = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(numba_cache)
     dropped = numba_cache.repair_cache([tiny_kernel.add_one]) if sys.argv[3] == "repair" else []
-    print(json.dumps({"dropped": dropped, "value": tiny_kernel.add_one(1)}))
+    values = [tiny_kernel.add_one(1)] + ([tiny_kernel.add_one(1.5)] if len(sys.argv) > 4 else [])
+    print(json.dumps({"dropped": dropped, "value": values[0] if len(values) == 1 else values}))
 """)
 
 
@@ -313,6 +315,30 @@ def test_an_unreadable_kernel_cache_is_dropped_and_compiled_again(tmp_path: Path
     assert json.loads(repaired.stdout)["value"] == 2 and len(dropped) == 1 and dropped[0].endswith(".nbi")
     assert f"{dropped[0]} is unreadable (UnpicklingError: pickle data was truncated)" in repaired.stderr
     assert json.loads(probe("plain").stdout) == {"dropped": [], "value": 2}  # the new cache loads
+
+
+def test_a_missing_cache_entry_does_not_hide_a_damaged_one(tmp_path: Path):
+    """A kernel compiled for two signatures has two data files: one deleted, the other truncated. The check used to
+    stop at the missing one (numba recompiles that by itself) and leave the truncated one to fail the call."""
+    from anycity.render import cpu_backend
+
+    (tmp_path / "tiny_kernel.py").write_text("import numba\n\n\n@numba.njit(cache=True)\ndef add_one(x):\n"
+                                             "    return x + 1\n")
+    module = Path(cpu_backend.__file__).with_name("_numba_cache.py")
+    for missing in (0, 1):  # whichever comes first in numba's index
+        env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / f"cache{missing}"))
+
+        def probe(mode, env=env):
+            return subprocess.run([sys.executable, "-c", _TINY_PROBE, str(tmp_path), str(module), mode, "two"],
+                                  env=env, capture_output=True, text=True, timeout=120)
+
+        assert json.loads(probe("plain").stdout)["value"] == [2, 2.5]
+        files = sorted((tmp_path / f"cache{missing}").rglob("*.nbc"))
+        assert len(files) == 2
+        files[missing].unlink()
+        files[1 - missing].write_bytes(files[1 - missing].read_bytes()[:100])
+        repaired = probe("repair")
+        assert json.loads(repaired.stdout) == {"dropped": [ANY], "value": [2, 2.5]}, repaired.stderr
 
 
 def test_the_kernel_cache_is_checked_once_per_process_and_channel_count(monkeypatch):
