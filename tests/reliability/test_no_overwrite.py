@@ -96,3 +96,41 @@ def test_free_name(tmp_path):
     (tmp_path / "m.1.csv").write_text("b")
     assert free_name(tmp_path / "m.csv") == tmp_path / "m.2.csv"
     assert free_name(tmp_path / "checkpoints") == tmp_path / "checkpoints.1"
+
+
+def test_a_run_that_fails_before_its_first_step_leaves_the_checkpoints_and_exports_where_they_were(tiny_shards,
+                                                                                                     tmp_path):
+    """They used to be moved aside before anything was checked: a wrong image size, a fast_dev_run or a photo that
+    does not decode left no ``checkpoints/last.ckpt`` (``--ckpt_path last`` then trained from scratch) and no scene."""
+    run = tmp_path / "run"
+    ck = ["-c", str(tmp_path / "ck.yaml")]
+    (tmp_path / "ck.yaml").write_text("trainer:\n  callbacks:\n  - class_path: lightning.pytorch.callbacks."
+                                      "ModelCheckpoint\n    init_args: {save_last: true, save_top_k: 0, "
+                                      "every_n_train_steps: 1}\n")
+    build_cli(["fit", *_args(tiny_shards, run, ck)])
+    last = run / "checkpoints" / "last.ckpt"
+    first = last.read_bytes()
+    with pytest.raises(ValueError, match="multiples of the patch size"):
+        build_cli(["fit", *_args(tiny_shards, run, [*ck, "--data.image_size", "[36, 36]"])])
+    build_cli(["fit", *_args(tiny_shards, run, [*ck, "--trainer.fast_dev_run", "true"])])
+    assert last.read_bytes() == first and not (run / "checkpoints.1").exists()
+    assert sorted(p.name for p in (run / "checkpoints").iterdir()) == ["last.ckpt"]  # fast_dev_run wrote none
+
+    # a fresh fit that takes a step does move them aside (and writes its own)
+    build_cli(["fit", *_args(tiny_shards, run, [*ck, "--seed_everything", "1"])])
+    assert (run / "checkpoints.1" / "last.ckpt").read_bytes() == first and last.read_bytes() != first
+    assert sorted(p.name for p in (run / "checkpoints").iterdir()) == ["last.ckpt"]  # not last-v1.ckpt
+
+    photos, out = tmp_path / "farm" / "images", tmp_path / "out"
+    photos.mkdir(parents=True)
+    rng = np.random.default_rng(0)
+    for i in range(3):
+        Image.fromarray(rng.integers(0, 255, (32, 32, 3), dtype=np.uint8)).save(photos / f"{i}.jpg")
+    predict = ["predict", *_args(tiny_shards, run), "--ckpt_path", str(last), "--export.out_dir", str(out),
+               "--data.predict_images", str(photos)]
+    build_cli(predict)
+    ply = (out / "farm" / "scene.ply").read_bytes()
+    (photos / "3.jpg").write_bytes((photos / "0.jpg").read_bytes()[:200])  # a truncated photo
+    with pytest.raises(ValueError, match="3.jpg"):
+        build_cli(predict)
+    assert (out / "farm" / "scene.ply").read_bytes() == ply and sorted(p.name for p in out.iterdir()) == ["farm"]

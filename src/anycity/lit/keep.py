@@ -1,11 +1,12 @@
-"""Nothing is overwritten behind the user's back: before a ``fit|validate|test|predict`` run, files an earlier
-run left where this one will write are moved aside to the first free ``<name>.<N><suffix>`` (never deleted).
+"""Nothing is overwritten behind the user's back: files an earlier run left where a ``fit|validate|test|predict``
+run will write are moved aside to the first free ``<name>.<N><suffix>`` (never deleted).
 
-- the logger's ``metrics.csv`` / ``hparams.yaml`` and the saved ``config.yaml`` (CSVLogger with ``version: ""``
-  reuses one folder, and Lightning would otherwise truncate them);
-- a fresh ``fit``'s ``checkpoints/`` folder (a resume with ``--ckpt_path`` keeps and extends it);
-- ``predict``'s export folder (``--export.out_dir`` or ``<log_dir>/predictions``), or only the scene's folder in
-  it for a photo folder (so several scenes can be predicted into one ``out_dir``).
+- before the run: the logger's ``metrics.csv`` / ``hparams.yaml`` and the saved ``config.yaml`` (CSVLogger with
+  ``version: ""`` reuses one folder, and Lightning would otherwise truncate them);
+- when the run's first batch ends (:class:`KeepPreviousRun`), so that a run which fails before it leaves them
+  where they were: a fresh ``fit``'s ``checkpoints/`` folder (a resume with ``--ckpt_path`` keeps and extends it),
+  and ``predict``'s export folder (``--export.out_dir`` or ``<log_dir>/predictions``), or only the scene's folder
+  in it for a photo folder (so several scenes can be predicted into one ``out_dir``).
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from __future__ import annotations
 import warnings
 from pathlib import Path
 
+from lightning.pytorch import Callback
 from lightning.pytorch.utilities import rank_zero_info
 
 from anycity.atomic import free_name
@@ -32,31 +34,77 @@ def move_aside(path: Path) -> Path | None:
 
 def keep_previous_run(trainer, subcommand: str, ckpt_path=None, export_dir: str | None = None,
                       scene: str | None = None) -> list[Path]:
-    """Move aside what an earlier run left where ``subcommand`` will write; returns the moved paths. ``scene``:
-    the one scene a ``predict`` writes (a photo folder's name), when known."""
+    """Move aside the log files an earlier run left where ``subcommand`` will write (now: Lightning writes them
+    at setup) and attach a :class:`KeepPreviousRun` for its checkpoints or exports; returns the paths moved now.
+    ``scene``: the one scene a ``predict`` writes (a photo folder's name), when known."""
     # Lightning's CSVLogger then warns that "previous log files in this directory will be deleted": the files it
     # would overwrite are moved aside here, so that warning could only alarm
     warnings.filterwarnings("ignore", message=r"Experiment logs directory .* exists and is not empty")
+    # a fresh fit's ModelCheckpoint sees the earlier run's checkpoints until its first step moves them aside
+    warnings.filterwarnings("ignore", message=r"Checkpoint directory .* exists and is not empty")
+    keep = None
+    if trainer.fast_dev_run:
+        # Lightning says that fast_dev_run suppresses checkpointing, but (2.6.6) ModelCheckpoint(save_last=True)
+        # still writes one at the end of training, beside the earlier run's last.ckpt (as last-v1.ckpt)
+        for cb in trainer.checkpoint_callbacks:
+            cb.save_last = None
+    if subcommand == "fit" and ckpt_path is None and not trainer.fast_dev_run:
+        keep = KeepPreviousRun(_checkpoint_dirs(trainer), checkpoints=True)
+    if subcommand == "predict":
+        out = Path(export_dir) if export_dir else Path(trainer.log_dir or trainer.default_root_dir) / "predictions"
+        keep = KeepPreviousRun([out / scene if scene else out], checkpoints=False)
+    if keep is not None:  # first in the list: its hooks run before ModelCheckpoint's and the export's
+        trainer.callbacks.insert(0, keep)
     if trainer.global_rank != 0:
         return []
-    moved = []
     dirs = {Path(trainer.default_root_dir)}
     if trainer.logger is not None and getattr(trainer.logger, "log_dir", None):
         dirs.add(Path(trainer.logger.log_dir))
-    for d in dirs:
-        for name in LOG_FILES:
-            moved.append(move_aside(d / name))
-    if subcommand == "fit" and ckpt_path is None:
-        for cb in trainer.checkpoint_callbacks:
-            ckpt_dir = Path(cb.dirpath) if cb.dirpath else None
-            if ckpt_dir is None and trainer.loggers:
-                lg = trainer.loggers[0]
-                ckpt_dir = Path(lg.save_dir or trainer.default_root_dir) / str(lg.name or "") / (
-                    lg.version if isinstance(lg.version, str) else f"version_{lg.version}") / "checkpoints"
-            ckpt_dir = ckpt_dir or Path(trainer.default_root_dir) / "checkpoints"
-            if ckpt_dir.is_dir() and any(ckpt_dir.glob("*.ckpt")):
-                moved.append(move_aside(ckpt_dir))
-    if subcommand == "predict":
-        out = Path(export_dir) if export_dir else Path(trainer.log_dir or trainer.default_root_dir) / "predictions"
-        moved.append(move_aside(out / scene if scene else out))
+    moved = [move_aside(d / name) for d in dirs for name in LOG_FILES]
     return [m for m in moved if m is not None]
+
+
+def _checkpoint_dirs(trainer) -> list[Path]:
+    """Where the trainer's checkpoint callbacks write."""
+    dirs = []
+    for cb in trainer.checkpoint_callbacks:
+        ckpt_dir = Path(cb.dirpath) if cb.dirpath else None
+        if ckpt_dir is None and trainer.loggers:
+            lg = trainer.loggers[0]
+            ckpt_dir = Path(lg.save_dir or trainer.default_root_dir) / str(lg.name or "") / (
+                lg.version if isinstance(lg.version, str) else f"version_{lg.version}") / "checkpoints"
+        dirs.append(ckpt_dir or Path(trainer.default_root_dir) / "checkpoints")
+    return dirs
+
+
+class KeepPreviousRun(Callback):
+    """Moves aside an earlier run's checkpoints (a fresh ``fit``) or export (``predict``) when this run's first batch
+    ends, before anything of this run is written there. A run that stops earlier (a config or data error, a photo
+    that does not decode, Ctrl-C at start-up) or writes no checkpoint (``fast_dev_run``) leaves them in place, so
+    ``last.ckpt`` and the exported scene stay where the user left them.
+
+    Args:
+        paths: the folders to move aside.
+        checkpoints: move a folder only when it holds ``*.ckpt`` files (else: when it is not empty).
+    """
+
+    def __init__(self, paths: list[Path], checkpoints: bool) -> None:
+        self.paths = list(paths)
+        self.checkpoints = checkpoints
+        self.moved: list[Path] = []
+
+    def _keep(self, trainer) -> None:
+        if self.paths and trainer.global_rank == 0:
+            for path in self.paths:
+                if self.checkpoints and not (path.is_dir() and any(path.glob("*.ckpt"))):
+                    continue
+                dest = move_aside(path)
+                if dest is not None:
+                    self.moved.append(dest)
+        self.paths = []
+
+    def on_train_batch_end(self, trainer, *args, **kwargs) -> None:
+        self._keep(trainer)
+
+    def on_predict_batch_end(self, trainer, *args, **kwargs) -> None:
+        self._keep(trainer)
