@@ -26,6 +26,18 @@ def free_name(path: Path) -> Path:
         n += 1
 
 
+def check_writable_folder(path: str | os.PathLike, what: str) -> None:
+    """Raise one line before any work when ``path`` (a folder to create or fill) cannot be written: the nearest
+    part of it that exists is a file, or a folder this user may not write in. ``what`` names the option."""
+    path = Path(path).absolute()
+    existing = next(p for p in (path, *path.parents) if p.exists())
+    if not existing.is_dir():
+        raise NotADirectoryError(f"{what} {path}: {existing} is a file, not a folder; pass a folder")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise PermissionError(f"{what} {path}: this user may not write in {existing}; pass a folder you can write "
+                              "to, or change its permissions")
+
+
 def atomic_write_bytes(path: str | os.PathLike, data: bytes | memoryview) -> None:
     """Write ``data`` to ``path`` via a temp file + fsync + rename: readers see the old or the new file, never
     a partial one. On ``ENOSPC``/``EDQUOT`` raises ``OSError`` naming the path and the bytes needed."""

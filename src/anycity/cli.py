@@ -100,6 +100,11 @@ def _cli_class():
                 from anycity.data.photos import scene_name
 
                 scene = scene_name(photos)
+            if subcommand == "predict":  # before the model runs: the export is written after it
+                from anycity.atomic import check_writable_folder
+
+                root = out or Path(self.trainer.log_dir or self.trainer.default_root_dir) / "predictions"
+                check_writable_folder(root, "--export.out_dir" if out else "the predictions folder")
             keep_previous_run(self.trainer, subcommand, self.config[subcommand].get("ckpt_path"), out, scene)
             if subcommand == "fit":
                 super()._run_subcommand(subcommand)
@@ -370,7 +375,8 @@ def main(argv: list[str] | None = None) -> int:
         return _dispatch(args, argv is not None)
     try:
         return _dispatch(args, argv is not None)
-    except (ValueError, FileNotFoundError, FileExistsError, NotADirectoryError) as e:
+    except (ValueError, FileNotFoundError, FileExistsError, NotADirectoryError, IsADirectoryError,
+            PermissionError) as e:
         print(f"anycity: error: {_one_line(e)}  (--debug for the traceback)", file=sys.stderr)
         return 2
 

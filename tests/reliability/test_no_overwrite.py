@@ -134,3 +134,7 @@ def test_a_run_that_fails_before_its_first_step_leaves_the_checkpoints_and_expor
     with pytest.raises(ValueError, match="3.jpg"):
         build_cli(predict)
     assert (out / "farm" / "scene.ply").read_bytes() == ply and sorted(p.name for p in out.iterdir()) == ["farm"]
+    (photos / "3.jpg").unlink()
+    (tmp_path / "a_file").write_text("x")
+    with pytest.raises(NotADirectoryError, match="--export.out_dir .*a_file is a file, not a folder"):
+        build_cli([*predict[:-4], "--export.out_dir", str(tmp_path / "a_file" / "out"), *predict[-2:]])

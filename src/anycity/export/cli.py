@@ -12,6 +12,7 @@ from pathlib import Path
 
 import torch
 
+from anycity.atomic import check_writable_folder
 from anycity.export.views import view_png
 
 FORMATS = ("splat", "colmap", "nerfstudio", "ply")
@@ -132,6 +133,7 @@ def export_main(argv: list[str]) -> int:
     a = p.parse_args(argv)
     src = Path(a.src)
     out = Path(a.out) if a.out else (src if src.is_dir() else src.parent) / f"export_{a.format}"
+    check_writable_folder(out, "--out")
     target = export(src, a.format, out, a.overwrite)
     print(f"wrote {target}")
     return 0

@@ -123,13 +123,21 @@ def _share_text(scene: ViewScene) -> str:
     return "  \n".join(lines)
 
 
+def _port(text: str) -> int:
+    """argparse type: a TCP port (a port out of range used to fail in viser's server thread and hang the command)."""
+    port = int(text)
+    if not 0 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"{port} is not a port (0 to 65535; 0 picks a free one)")
+    return port
+
+
 def view_main(argv: list[str]) -> int:
     p = argparse.ArgumentParser(prog="anycity view", description="Open a predicted scene in the browser (viser).",
                                 allow_abbrev=False)
     p.add_argument("path", help="scene.ply or a predict output folder (predictions/<scene>/)")
     p.add_argument("--host", default="127.0.0.1",
                    help="interface to listen on (default: %(default)s; 0.0.0.0 serves the network)")
-    p.add_argument("--port", type=int, default=8080,
+    p.add_argument("--port", type=_port, default=8080,
                    help="port (default: %(default)s; 0: any free one; a busy one moves up)")
     p.add_argument("--no-cameras", action="store_true", help="hide the camera frustums")
     a = p.parse_args(argv)

@@ -150,6 +150,8 @@ def _int_at_least(low: int):
 
 
 def render_video_main(argv: list[str]) -> int:
+    from anycity.atomic import check_writable_folder
+
     p = argparse.ArgumentParser(prog="anycity render-video",
                                 description="Render an mp4 fly-through along the predicted cameras.",
                                 allow_abbrev=False)
@@ -167,6 +169,7 @@ def render_video_main(argv: list[str]) -> int:
     out = Path(a.out) if a.out else (src if src.is_dir() else src.parent) / "flythrough.mp4"
     if out.exists() and not a.overwrite:
         raise FileExistsError(f"anycity render-video: {out} exists; pass --overwrite to replace it, or --out NEW.mp4")
+    check_writable_folder(out.parent, "--out")  # ffmpeg would fail with a broken pipe after the first frame
     n = render_video(src, out, a.per_segment, a.orbit, a.width, a.fps)
     print(f"wrote {out} ({n} frames)")
     return 0
