@@ -179,9 +179,13 @@ Commands:
 
 Options:
   --debug        show the full traceback of an error (or set ANYCITY_DEBUG=1)
+  --version      print anycity's version
 """
 
 LIGHTNING = ("fit", "validate", "test", "predict")
+# the top-level keys of a training command's config (`anycity fit --print_config`; tests/integration/test_cli_tiny.py)
+SECTIONS = ("seed_everything", "trainer", "model", "data", "freeze", "previews", "progress", "export", "nonfinite",
+            "ckpt_path", "weights_only")
 _ALIASES = {"learning_rate": "lr", "learningrate": "lr", "max_step": "max_steps", "epochs": "max_epochs"}
 
 
@@ -197,9 +201,12 @@ def _one_line(e: BaseException) -> str:
         return m.group(1) if m else lines[-1].strip()
     # jsonargparse's "Does not validate against any of the Union subtypes ... Errors: - <ours> - Expected a
     # <class 'NoneType'>": the first listed error that is not the None alternative is the one our code wrote.
-    errors = [ln.strip()[2:] for ln in lines if ln.strip().startswith("- ") and "Expected a <class" not in ln]
-    if errors:
-        return errors[0]
+    for i, ln in enumerate(lines):
+        if ln.strip().startswith("- ") and "Expected a <class" not in ln:
+            indent = len(ln) - len(ln.lstrip())
+            rest = [r.strip() for r in lines[i + 1:i + 3] if len(r) - len(r.lstrip()) > indent
+                    and not r.strip().startswith("- ")]  # the reason jsonargparse wraps onto the next lines
+            return " ".join([ln.strip()[2:], *rest])
     return " ".join(ln.strip() for ln in lines) if len(lines) <= 3 else lines[0]
 
 
@@ -263,12 +270,19 @@ def config_error(message: str, argv: list[str]) -> str:
     # a key in a --config file ("nested key" in jsonargparse 4.39, the oldest pyproject.toml allows)
     bad += re.findall(r"does not accept (?:option|nested key) '([\w.]+)'", message)
     bad += re.findall(r"[Uu]nrecognized arguments: --([\w.]+)", message)  # capitalised in older releases
+    from_top = bool(bad)  # each of these names the key from the config's top (model.init_args.x)
     unexpected = re.search(r"Unexpected keys: \{'(\w+)'", message)  # a typed dict's key (model.net) in a file
     if unexpected:
         section = re.findall(r'Parser key "(\w+)"', message[:unexpected.start()])
         bad.append(".".join(section[-1:] + [unexpected.group(1)]))
     if not bad:
-        return _one_line(message).replace("\n", " ")
+        return (_yaml_error(argv) if "Problems parsing config" in message else None) or \
+            _class_path_hint(_one_line(message).replace("\n", " "))
+    section = bad[0].split(".")[0]
+    if from_top and "." in bad[0] and section not in SECTIONS:  # a misspelt section (modle:) is the key to name
+        near = difflib.get_close_matches(section, SECTIONS, n=1, cutoff=0.6)
+        return f"unknown section {section} (in {bad[0]})" + (f"; did you mean {near[0]}?" if near else
+                                                              f"; expected one of {', '.join(SECTIONS)}")
     key = bad[0].split(".")[-1]
     given = next((a.split("=")[0] for a in argv if a.startswith("--") and
                   (a.split("=")[0].endswith("." + key) or a.split("=")[0] == f"--{bad[0]}")), None)
@@ -280,6 +294,40 @@ def config_error(message: str, argv: list[str]) -> str:
     hint = near[0] if near else (f"{_ALIASES[alias[0]]} ({alias[0].replace('_', ' ')})" if alias else None)
     what = f"unknown option {given}" if given else f"unknown key {bad[0]} in a --config file"
     return what + (f"; did you mean {hint}?" if hint else "; see anycity COMMAND --help")
+
+
+def _yaml_error(argv: list[str]) -> str | None:
+    """The --config file that is not valid YAML, with the parser's line and column (jsonargparse names neither)."""
+    import yaml
+
+    for _, value in _option_values(argv, ("-c", "--config")):
+        if Path(value).is_file():
+            try:
+                yaml.safe_load(Path(value).read_text())
+            except yaml.YAMLError as e:
+                mark = getattr(e, "problem_mark", None)
+                where = f" line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+                problem = getattr(e, "problem", None) or str(e).splitlines()[0]
+                return f"--config {value}:{where}: not valid YAML ({problem})"
+    return None
+
+
+def _class_path_hint(line: str) -> str:
+    """Add the nearest class to jsonargparse's "Problem with given class_path 'a.b.C': module 'a.b' has no
+    attribute 'C'"."""
+    import difflib
+    import importlib
+    import re
+
+    m = re.search(r"class_path '([\w.]+)'.*has no attribute '(\w+)'", line)
+    if not m:
+        return line
+    try:
+        module = importlib.import_module(m.group(1).rpartition(".")[0])
+    except ImportError:
+        return line
+    near = difflib.get_close_matches(m.group(2), [n for n in dir(module) if not n.startswith("_")], n=1)
+    return line + (f"; did you mean {module.__name__}.{near[0]}?" if near else "")
 
 
 def _option_values(args: list[str], names: tuple[str, ...]) -> list[tuple[str, str]]:
@@ -329,6 +377,11 @@ def check_input_files(args: list[str]) -> None:
 def _dispatch(args: list[str], argv_given: bool) -> int:
     if not args or args[0] in ("-h", "--help", "help"):
         print(HELP, end="")
+        return 0
+    if args[0] in ("--version", "-V"):
+        from anycity import __version__
+
+        print(f"anycity {__version__}")
         return 0
     cmd, rest = args[0], args[1:]
     if cmd == "data":

@@ -228,3 +228,41 @@ def test_a_missing_data_root_is_one_line_and_the_run_writes_nothing(tmp_path, ca
     from anycity.lit.datamodule import AerialDataModule
 
     AerialDataModule(root=str(tmp_path / "nope"), predict_images=str(tmp_path))  # predicting photos reads no shards
+
+
+def test_a_misspelt_section_a_class_path_and_broken_yaml_are_named(tmp_path, capsys, monkeypatch):
+    """``modle:`` used to be reported as its last key (``did you mean lr?``), a class_path typo lost jsonargparse's
+    reason, and a --config file that is not YAML was not named."""
+    monkeypatch.delenv("ANYCITY_DEBUG", raising=False)
+    cases = [("modle:\n  init_args:\n    lr: 1\n",
+              "unknown section modle (in modle.init_args.lr); did you mean model?"),
+             ("model:\n  class_path: anycity.lit.ScafoldModule\n",
+              "module 'anycity.lit' has no attribute 'ScafoldModule'; did you mean anycity.lit.ScaffoldModule?"),
+             ("trainer: {max_steps: [1, 2\n", "typo.yaml: line 2, column 1: not valid YAML (expected ',' or ']'")]
+    for text, said in cases:
+        (tmp_path / "typo.yaml").write_text(text)
+        assert cli.main(["fit", "--config", "configs/quickstart.yaml", "--config", str(tmp_path / "typo.yaml")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.count("\n") == 0 and said in err, err
+    assert cli.main(["fit", "--config", "configs/quickstart.yaml", "--tranier.max_steps", "3"]) == 2
+    assert "unknown section tranier (in tranier.max_steps); did you mean trainer?" in capsys.readouterr().err
+
+
+def test_sections_are_the_training_configs_top_level_keys(capsys, monkeypatch):
+    import yaml
+
+    monkeypatch.setattr("sys.argv", ["anycity"])
+    with pytest.raises(SystemExit):
+        cli.build_cli(["fit", "-c", "configs/quickstart.yaml", "--print_config"])
+    assert set(yaml.safe_load(capsys.readouterr().out)) == set(cli.SECTIONS)
+
+
+def test_version(capsys):
+    import re
+    from pathlib import Path
+
+    from anycity import __version__
+
+    assert cli.main(["--version"]) == 0 and capsys.readouterr().out == f"anycity {__version__}\n"
+    pyproject = (Path(cli.__file__).parents[2] / "pyproject.toml").read_text()
+    assert re.search(r'^version = "([^"]+)"', pyproject, re.M).group(1) == __version__
