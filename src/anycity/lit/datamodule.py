@@ -164,6 +164,17 @@ class AerialDataModule(pl.LightningDataModule):
         spec = {"train": self.hp.train_shards, "val": self.hp.val_shards, "test": self.hp.test_shards}[split]
         urls = _expand(spec if spec is not None else self.hp.root, split)
         if not urls:
+            where = spec if spec is not None else self.hp.root
+            if isinstance(where, str) and (Path(where) / "index.json").is_file():
+                from anycity.data.writer import read_index
+
+                has = {k: len(v) for k, v in read_index(where)["splits"].items() if v}
+                skip = {"val": "; or skip validation with --trainer.limit_val_batches 0", "train": ""}.get(split, "")
+                raise ValueError(f"{split} shards: {Path(where) / 'index.json'} lists none (it has "
+                                 f"{', '.join(f'{k}: {n}' for k, n in has.items()) or 'no shards'}; the 8:1:1 scene "
+                                 f"split puts a set of few scenes in train alone): write a {split} set with anycity "
+                                 f"data convert --split {split} --out OTHER_FOLDER and pass --data.{split}_shards "
+                                 f"OTHER_FOLDER{skip}")
             raise ValueError(f"{split} shards: none found (root={self.hp.root!r}, {split}_shards={spec!r}); give "
                              f"a shard directory with index.json listing {split} shards, or a shard pattern")
         return urls

@@ -282,3 +282,22 @@ def test_a_resumed_run_sees_the_uninterrupted_stream_in_any_epoch(synth_root):
         epoch, pos = divmod(step, 4)
         assert [signature(b) for b in loader] == epochs[epoch][pos:], step
         assert [signature(b) for b in loader] == epochs[epoch + 1], step
+
+
+def test_a_split_the_index_does_not_list_says_how_to_make_one(synth_root, tmp_path):
+    """A set of few scenes goes to train alone; the error used to ask for an index.json that was there."""
+    import json
+    import shutil
+
+    root = tmp_path / "one_split"
+    shutil.copytree(synth_root, root)
+    index = json.loads((root / "index.json").read_text())
+    index["splits"]["val"], index["splits"]["test"] = [], []
+    (root / "index.json").write_text(json.dumps(index))
+    dm = _dm(root)
+    with pytest.raises(ValueError, match=r"val shards: .*index.json lists none \(it has train: \d+; .*--split val "
+                                         r".*--data.val_shards OTHER_FOLDER; or skip validation with "
+                                         r"--trainer.limit_val_batches 0$"):
+        dm.val_dataloader()
+    with pytest.raises(ValueError, match=r"test shards: .*--split test .*--data.test_shards OTHER_FOLDER$"):
+        dm.test_dataloader()
