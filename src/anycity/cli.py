@@ -65,6 +65,7 @@ def _cli_class():
             init = self.config.get(f"{sub}.model.init_args") if sub else None
             keep = {k: init[k] for k in TEST_TIME_KEYS if init is not None and k in init}
             asked_net = (init.get("net") if init is not None else None) or {}
+            asked_class = self.config.get(f"{sub}.model.class_path") if sub else None
             try:  # Lightning reads the checkpoint's hyperparameters with a bare torch.load
                 super()._parse_ckpt_path()
             except (pickle.UnpicklingError, RuntimeError, EOFError):
@@ -74,6 +75,13 @@ def _cli_class():
                 raise
             for k, v in keep.items():
                 self.config[f"{sub}.model.init_args.{k}"] = v
+            now_class = self.config.get(f"{sub}.model.class_path") if sub else None
+            if asked_class and now_class and now_class != asked_class:  # Lightning takes the checkpoint's class
+                from lightning.pytorch.utilities import rank_zero_warn
+
+                rank_zero_warn(f"--ckpt_path {self.config[sub].get('ckpt_path')} holds a {now_class.rsplit('.', 1)[-1]}"
+                               f", so that is what runs, not the config's {asked_class.rsplit('.', 1)[-1]}; pass the "
+                               "other stage's checkpoint (or config) if that is not what you meant")
             ckpt = self.config[sub].get("ckpt_path") if sub else None
             if init is None or not ckpt or not Path(ckpt).is_file():
                 return

@@ -66,6 +66,12 @@ def test_fit_test_predict_stage1_then_stage2(tiny_shards, tmp_path):
     for key in ("test/psnr_refined_joint", "test/psnr_refined_camrefine", "test/rre_refined_camrefine"):
         assert torch.isfinite(cli.trainer.callback_metrics[key]), key
 
+    # the Stage II config with the Stage I checkpoint: Lightning builds the checkpoint's class, and says so
+    with pytest.warns(UserWarning, match=r"holds a ScaffoldModule, so that is what runs, not the config's "
+                                         r"RefinementModule"):
+        cli = build_cli(["validate", *_tiny_args(tiny_shards, t, **stage2), "--ckpt_path", str(ckpt1)])
+    assert type(cli.model).__name__ == "ScaffoldModule"
+
     p = tmp_path / "pred"
     build_cli(["predict", *_tiny_args(tiny_shards, p, **stage2), "--ckpt_path", str(ckpt2),
                "--export.out_dir", str(p / "out")])
