@@ -99,7 +99,13 @@ def _cli_class():
                 self.config[f"{sub}.model.init_args.pretrained"] = None
 
         def _run_subcommand(self, subcommand: str) -> None:
-            from anycity.lit.keep import keep_previous_run  # earlier runs' logs/checkpoints/exports are kept
+            from anycity.lit.keep import keep_previous_run, separate_from_training
+
+            moved_to = separate_from_training(self.trainer, subcommand)  # the training's own files stay as they are
+            if moved_to is not None:
+                from lightning.pytorch.utilities import rank_zero_info
+
+                rank_zero_info(f"anycity: this {subcommand} run's config, logs and previews go to {moved_to}")
 
             out = next((c.out_dir for c in self.trainer.callbacks if isinstance(c, PredictionExport)), None)
             photos = getattr(getattr(self.datamodule, "hp", None), "predict_images", None)

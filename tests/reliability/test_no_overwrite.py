@@ -45,15 +45,22 @@ def test_fit_validate_test_predict_keep_earlier_runs(tiny_shards, tmp_path):
     assert (run / "checkpoints.1" / "last.ckpt").read_bytes() == first  # the first run's checkpoint is kept
     assert (run / "metrics.1.csv").read_text() == metrics1 and (run / "config.1.yaml").is_file()
     ckpt = str(run / "checkpoints" / "last.ckpt")
-    for i, cmd in enumerate(("validate", "test"), start=2):
-        before = (run / "metrics.csv").read_text()
+    training = {f: (run / f).read_bytes() for f in ("metrics.csv", "config.yaml", "hparams.yaml")}
+    for cmd in ("validate", "test", "test"):
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             build_cli([cmd, *_args(tiny_shards, run), "--ckpt_path", ckpt])
-        assert (run / f"metrics.{i}.csv").read_text() == before, cmd
+        # in a training run's folder, evaluation writes to its own subfolder: the training's files stay as they are
+        assert {f: (run / f).read_bytes() for f in training} == training, cmd
+        assert (run / cmd / "config.yaml").is_file() and (run / cmd / "metrics.csv").is_file(), cmd
         # evaluation writes no checkpoint, so Lightning's notes on restoring the callbacks' state are not shown
         assert not [str(w.message) for w in caught if "ckpt_path`, callbacks" in str(w.message)
                     or "dirpath has changed" in str(w.message)], cmd
+    assert (run / "test" / "metrics.1.csv").is_file()  # the second test kept the first one's
+    assert not list(run.glob("metrics.2.csv")) and not list(run.glob("config.2.yaml"))
+    build_cli(["predict", *_args(tiny_shards, run), "--ckpt_path", ckpt])
+    assert list((run / "predict" / "predictions").rglob("scene.ply")) and not (run / "predictions").exists()
+    assert {f: (run / f).read_bytes() for f in training} == training
     out = tmp_path / "export"
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")

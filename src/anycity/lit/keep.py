@@ -2,7 +2,8 @@
 run will write are moved aside to the first free ``<name>.<N><suffix>`` (never deleted).
 
 - before the run: the logger's ``metrics.csv`` / ``hparams.yaml`` and the saved ``config.yaml`` (CSVLogger with
-  ``version: ""`` reuses one folder, and Lightning would otherwise truncate them);
+  ``version: ""`` reuses one folder, and Lightning would otherwise truncate them). A ``validate|test|predict`` run
+  in a training run's folder writes them to its ``<subcommand>/`` subfolder instead (:func:`separate_from_training`);
 - when the run's first batch ends (:class:`KeepPreviousRun`), so that a run which fails before it leaves them
   where they were: a fresh ``fit``'s ``checkpoints/`` folder (a resume with ``--ckpt_path`` keeps and extends it),
   and ``predict``'s export folder (``--export.out_dir`` or ``<log_dir>/predictions``), or only the scene's folder
@@ -57,11 +58,28 @@ def keep_previous_run(trainer, subcommand: str, ckpt_path=None, export_dir: str 
         trainer.callbacks.insert(0, keep)
     if trainer.global_rank != 0:
         return []
-    dirs = {Path(trainer.default_root_dir)}
-    if trainer.logger is not None and getattr(trainer.logger, "log_dir", None):
-        dirs.add(Path(trainer.logger.log_dir))
-    moved = [move_aside(d / name) for d in dirs for name in LOG_FILES]
+    lg = trainer.loggers[0] if trainer.loggers else None  # where Lightning writes them (Trainer.log_dir)
+    log_dir = Path(getattr(lg, "log_dir", None) or getattr(lg, "save_dir", None) or trainer.default_root_dir)
+    moved = [move_aside(log_dir / name) for name in LOG_FILES]
     return [m for m in moved if m is not None]
+
+
+def separate_from_training(trainer, subcommand: str) -> Path | None:
+    """Point a ``validate``/``test``/``predict`` run whose log folder is a training run's (it holds
+    ``checkpoints/*.ckpt``) at that folder's ``<subcommand>/`` subfolder, so that its ``config.yaml``, ``metrics.csv``,
+    previews and default ``predictions/`` leave the training's own files where they are. Returns the new log folder,
+    or None (other subcommands and folders; loggers other than CSV and TensorBoard, whose folder is not
+    ``<root>/<version>``)."""
+    from lightning.pytorch.loggers import CSVLogger, TensorBoardLogger
+
+    lg = trainer.logger
+    if subcommand == "fit" or not isinstance(lg, (CSVLogger, TensorBoardLogger)):
+        return None
+    if not any(Path(lg.log_dir).glob("checkpoints/*.ckpt")):
+        return None
+    version = lg.version if isinstance(lg.version, str) else f"version_{lg.version}"
+    lg._version = str(Path(version) / subcommand)  # read by log_dir; the logger writes nothing before the run
+    return Path(lg.log_dir)
 
 
 def _checkpoint_dirs(trainer) -> list[Path]:
