@@ -49,6 +49,7 @@ class NonFiniteGuard(Callback):
     def __init__(self, enabled: bool = True, max_skips: int | None = 100) -> None:
         self.enabled, self.max_skips = enabled, max_skips
         self.skipped = 0
+        self._run = [0, 0]  # this run's (skipped, taken) steps: a resumed count says nothing about them
         self._loss: Tensor | None = None
 
     def on_before_backward(self, trainer: pl.Trainer, pl_module: pl.LightningModule, loss: Tensor) -> None:
@@ -68,6 +69,7 @@ class NonFiniteGuard(Callback):
             return
         bad = self._bad_ranks(trainer, pl_module, optimizer)
         self._loss = None
+        self._run[0 if bad else 1] += 1
         if bad:
             optimizer.zero_grad(set_to_none=True)
             self.skipped += 1
@@ -77,6 +79,16 @@ class NonFiniteGuard(Callback):
                 raise RuntimeError(f"NonFiniteGuard: {self.skipped} steps skipped for non-finite loss/gradients "
                                    f"(> nonfinite.max_skips={self.max_skips}); lower the LR or check the data")
         pl_module.log("train/nonfinite_skipped", float(self.skipped), on_step=True, on_epoch=False)
+
+    def on_train_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        self._run = [0, 0]
+
+    def on_train_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        skipped, taken = self._run
+        if self.enabled and skipped and not taken:  # fewer steps than max_skips, all skipped: nothing was trained
+            raise RuntimeError(f"NonFiniteGuard: all {skipped} optimiser steps of this run were skipped for a "
+                               "non-finite loss or gradient, so the weights did not change; lower the LR, or check "
+                               "the data and the checkpoint the run started from")
 
     def state_dict(self) -> dict:
         return {"skipped": self.skipped}

@@ -69,3 +69,18 @@ def test_a_step_with_a_finite_loss_and_an_inf_gradient_is_skipped():
     assert not torch.equal(w0, w1)  # step 0 updated the weights
     assert torch.equal(w1, w2)  # step 1, the poisoned one, left every parameter as it was
     assert torch.isfinite(model.layer.bias).all()
+
+
+def test_a_run_whose_every_step_was_skipped_fails_at_its_end():
+    """Fewer steps than max_skips, every one non-finite (e.g. Stage II on a Stage I that blew up): the run used to
+    end with exit status 0 and an untrained checkpoint."""
+
+    class _AlwaysInf(_Linear):
+        def on_after_backward(self):
+            self.layer.bias.grad[0] = float("inf")
+
+    guard = NonFiniteGuard()
+    trainer = pl.Trainer(max_steps=3, accelerator="cpu", logger=False, enable_checkpointing=False,
+                         enable_progress_bar=False, enable_model_summary=False, callbacks=[guard])
+    with pytest.raises(RuntimeError, match="all 3 optimiser steps of this run were skipped"):
+        trainer.fit(_AlwaysInf(poison_step=-1))
