@@ -72,6 +72,20 @@ class PredictionExport(BasePredictionWriter):
     def on_predict_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
         self._folders = set()
 
+    def on_predict_batch_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule, batch: Any, batch_idx: int,
+                               dataloader_idx: int = 0) -> None:
+        """A chunked prediction's bar shows from the start of its first chunk (the network and the camera fit of one
+        chunk take seconds to minutes on a CPU)."""
+        if isinstance(batch, dict) and batch.get("chunk") is not None and batch["chunk"]["index"] == 0:
+            self._start_bar(batch)
+
+    def _start_bar(self, batch: dict) -> None:
+        from tqdm.auto import tqdm
+
+        if self._bar is not None:
+            self._bar.close()
+        self._bar = tqdm(total=batch["chunk"]["count"], desc=f"city: chunks of {batch['scene'][0]}", unit="chunk")
+
     def write_on_batch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule, prediction: dict[str, Any],
                            batch_indices: Any, batch: Any, batch_idx: int, dataloader_idx: int = 0) -> None:
         if isinstance(batch, dict) and batch.get("chunk") is not None:
@@ -117,10 +131,9 @@ class PredictionExport(BasePredictionWriter):
             if self._city is not None:
                 self._city.close()
             self._city = ChunkedScene(info["plan"], info["names"], info["hw"], out=folder)
-            from tqdm.auto import tqdm
-
-            self._bar = tqdm(total=info["count"], desc=f"city: chunks of {batch['scene'][0]}", unit="chunk")
             self._share_sums, self._share_count = None, 0
+            if self._bar is None or self._bar.n:  # not started by on_predict_batch_start
+                self._start_bar(batch)
         city = self._city
         if city is None:
             raise RuntimeError("PredictionExport: a chunked prediction did not start at chunk 0")
@@ -141,6 +154,7 @@ class PredictionExport(BasePredictionWriter):
         self._bar.update(1)
         if k == info["count"] - 1:
             self._bar.close()
+            self._bar = None
             self._city = None
             self.city_report = city.finish(folder)
             rep = self.city_report

@@ -137,3 +137,14 @@ def test_city_spill_goes_under_the_output_folder_and_is_gone_after_success(tmp_p
     assert not spill.exists() and not any(system_tmp.iterdir())
     assert [p.name for p in (tmp_path / "out").iterdir()] == ["flight"]
     assert sorted(p.name for p in out.iterdir()) == ["cameras.json", "chunks.json", "scene.ply"]
+
+
+def test_a_chunked_prediction_shows_its_bar_before_the_first_chunk_is_done(capsys):
+    """The bar used to appear when chunk 0 had been written (tens of seconds of silence on a CPU)."""
+    cb = PredictionExport()
+    cb.on_predict_batch_start(None, None, {"chunk": {"index": 0, "count": 3}, "scene": ["beach"]}, 0)
+    assert cb._bar is not None and cb._bar.total == 3 and cb._bar.n == 0
+    cb.on_predict_batch_start(None, None, {"chunk": {"index": 1, "count": 3}, "scene": ["beach"]}, 1)
+    assert cb._bar.total == 3  # the same bar, not a new one per chunk
+    cb.on_predict_end(None, None)
+    assert "city: chunks of beach" in capsys.readouterr().err
