@@ -179,8 +179,8 @@ def synth(out: str | Path, scenes: int = 8, views: int = 48, size: str | tuple[i
     """
     if trajectory not in TRAJECTORIES:
         raise ValueError(f"trajectory: expected one of {TRAJECTORIES}, got {trajectory!r}")
-    if scenes < 1 or views < 1:
-        raise ValueError(f"scenes and views: expected >= 1, got scenes={scenes}, views={views}")
+    if scenes < 1 or views < 2:  # a sample needs a context view and another to score it on
+        raise ValueError(f"scenes and views: expected scenes >= 1 and views >= 2, got scenes={scenes}, views={views}")
     if not 10 <= float(hfov) <= 120:
         raise ValueError(f"hfov: expected a horizontal field of view of 10..120 degrees, got {hfov!r}")
     if not 1 <= int(supersample) <= 4:

@@ -139,7 +139,7 @@ def view_main(argv: list[str]) -> int:
                    help="interface to listen on (default: %(default)s; 0.0.0.0 serves the network)")
     p.add_argument("--port", type=_port, default=8080,
                    help="port (default: %(default)s; 0: any free one; a busy one moves up)")
-    p.add_argument("--no-cameras", action="store_true", help="hide the camera frustums")
+    p.add_argument("--no_cameras", "--no-cameras", action="store_true", help="hide the camera frustums")
     a = p.parse_args(argv)
     server, scene = build_server(a.path, a.host, a.port, cameras=not a.no_cameras)
     print(f"anycity view: {scene.gaussians.num_gaussians:,} Gaussians at http://{a.host}:{server.get_port()} "

@@ -157,7 +157,7 @@ def render_video_main(argv: list[str]) -> int:
                                 allow_abbrev=False)
     p.add_argument("path", help="predict scene folder (scene.ply + cameras.json)")
     p.add_argument("--out", default=None, help="mp4 path (default: <path>/flythrough.mp4)")
-    p.add_argument("--per-segment", type=_int_at_least(1), default=12,
+    p.add_argument("--per_segment", "--per-segment", type=_int_at_least(1), default=12,
                    help="frames between consecutive cameras (default: %(default)s)")
     p.add_argument("--orbit", type=_int_at_least(0), default=0,
                    help="frames of an orbit around the scene centre (default: %(default)s: none)")

@@ -129,3 +129,17 @@ def test_cli_synth(tmp_path, capsys):
     assert [s["first"] for s in index["samples"]] == [0, 2]
     sample = next(iter(wds.WebDataset(str(out2 / index["shards"][0]["path"]), shardshuffle=False)))
     assert sample["__key__"].endswith("_w0000") and "003.normal.npy" in sample and "004.jpg" not in sample
+
+
+def test_a_set_a_sample_cannot_be_built_from_is_refused(tmp_path):
+    """One view per city (or per converted sample) gives shards that fit fails on later; refused at the start."""
+    import pytest
+
+    from anycity.data.parsers import convert
+    from anycity.data.synthetic import synth
+
+    with pytest.raises(ValueError, match="views >= 2, got scenes=2, views=1"):
+        synth(tmp_path / "a", scenes=2, views=1, size="16x16")
+    with pytest.raises(ValueError, match="max_views: expected >= 2 views per sample, got 1"):
+        convert("colmap", tmp_path, tmp_path / "b", max_views=1)
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()

@@ -20,6 +20,8 @@ def convert(format: str, src: str | Path, out: str | Path, split: str = "auto", 
         raise ValueError(f"format: expected one of {sorted(PARSERS)}, got {format!r}")
     if not Path(src).exists():
         raise FileNotFoundError(f"{src}: source folder not found; pass --src the dataset folder")
+    if max_views < 2:  # a sample needs a context view and another to score it on
+        raise ValueError(f"max_views: expected >= 2 views per sample, got {max_views}")
     return write_scenes(PARSERS[format](src), out, split=split, max_views=max_views, max_side=max_side, seed=seed,
                         overwrite=overwrite)
 
