@@ -122,6 +122,11 @@ def _cli_class():
             keep_previous_run(self.trainer, subcommand, self.config[subcommand].get("ckpt_path"), out, scene)
             if subcommand == "fit":
                 super()._run_subcommand(subcommand)
+                last = next((c.last_model_path for c in self.trainer.checkpoint_callbacks if c.last_model_path), None)
+                if last:
+                    from lightning.pytorch.utilities import rank_zero_info
+
+                    rank_zero_info(f"anycity: last checkpoint {last} (--ckpt_path last resumes from it)")
                 return
             with warnings.catch_warnings():  # no checkpoint is written, so which callback states come back is moot
                 for note in ("The dirpath has changed from", "Be aware that when using `ckpt_path`, callbacks"):

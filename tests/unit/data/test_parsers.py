@@ -103,6 +103,13 @@ def test_colmap_distorted_and_missing(tmp_path):
         convert("colmap", tmp_path / "scene" / "images", tmp_path / "o2")
     with pytest.raises(FileNotFoundError):
         convert("colmap", tmp_path / "nothing", tmp_path / "o3")
+    # the model folder instead of the scene's: named with the folder to pass (it said "images/v0.png: not found")
+    ok = tmp_path / "ok"
+    _images(ok / "images", [f"v{i}.png" for i in range(N)])
+    _write_colmap_bin(ok / "sparse" / "0", _gt())
+    with pytest.raises(FileNotFoundError, match=f"is the scene's COLMAP model folder; pass --src the scene folder "
+                                                f"that holds images/ and sparse/: {ok}$"):
+        convert("colmap", ok / "sparse" / "0", tmp_path / "o4")
 
 
 def test_nerfstudio(tmp_path):

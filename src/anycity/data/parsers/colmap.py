@@ -144,6 +144,11 @@ def parse(src: str | Path) -> list[ParsedScene]:
     for sc in scenes:
         m = read_model(sc)
         where = str(model_dir(sc))
+        if model_dir(sc) == sc and not (sc / "images").is_dir():  # --src SCENE/sparse/0
+            root = next((q for q in list(sc.parents)[:2] if (q / "images").is_dir()), None)
+            if root is not None:
+                raise FileNotFoundError(f"{sc} is the scene's COLMAP model folder; pass --src the scene folder that "
+                                        f"holds images/ and sparse/: {root}")
         views = []
         for img in sorted(m.images.values(), key=lambda x: x["name"]):
             model, w, h, params = m.cameras[img["camera_id"]]
