@@ -106,7 +106,7 @@ def test_free_name(tmp_path):
 
 
 def test_a_run_that_fails_before_its_first_step_leaves_the_checkpoints_and_exports_where_they_were(tiny_shards,
-                                                                                                     tmp_path):
+                                                                                                     tmp_path, caplog):
     """They used to be moved aside before anything was checked: a wrong image size, a fast_dev_run or a photo that
     does not decode left no ``checkpoints/last.ckpt`` (``--ckpt_path last`` then trained from scratch) and no scene."""
     run = tmp_path / "run"
@@ -114,9 +114,11 @@ def test_a_run_that_fails_before_its_first_step_leaves_the_checkpoints_and_expor
     (tmp_path / "ck.yaml").write_text("trainer:\n  callbacks:\n  - class_path: lightning.pytorch.callbacks."
                                       "ModelCheckpoint\n    init_args: {save_last: true, save_top_k: 0, "
                                       "every_n_train_steps: 1}\n")
-    build_cli(["fit", *_args(tiny_shards, run, ck)])
+    with caplog.at_level("INFO"):
+        build_cli(["fit", *_args(tiny_shards, run, ck)])
     last = run / "checkpoints" / "last.ckpt"
     first = last.read_bytes()
+    assert f"anycity: last checkpoint {last} (--ckpt_path last resumes from it)" in caplog.text
     with pytest.raises(ValueError, match="multiples of the patch size"):
         build_cli(["fit", *_args(tiny_shards, run, [*ck, "--data.image_size", "[36, 36]"])])
     build_cli(["fit", *_args(tiny_shards, run, [*ck, "--trainer.fast_dev_run", "true"])])
