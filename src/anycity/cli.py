@@ -202,7 +202,7 @@ Options:
 """
 
 LIGHTNING = ("fit", "validate", "test", "predict")
-# the top-level keys of a training command's config (`anycity fit --print_config`; tests/integration/test_cli_tiny.py)
+# the top-level keys of a training command's config (`anycity fit --print_config`; tests/integration/test_front_door.py)
 SECTIONS = ("seed_everything", "trainer", "model", "data", "freeze", "previews", "progress", "export", "nonfinite",
             "ckpt_path", "weights_only")
 _ALIASES = {"learning_rate": "lr", "learningrate": "lr", "max_step": "max_steps", "epochs": "max_epochs"}

@@ -71,8 +71,9 @@ def test_a_nadir_grid_orbits_above_the_ground():
     assert torch.allclose(scene_up(tower, c2w[:, :3, 3], camera_up), camera_up / camera_up.norm())
 
 
-@pytest.mark.parametrize("args, name", [(["--per-segment", "0"], "--per-segment"), (["--fps", "0"], "--fps"),
-                                        (["--orbit", "-1"], "--orbit"), (["--width", "1"], "--width")])
+@pytest.mark.parametrize("args, name", [(["--per-segment", "0"], "--per_segment/--per-segment"),
+                                        (["--fps", "0"], "--fps"), (["--orbit", "-1"], "--orbit"),
+                                        (["--width", "1"], "--width")])
 def test_nonsense_arguments_stop_with_the_option_named(tmp_path, capsys, args, name):
     with pytest.raises(SystemExit):
         render_video_main([str(tmp_path), *args])
