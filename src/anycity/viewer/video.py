@@ -12,6 +12,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from anycity.atomic import check_writable_folder
 from anycity.viewer.scene import ViewScene, load_view_scene
 
 
@@ -150,8 +151,6 @@ def _int_at_least(low: int):
 
 
 def render_video_main(argv: list[str]) -> int:
-    from anycity.atomic import check_writable_folder
-
     p = argparse.ArgumentParser(prog="anycity render-video",
                                 description="Render an mp4 fly-through along the predicted cameras.",
                                 allow_abbrev=False)
