@@ -99,7 +99,9 @@ class KeepPreviousRun(Callback):
     """Moves aside an earlier run's checkpoints (a fresh ``fit``) or export (``predict``) when this run's first batch
     ends, before anything of this run is written there. A run that stops earlier (a config or data error, a photo
     that does not decode, Ctrl-C at start-up) or writes no checkpoint (``fast_dev_run``) leaves them in place, so
-    ``last.ckpt`` and the exported scene stay where the user left them.
+    ``last.ckpt`` and the exported scene stay where the user left them. Under DDP the move happens when the loop
+    starts, behind a barrier: rank 1 could otherwise export a sample before rank 0's first batch ends, into the
+    folder rank 0 then moves aside.
 
     Args:
         paths: the folders to move aside.
@@ -120,6 +122,17 @@ class KeepPreviousRun(Callback):
                 if dest is not None:
                     self.moved.append(dest)
         self.paths = []
+
+    def _at_start(self, trainer) -> None:
+        if trainer.world_size > 1:  # another rank may write before this one's first batch ends: all wait for the move
+            self._keep(trainer)
+            trainer.strategy.barrier("anycity-keep-previous-run")
+
+    def on_train_start(self, trainer, *args, **kwargs) -> None:
+        self._at_start(trainer)
+
+    def on_predict_start(self, trainer, *args, **kwargs) -> None:
+        self._at_start(trainer)
 
     def on_train_batch_end(self, trainer, *args, **kwargs) -> None:
         self._keep(trainer)
