@@ -99,33 +99,32 @@ def _cli_class():
                 self.config[f"{sub}.model.init_args.pretrained"] = None
 
         def _run_subcommand(self, subcommand: str) -> None:
+            from lightning.pytorch.utilities import rank_zero_info
+
             from anycity.lit.keep import keep_previous_run, separate_from_training
 
             moved_to = separate_from_training(self.trainer, subcommand)  # the training's own files stay as they are
             if moved_to is not None:
-                from lightning.pytorch.utilities import rank_zero_info
-
                 rank_zero_info(f"anycity: this {subcommand} run's config, logs and previews go to {moved_to}")
+            export_root = scene = None
+            if subcommand == "predict":
+                export = next((c for c in self.trainer.callbacks if isinstance(c, PredictionExport)), None)
+                if export is not None:  # checked before the model runs: the export is written after it
+                    from anycity.atomic import check_writable_folder
 
-            out = next((c.out_dir for c in self.trainer.callbacks if isinstance(c, PredictionExport)), None)
-            photos = getattr(getattr(self.datamodule, "hp", None), "predict_images", None)
-            scene = None
-            if subcommand == "predict" and photos:
-                from anycity.data.photos import scene_name
+                    export_root = export.root(self.trainer)
+                    check_writable_folder(export_root, "--export.out_dir" if export.out_dir else
+                                          "the predictions folder")
+                photos = getattr(getattr(self.datamodule, "hp", None), "predict_images", None)
+                if photos:
+                    from anycity.data.photos import scene_name
 
-                scene = scene_name(photos)
-            if subcommand == "predict":  # before the model runs: the export is written after it
-                from anycity.atomic import check_writable_folder
-
-                root = out or Path(self.trainer.log_dir or self.trainer.default_root_dir) / "predictions"
-                check_writable_folder(root, "--export.out_dir" if out else "the predictions folder")
-            keep_previous_run(self.trainer, subcommand, self.config[subcommand].get("ckpt_path"), out, scene)
+                    scene = scene_name(photos)
+            keep_previous_run(self.trainer, subcommand, self.config[subcommand].get("ckpt_path"), export_root, scene)
             if subcommand == "fit":
                 super()._run_subcommand(subcommand)
                 last = next((c.last_model_path for c in self.trainer.checkpoint_callbacks if c.last_model_path), None)
                 if last:
-                    from lightning.pytorch.utilities import rank_zero_info
-
                     rank_zero_info(f"anycity: last checkpoint {last} (--ckpt_path last resumes from it)")
                 return
             with warnings.catch_warnings():  # no checkpoint is written, so which callback states come back is moot

@@ -56,7 +56,8 @@ class PredictionExport(BasePredictionWriter):
         self._bar = None
         self.city_report: dict | None = None
 
-    def _root(self, trainer: pl.Trainer) -> Path:
+    def root(self, trainer: pl.Trainer) -> Path:
+        """The folder the scenes are exported to: ``out_dir``, else ``<log_dir>/predictions``."""
         return Path(self.out_dir) if self.out_dir else Path(trainer.log_dir or trainer.default_root_dir) / "predictions"
 
     def _sample_folder(self, trainer: pl.Trainer, scene: str) -> Path:
@@ -67,7 +68,7 @@ class PredictionExport(BasePredictionWriter):
             n += 1
             name = f"{base}-{n}"
         self._folders.add(name)
-        return self._root(trainer) / name
+        return self.root(trainer) / name
 
     def on_predict_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
         self._folders = set()
@@ -126,7 +127,7 @@ class PredictionExport(BasePredictionWriter):
 
         info = batch["chunk"]
         k, views = info["index"], info["views"]
-        folder = self._root(trainer) / f"{batch['scene'][0]}".replace("/", "_")
+        folder = self.root(trainer) / f"{batch['scene'][0]}".replace("/", "_")
         if k == 0:
             if self._city is not None:
                 self._city.close()

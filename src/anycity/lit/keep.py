@@ -33,11 +33,12 @@ def move_aside(path: Path) -> Path | None:
     return dest
 
 
-def keep_previous_run(trainer, subcommand: str, ckpt_path=None, export_dir: str | None = None,
+def keep_previous_run(trainer, subcommand: str, ckpt_path=None, export_root: Path | None = None,
                       scene: str | None = None) -> list[Path]:
     """Move aside the log files an earlier run left where ``subcommand`` will write (now: Lightning writes them
     at setup) and attach a :class:`KeepPreviousRun` for its checkpoints or exports; returns the paths moved now.
-    ``scene``: the one scene a ``predict`` writes (a photo folder's name), when known."""
+    ``export_root``: where a ``predict`` exports (``PredictionExport.root``); ``scene``: the one scene it writes (a
+    photo folder's name), when known."""
     # Lightning's CSVLogger then warns that "previous log files in this directory will be deleted": the files it
     # would overwrite are moved aside here, so that warning could only alarm
     warnings.filterwarnings("ignore", message=r"Experiment logs directory .* exists and is not empty")
@@ -51,15 +52,13 @@ def keep_previous_run(trainer, subcommand: str, ckpt_path=None, export_dir: str 
             cb.save_last = None
     if subcommand == "fit" and ckpt_path is None and not trainer.fast_dev_run:
         keep = KeepPreviousRun(_checkpoint_dirs(trainer), checkpoints=True)
-    if subcommand == "predict":
-        out = Path(export_dir) if export_dir else Path(trainer.log_dir or trainer.default_root_dir) / "predictions"
-        keep = KeepPreviousRun([out / scene if scene else out], checkpoints=False)
+    if subcommand == "predict" and export_root is not None:
+        keep = KeepPreviousRun([export_root / scene if scene else export_root], checkpoints=False)
     if keep is not None:  # first in the list: its hooks run before ModelCheckpoint's and the export's
         trainer.callbacks.insert(0, keep)
+    log_dir = Path(trainer.log_dir or trainer.default_root_dir)  # where Lightning writes them; every rank asks
     if trainer.global_rank != 0:
         return []
-    lg = trainer.loggers[0] if trainer.loggers else None  # where Lightning writes them (Trainer.log_dir)
-    log_dir = Path(getattr(lg, "log_dir", None) or getattr(lg, "save_dir", None) or trainer.default_root_dir)
     moved = [move_aside(log_dir / name) for name in LOG_FILES]
     return [m for m in moved if m is not None]
 
