@@ -15,14 +15,18 @@ setup:
 test:
 	$(PY) -m pytest -m "not slow" tests
 
-# The suite on the oldest dependencies pyproject.toml allows (.ci/floors.txt), in its own venv; not in CI (~5 min).
+# The suite on the oldest dependencies pyproject.toml allows (.ci/floors.txt), in its own venv; not in CI (~10 min).
 # The oldest Python too: make test-floors FLOORS_PYTHON=python3.10 FLOORS_VENV=.venv-floors310 (torch 2.13 for 3.10
 # is not on this disk: pip downloads PyPI's CUDA build, 4.6 GB installed, which runs the suite on the CPU).
+# The oldest torch too: make test-floors FLOORS_TORCH=2.5.1 FLOORS_VENV=.venv-floors-t25 (PyPI's CUDA build, 5.9 GB
+# installed, on the CPU). A venv holding another torch gets FLOORS_TORCH installed over it.
 FLOORS_VENV ?= .venv-floors
 FLOORS_PYTHON ?= python3
+FLOORS_TORCH ?= 2.13.0
 test-floors:
 	@test -x $(FLOORS_VENV)/bin/python || $(FLOORS_PYTHON) -m venv $(FLOORS_VENV)
-	@$(FLOORS_VENV)/bin/python -c "import torch" 2>/dev/null || $(FLOORS_VENV)/bin/python -m pip install -q torch==2.13.0
+	@$(FLOORS_VENV)/bin/python -c "import sys, torch; sys.exit(torch.__version__.split('+')[0] != '$(FLOORS_TORCH)')" \
+		2>/dev/null || $(FLOORS_VENV)/bin/python -m pip install -q torch==$(FLOORS_TORCH)
 	$(FLOORS_VENV)/bin/python -m pip install -q -e ".[dev,wan,cpu]" -c .ci/floors.txt
 	$(FLOORS_VENV)/bin/python -m pytest -m "not slow" tests
 

@@ -82,7 +82,7 @@ def make_shards(out: Path) -> Path:
 
 def assert_params_equal(probe: Path) -> None:
     """The two ranks' final parameters (written by :class:`DDPProbe`) are finite and bit-identical."""
-    p0, p1 = (torch.load(probe / f"params_rank{r}.pt") for r in (0, 1))
+    p0, p1 = (torch.load(probe / f"params_rank{r}.pt", weights_only=True) for r in (0, 1))
     assert p0.keys() == p1.keys() and p0
     for k in p0:
         assert torch.isfinite(p0[k]).all(), k

@@ -49,7 +49,27 @@ def test_the_license_is_an_spdx_string():  # a TOML table is deprecated; setupto
     assert any(r.startswith("setuptools>=77") for r in meta["build-system"]["requires"])
 
 
-def test_make_test_floors_installs_the_pins_and_runs_the_suite():
+def _test_floors_recipe() -> str:
     make = (ROOT / "Makefile").read_text()
-    recipe = make.split("\ntest-floors:\n", 1)[1].split("\n\n", 1)[0]
+    return make.split("\ntest-floors:\n", 1)[1].split("\n\n", 1)[0]
+
+
+def test_make_test_floors_installs_the_pins_and_runs_the_suite():
+    recipe = _test_floors_recipe()
     assert '-c .ci/floors.txt' in recipe and 'pytest -m "not slow" tests' in recipe
+
+
+def test_the_torch_floor_run_the_readme_gives_installs_that_floor():
+    """The README's torch-floor command names a release of pyproject's torch floor, and the recipe installs it."""
+    assert "torch==$(FLOORS_TORCH)" in _test_floors_recipe()
+    run = re.search(r"make test-floors FLOORS_TORCH=([\w.]+)", (ROOT / "README.md").read_text())
+    assert run, "README.md: name the command that runs the suite on torch's floor"
+    floor = _floors_in_pyproject()["torch"]
+    assert Version(run[1]).release[:2] == floor.release[:2], (run[1], floor)
+
+
+def test_the_license_file_is_the_licence_pyproject_names():
+    tomllib = pytest.importorskip("tomllib")
+    assert tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["license"] == "Apache-2.0"
+    text = (ROOT / "LICENSE").read_text()
+    assert "Apache License" in text and "Version 2.0, January 2004" in text and "END OF TERMS AND CONDITIONS" in text
