@@ -14,3 +14,11 @@ def load_script(name: str, folder: str = "scripts") -> ModuleType:
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod
+
+
+def anycity_in_process(cmd: str, args: list[str], row: str) -> None:
+    """A stand-in for ``scripts/stage2_tables.py``'s ``_anycity``: the row's ``anycity CMD ARGS`` in this process
+    (each launch of its own would cost its imports, ~8 s on 2 cores)."""
+    from anycity.cli import main
+
+    assert main([cmd, *args]) == 0, f"row {row}: anycity {cmd} failed"

@@ -5,18 +5,14 @@ import json
 
 import pytest
 import torch
-from helpers.scripts import load_script
+from helpers.scripts import anycity_in_process, load_script
 
-from anycity.cli import build_cli, main
+from anycity.cli import build_cli
 
 
 @pytest.fixture(autouse=True)
 def _argv(monkeypatch):
     monkeypatch.setattr("sys.argv", ["script.py"])
-
-
-def _in_process(cmd: str, args: list[str], row: str) -> None:
-    assert main([cmd, *args]) == 0, f"row {row}: anycity {cmd} failed"
 
 
 def test_pretrain_then_stage2_row(tiny_shards, tmp_path, capsys, monkeypatch):
@@ -42,9 +38,8 @@ def test_pretrain_then_stage2_row(tiny_shards, tmp_path, capsys, monkeypatch):
                "--trainer.max_steps", "2", "--trainer.default_root_dir", str(s1),
                "--trainer.logger.init_args.save_dir", str(s1)])
     tables = load_script("stage2_tables")
-    # each row's `anycity fit|test` in this process: 4 launches' imports (~8 s each on 2 cores) saved; the script's
-    # own subprocess launches are covered by test_stage2_tables.py
-    monkeypatch.setattr(tables, "_anycity", _in_process)
+    # each row's `anycity fit|test` in this process; the script's own launches: test_stage2_tables.py
+    monkeypatch.setattr(tables, "_anycity", anycity_in_process)
     out = tmp_path / "tables"
     argv = ["--stage1", str(s1 / "checkpoints" / "last.ckpt"), "--data", str(tiny_shards), "--out", str(out),
             "--steps", "2", "--rows", "prior_cameras", *extra]

@@ -3,9 +3,10 @@ figures, finished rows are reused and foreign ones refused."""
 
 import json
 import math
+import sys
 
 import pytest
-from helpers.scripts import load_script
+from helpers.scripts import anycity_in_process, load_script
 
 from anycity.cli import build_cli
 
@@ -41,6 +42,7 @@ def test_rows_tables_reuse_and_refusal(tiny_shards, tmp_path, capsys):
             "--rows", "full,tokens,frozen_all",
             "--configs", "configs/quickstart.yaml", "configs/quickstart_stage2.yaml", str(every), *extra]
     mod = _script()
+    mod._anycity = anycity_in_process  # the launches themselves: test_each_command_is_its_own_anycity_process
     assert mod.main(argv) == 0
 
     # the row's overrides reached its run
@@ -75,6 +77,19 @@ def test_rows_tables_reuse_and_refusal(tiny_shards, tmp_path, capsys):
     assert (out / "full" / "metrics.json").stat().st_mtime_ns == stamp
     with pytest.raises(SystemExit, match=f"{out / 'full'} holds a run made with other settings.*delete"):
         mod.main([*argv[:argv.index("--steps") + 1], "3", *argv[argv.index("--steps") + 2:]])
+
+
+def test_each_command_is_its_own_anycity_process(monkeypatch):
+    """A row's fit and test each run as `python -m anycity.cli CMD ARGS` (so --trainer.devices 2 launches DDP), and a
+    failed one stops the script naming the row and the command."""
+    mod, launched, rc = _script(), [], [0]
+    monkeypatch.setattr(mod.subprocess, "call", lambda argv: launched.append(argv) or rc[0])
+    mod._anycity("fit", ["-c", "configs/stage2.yaml", "--trainer.devices", "2"], "full")
+    assert launched == [[sys.executable, "-m", "anycity.cli", "fit", "-c", "configs/stage2.yaml",
+                         "--trainer.devices", "2"]]
+    rc[0] = 3
+    with pytest.raises(SystemExit, match="row tokens: `anycity test` failed \\(exit 3\\)"):
+        mod._anycity("test", [], "tokens")
 
 
 def test_bad_rows_and_missing_checkpoint(tmp_path, capsys):
