@@ -78,7 +78,8 @@ def save_ply(g: Gaussians, path: str | Path, index: int = 0, max_degree: int = 3
     path.parent.mkdir(parents=True, exist_ok=True)
     buf = io.BytesIO()  # written whole then renamed: a killed export leaves no scene.ply that looks complete
     PlyData([PlyElement.describe(data, "vertex")], text=False, byte_order="<").write(buf)
-    atomic_write_bytes(path, buf.getbuffer())
+    with buf.getbuffer() as view:  # released even on an error (see lit/checkpoint_io.py)
+        atomic_write_bytes(path, view)
     return dropped
 
 

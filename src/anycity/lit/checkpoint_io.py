@@ -57,8 +57,9 @@ class SafeCheckpointIO(TorchCheckpointIO):
             raise TypeError(f"storage_options is not supported by {type(self).__name__}")
         buf = io.BytesIO()
         torch.save(checkpoint, buf)
-        _maybe_die_mid_write(path, buf.getbuffer())
-        atomic_write_bytes(path, buf.getbuffer())
+        with buf.getbuffer() as view:  # released even on an error: a view alive when buf is freed is a BufferError
+            _maybe_die_mid_write(path, view)
+            atomic_write_bytes(path, view)
 
     def load_checkpoint(self, path, map_location: Any = lambda storage, loc: storage,
                         weights_only: bool | None = None) -> dict[str, Any]:

@@ -1,13 +1,14 @@
 """A write that dies midway (full disk, kill) leaves the old file or none under the final name, and no temp file.
 
-Covers the ``anycity export`` writers (``.splat``, COLMAP text, ``transforms.json``, ``scale.json``) and its output
-folder as a whole, the city merge's streamed ``scene.ply`` (:class:`anycity.city.PlyStream`) and the city spill
-folder.
+Covers the ``anycity export`` writers (``scene.ply``, ``.splat``, COLMAP text, ``transforms.json``, ``scale.json``)
+and its output folder as a whole, the city merge's streamed ``scene.ply`` (:class:`anycity.city.PlyStream`) and the
+city spill folder.
 """
 
 from __future__ import annotations
 
 import errno
+import io
 import os
 import shutil
 import signal
@@ -15,6 +16,7 @@ import stat
 import subprocess
 import sys
 import textwrap
+import traceback
 
 import pytest
 import torch
@@ -44,6 +46,7 @@ def _cams(v: int = 3):
 
 
 WRITERS = {
+    "scene.ply": lambda d: save_ply(_gaussians(20), d / "scene.ply"),
     "scene.splat": lambda d: save_splat(_gaussians(20), d / "scene.splat"),
     "points3D.txt": lambda d: save_colmap(d / "sparse" / "0", *_cams(), 48, 32, ["a", "b", "c"], _gaussians(20)),
     "transforms.json": lambda d: save_transforms(d / "transforms.json", *_cams(), 48, 32, ["a", "b", "c"]),
@@ -54,9 +57,12 @@ WRITERS = {
 @pytest.mark.parametrize("name", list(WRITERS))
 def test_export_write_failing_midway_leaves_no_file_under_the_final_name(tmp_path, monkeypatch, name):
     fail_writes_midway(monkeypatch, name)
-    with pytest.raises(OSError, match=f"disk full writing .*{name}"):
+    with pytest.raises(OSError, match=f"disk full writing .*{name}") as e:
         WRITERS[name](tmp_path)
     monkeypatch.undo()
+    for frame, _ in traceback.walk_tb(e.value.__traceback__):  # the error keeps the writer's buffers: none may
+        for buf in [v for v in frame.f_locals.values() if isinstance(v, io.BytesIO)]:  # still be exported, else
+            buf.close()  # freeing it (the garbage collector, later, anywhere) raises BufferError
     left = _files(tmp_path)
     assert not [f for f in left if name in f], left  # neither the final name nor a temp file
     if name == "points3D.txt":  # the model's other files were written whole before it
