@@ -67,7 +67,7 @@ def test_photo_folder_chunks_merge_into_one_scene(tmp_path, capsys):
         assert sorted(p.name for p in (out / kind).iterdir()) == [f"{v:03d}.png" for v in range(n)]
     photo = {v: b["images"][0, j] for b in batches for j, v in enumerate(b["chunk"]["views"])}
     for v in range(n):
-        back = torch.from_numpy(np.asarray(Image.open(view_png(out, "inputs", v)))).permute(2, 0, 1) / 255.0
+        back = torch.from_numpy(np.array(Image.open(view_png(out, "inputs", v)))).permute(2, 0, 1) / 255.0
         assert (back - photo[v].float().clamp(0, 1)).abs().max() <= 0.5 / 255 + 1e-6
     # provenance and the smoothing filter, as for a single-pass scene: every Gaussian is seen by its own view (and
     # the overlapping ones by more), none was changed by Stage II; the filter only grows the 0.01 scales
