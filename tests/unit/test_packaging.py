@@ -68,7 +68,7 @@ def test_the_torch_floor_run_the_readme_gives_installs_that_floor():
     assert Version(run[1]).release[:2] == floor.release[:2], (run[1], floor)
 
 
-def test_the_license_file_is_the_licence_pyproject_names():
+def test_the_license_file_is_the_license_pyproject_names():
     tomllib = pytest.importorskip("tomllib")
     assert tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["license"] == "Apache-2.0"
     text = (ROOT / "LICENSE").read_text()
