@@ -76,9 +76,14 @@ def separate_from_training(trainer, subcommand: str) -> Path | None:
         return None
     if not any(Path(lg.log_dir).glob("checkpoints/*.ckpt")):
         return None
-    version = lg.version if isinstance(lg.version, str) else f"version_{lg.version}"
-    lg._version = str(Path(version) / subcommand)  # read by log_dir; the logger writes nothing before the run
+    # read by log_dir; the logger writes nothing before the run
+    lg._version = str(Path(_version_folder(lg)) / subcommand)
     return Path(lg.log_dir)
+
+
+def _version_folder(logger) -> str:
+    """A logger's version as the folder Lightning names after it (``version_3``, or a string version as it is)."""
+    return logger.version if isinstance(logger.version, str) else f"version_{logger.version}"
 
 
 def _checkpoint_dirs(trainer) -> list[Path]:
@@ -88,8 +93,8 @@ def _checkpoint_dirs(trainer) -> list[Path]:
         ckpt_dir = Path(cb.dirpath) if cb.dirpath else None
         if ckpt_dir is None and trainer.loggers:
             lg = trainer.loggers[0]
-            ckpt_dir = Path(lg.save_dir or trainer.default_root_dir) / str(lg.name or "") / (
-                lg.version if isinstance(lg.version, str) else f"version_{lg.version}") / "checkpoints"
+            ckpt_dir = Path(lg.save_dir or trainer.default_root_dir) / str(lg.name or "") / _version_folder(lg) / \
+                "checkpoints"
         dirs.append(ckpt_dir or Path(trainer.default_root_dir) / "checkpoints")
     return dirs
 
