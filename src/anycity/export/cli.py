@@ -78,7 +78,7 @@ def export(src: str | Path, fmt: str, out: str | Path, overwrite: bool = False) 
 def _write(g, cams: dict | None, src: Path, fmt: str, out: Path) -> Path:
     """The files of format ``fmt`` in the folder ``out``; returns the main file or folder written."""
     from anycity.atomic import atomic_write_bytes
-    from anycity.export.formats import save_colmap, save_scale, save_splat, save_transforms
+    from anycity.export.formats import save_colmap, save_points_ply, save_scale, save_splat, save_transforms
     from anycity.export.ply import save_ply
 
     out.mkdir(parents=True, exist_ok=True)
@@ -105,8 +105,9 @@ def _write(g, cams: dict | None, src: Path, fmt: str, out: Path) -> Path:
     if fmt == "colmap":
         return save_colmap(out / "sparse" / "0", w2c, K, w, h, images, g)
     save_ply(g, out / "scene.ply")
+    save_points_ply(out / "points3D.ply", g)  # nerfstudio seeds from x y z + red green blue, not from SH columns
     return save_transforms(out / "transforms.json", w2c, K, w, h, [f"images/{n}" for n in images],
-                           ply_file_path="scene.ply")
+                           ply_file_path="points3D.ply")
 
 
 def image_names(names: list[str]) -> list[str]:
@@ -126,8 +127,9 @@ def export_main(argv: list[str]) -> int:
                                 allow_abbrev=False)
     p.add_argument("--from", dest="src", required=True, help="predict scene folder or scene.ply")
     p.add_argument("--format", required=True, choices=FORMATS, help="splat: antimatter15 .splat; colmap: text "
-                   "model (sparse/0); nerfstudio: transforms.json + scene.ply; ply: graphdeco's exact 3DGS PLY record "
-                   "(no provenance columns, SH padded to degree 3) for every reader, SIBR's included")
+                   "model (sparse/0); nerfstudio: transforms.json + points3D.ply (its seed) + scene.ply; ply: "
+                   "graphdeco's exact 3DGS PLY record (no provenance columns, SH padded to degree 3) for every reader, "
+                   "SIBR's included")
     p.add_argument("--out", default=None, help="output folder (default: <from>/export_<format>)")
     p.add_argument("--overwrite", action="store_true", help="write into an --out folder that is not empty")
     a = p.parse_args(argv)

@@ -7,6 +7,7 @@ written through :mod:`anycity.atomic`: a killed export leaves no partial file un
 
 from __future__ import annotations
 
+import io
 import json
 from pathlib import Path
 
@@ -85,16 +86,42 @@ def save_colmap(path: str | Path, w2c: Tensor, K: Tensor, width: int, height: in
     _write_lines(path / "images.txt", imgs)
     pts = ["# 3D point list: POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] (Gaussian centres, no tracks)"]
     if g is not None:
-        keep = np.nonzero(_keep(g, index))[0]
-        if max_points is not None and len(keep) > max_points:
-            op = g.opacities[index].float().cpu().numpy()[keep]
-            keep = np.sort(keep[np.argsort(-op, kind="stable")[:max_points]])
-        xyz = g.means[index].double().cpu().numpy()[keep]
-        rgb = np.round(_dc_rgb(g, index)[keep] * 255).astype(int)
+        xyz, rgb = _coloured_points(g, index, max_points)
         pts += [f"{i + 1} {p[0]:.9g} {p[1]:.9g} {p[2]:.9g} {c[0]} {c[1]} {c[2]} 0"
                 for i, (p, c) in enumerate(zip(xyz, rgb, strict=True))]
     _write_lines(path / "points3D.txt", pts)
     return path
+
+
+def _coloured_points(g: Gaussians, index: int, max_points: int | None) -> tuple[np.ndarray, np.ndarray]:
+    """Centres ``[P, 3]`` (float64) and DC colours ``[P, 3]`` (uint8) of scene ``index``'s valid Gaussians, at most
+    ``max_points`` of the most opaque ones, in their stored order."""
+    keep = np.nonzero(_keep(g, index))[0]
+    if max_points is not None and len(keep) > max_points:
+        op = g.opacities[index].float().cpu().numpy()[keep]
+        keep = np.sort(keep[np.argsort(-op, kind="stable")[:max_points]])
+    xyz = g.means[index].double().cpu().numpy()[keep]
+    return xyz, np.round(_dc_rgb(g, index)[keep] * 255).astype(np.uint8)
+
+
+def save_points_ply(path: str | Path, g: Gaussians, index: int = 0, max_points: int | None = None) -> Path:
+    """The Gaussian centres of scene ``index`` as a coloured point cloud (``x y z`` float, ``red green blue``
+    uchar), the seed layout nerfstudio's ``ply_file_path`` and graphdeco's ``fetchPly`` read; returns ``path``.
+    Points as in :func:`save_colmap`."""
+    from plyfile import PlyData, PlyElement
+
+    xyz, rgb = _coloured_points(g, index, max_points)
+    data = np.empty(len(xyz), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
+                                     ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+    for i, c in enumerate("xyz"):
+        data[c] = xyz[:, i]
+    for i, c in enumerate(("red", "green", "blue")):
+        data[c] = rgb[:, i]
+    buf = io.BytesIO()
+    PlyData([PlyElement.describe(data, "vertex")], text=False, byte_order="<").write(buf)
+    with buf.getbuffer() as view:  # released even on an error (see lit/checkpoint_io.py)
+        atomic_write_bytes(path, view)
+    return Path(path)
 
 
 def _write_lines(path: Path, lines: list[str]) -> None:

@@ -52,7 +52,7 @@ def gaussians_to_ply_arrays(g: Gaussians, index: int = 0, max_degree: int = 3,
         cols[f"n{c}"] = torch.zeros_like(means[:, 0])
     for i in range(3):
         cols[f"f_dc_{i}"] = sh[:, 0, i]
-    rest = sh[:, 1:, :].transpose(1, 2).reshape(sh.shape[0], -1)  # [N, 3*(K-1)] channel-major
+    rest = sh[:, 1:, :].transpose(1, 2).reshape(sh.shape[0], 3 * (sh.shape[1] - 1))  # [N, 3*(K-1)] channel-major
     for i in range(rest.shape[1]):
         cols[f"f_rest_{i}"] = rest[:, i]
     cols["opacity"] = torch.log(p / (1 - p))

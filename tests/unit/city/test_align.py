@@ -185,6 +185,16 @@ def test_ply_stream_matches_save_ply(tmp_path):
     assert not list(tmp_path.glob("*.tmp"))
 
 
+def test_a_piece_whose_every_gaussian_is_dropped_adds_no_rows(tmp_path):
+    g, bad = _gaussians(6), _gaussians(3, seed=1)
+    bad.scales.zero_()  # every row invalid: dropped, as save_ply drops them
+    with PlyStream(tmp_path / "s.ply") as s:
+        s.write(g)
+        s.write(bad)
+    assert (s.count, s.dropped) == (6, 3)
+    assert torch.equal(load_ply(tmp_path / "s.ply").means, g.means)
+
+
 def test_token_descriptors_are_per_photo():
     from anycity.city.plan import token_descriptors
     from anycity.models import build_network

@@ -86,7 +86,7 @@ def test_colmap_round_trip(tmp_path):
         np.testing.assert_allclose(colmap_parser.w2c_of(img), w2c[v].numpy(), atol=1e-6)
         cam = model.cameras[img["camera_id"]]
         assert cam[1:3] == (48, 32)
-        np.testing.assert_allclose(colmap_parser.intrinsics(cam[0], cam[3], "t"), K[v].numpy(), atol=1e-12)
+        np.testing.assert_allclose(colmap_parser.intrinsics(cam[0], cam[3], "t")[0], K[v].numpy(), atol=1e-12)
     pts = np.stack([model.points[i + 1] for i in range(g.num_gaussians)])
     np.testing.assert_allclose(pts, g.means[0].numpy(), atol=1e-6)
     rgb = (tmp_path / "out" / "sparse" / "0" / "points3D.txt").read_text().splitlines()[1].split()[4:7]
@@ -105,7 +105,16 @@ def test_nerfstudio_round_trip(tmp_path):
         np.testing.assert_allclose(view.K, K[v].numpy(), atol=1e-12)
         assert (view.width, view.height) == (48, 32)
     meta = json.loads(path.read_text())
-    assert meta["ply_file_path"] == "scene.ply" and (tmp_path / "out" / "scene.ply").is_file()
+    assert (tmp_path / "out" / "scene.ply").is_file()
+    # the seed nerfstudio reads (open3d: points and colours; graphdeco's fetchPly: x y z red green blue)
+    from plyfile import PlyData
+
+    seed = PlyData.read(str(tmp_path / "out" / meta["ply_file_path"]))["vertex"]
+    assert [p.name for p in seed.properties] == ["x", "y", "z", "red", "green", "blue"]
+    assert seed["red"].dtype == np.uint8
+    np.testing.assert_allclose(np.stack([seed[c] for c in "xyz"], -1), g.means[0].numpy(), atol=1e-6)
+    rgb = (0.5 + SH_C0 * g.sh[0, :, 0]).clamp(0, 1).numpy() * 255
+    np.testing.assert_allclose(np.stack([seed[c] for c in ("red", "green", "blue")], -1), rgb, atol=0.51)
     assert json.loads((tmp_path / "out" / "scale.json").read_text())["metres_per_unit"] == 2.5
 
 
@@ -174,6 +183,18 @@ def test_ply_export_and_errors(tmp_path, capsys):
     assert not (tmp_path / "o2").exists()  # refused before writing anything
     with pytest.raises(FileNotFoundError, match="scene.ply"):
         export(tmp_path, "splat", tmp_path / "o3")
+
+
+@pytest.mark.parametrize("pad_degree", [None, 3])
+def test_a_scene_with_no_gaussian_left_is_a_readable_empty_ply(tmp_path, pad_degree):
+    from anycity.export import load_ply
+
+    g, _, _ = _scene(4)
+    g.opacities.fill_(float("nan"))  # every row dropped
+    assert save_ply(g, tmp_path / "e.ply", pad_degree=pad_degree) == 4
+    back = load_ply(tmp_path / "e.ply")
+    assert back.means.shape == (1, 0, 3)
+    assert back.sh.shape == (1, 0, ((pad_degree or g.sh_degree) + 1) ** 2, 3)
 
 
 def test_a_malformed_cameras_json_is_one_line_naming_it(tmp_path):
