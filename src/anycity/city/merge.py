@@ -13,27 +13,22 @@ from anycity.atomic import atomic_open
 from anycity.city.align import sim3_parts
 from anycity.export.ply import gaussians_to_ply_arrays
 from anycity.geometry.rotations import quat_multiply, rotmat_to_quat
+from anycity.render.sh import sh_rotation
 from anycity.structures import Gaussians
 
 
 def sim3_gaussians(g: Gaussians, S: Tensor) -> Gaussians:
     """Gaussians (any batch) moved by one Sim(3) ``S [4, 4]``: centres ``s R p + t``, rotations ``R q``, scales
-    ``s x``; the degree-1 SH band is rotated with the scene (higher bands are kept as they are: an approximation
-    that only the view-dependent colour of degree >= 2 feels)."""
+    ``s x``, and every SH band rotated with the scene (``render.sh.sh_rotation``), so each Gaussian's view-dependent
+    colour turns with it."""
     S = S.to(g.means)
     s, R, t = sim3_parts(S.double())
     s, R, t = s.to(g.means), R.to(g.means), t.to(g.means)
     means = g.means @ (s * R).T + t
     quats = quat_multiply(rotmat_to_quat(R).expand_as(g.quats), g.quats)
     sh = g.sh
-    if sh.shape[-2] >= 4:
-        # Degree-1 colour is C1 * (-y a1 + z a2 - x a3) = C1 * b . d with b = (-a3, -a1, a2) in xyz; a rotated
-        # scene must give the same colour for the rotated direction, so b -> R b.
-        a = sh[..., 1:4, :]
-        b = torch.stack([-a[..., 2, :], -a[..., 0, :], a[..., 1, :]], -2)  # [..., 3(xyz), 3(rgb)]
-        b = torch.einsum("ij,...jc->...ic", R, b)
-        a_new = torch.stack([-b[..., 1, :], b[..., 2, :], -b[..., 0, :]], -2)
-        sh = torch.cat([sh[..., :1, :], a_new, sh[..., 4:, :]], -2)
+    if g.sh_degree >= 1:
+        sh = torch.einsum("ij,...jc->...ic", sh_rotation(R, g.sh_degree).to(sh), sh)
     return Gaussians(means, quats, g.scales * s, g.opacities, sh, g.valid)
 
 
