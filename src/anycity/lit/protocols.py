@@ -114,7 +114,12 @@ def joint(module, context: Views, target: Views) -> tuple[RenderOutput, Tensor]:
         n = g.means.shape[1] // out["w2c"].shape[1] * v  # the context views' pixel-aligned Gaussians come first
         ctx_g = Gaussians(g.means[:, :n], g.quats[:, :n], g.scales[:, :n], g.opacities[:, :n], g.sh[:, :n])
         renders[name] = module.render(ctx_g, w2c_t, K_t, target.hw, context.images)
-    pred_d = camera_centers(out["w2c"][:, :v]).norm(dim=-1).mean(1)
-    gt_d = camera_centers(context.w2c.float()).sub(camera_centers(context.w2c.float())[:, :1]).norm(dim=-1).mean(1)
+    pred_d = _mean_distance_from_first(camera_centers(out["w2c"][:, :v]))  # the head does not pin view 0 at 0
+    gt_d = _mean_distance_from_first(camera_centers(context.w2c.float()))
     s = torch.where(gt_d > 1e-8, pred_d / gt_d.clamp_min(1e-8), torch.ones_like(gt_d))
     return renders, s
+
+
+def _mean_distance_from_first(centers: Tensor) -> Tensor:
+    """Mean distance ``[B]`` of the camera centres ``[B, V, 3]`` from the first one."""
+    return (centers - centers[:, :1]).norm(dim=-1).mean(1)

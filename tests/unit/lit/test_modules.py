@@ -7,7 +7,7 @@ import torch
 
 from anycity.geometry import make_intrinsics
 from anycity.lit import RefinementModule, ScaffoldModule
-from anycity.structures import ViewBatch, Views
+from anycity.structures import Gaussians, ViewBatch, Views
 
 H = W = 32
 
@@ -230,6 +230,24 @@ def test_joint_protocol_scores_and_region_metrics_are_logged(batch):
     for name in ("scaffold", "refined", "baseline"):
         present = [k for k in (f"psnr_obs_{name}", f"psnr_weak_{name}") if k in res]
         assert present, name  # at least one region is non-empty
+
+
+def test_joint_depth_scale_is_the_ratio_of_camera_spreads_wherever_the_predicted_world_sits():
+    from types import SimpleNamespace
+
+    from anycity.lit import protocols as P
+
+    ctx, tgt = _views(3, 0, [1, 3, 5]), _views(1, 1, [2])
+    ctx.w2c[0, :, 1, 3] = torch.tensor([0.0, 0.2, -0.1])
+    w2c = torch.cat([ctx.w2c, tgt.w2c], 1).clone()  # the network's cameras: the truth, 2x larger, moved by 5 units
+    w2c[..., :3, 3] = 2 * w2c[..., :3, 3] - (w2c[..., :3, :3] @ torch.tensor([5.0, -1.0, 2.0]))
+    out = {"w2c": w2c, "K": torch.cat([ctx.K, tgt.K], 1)}
+    g = Gaussians(torch.zeros(1, 4, 3), torch.tensor([[1.0, 0, 0, 0]]).repeat(1, 4, 1), torch.ones(1, 4, 3),
+                  torch.ones(1, 4), torch.zeros(1, 4, 1, 3))
+    module = SimpleNamespace(predict_variants=lambda images: (out, {"scaffold": g}),
+                             variant_cameras=lambda o, name: (o["w2c"], o["K"]), render=lambda *a: None)
+    _, s = P.joint(module, ctx, tgt)
+    torch.testing.assert_close(s, torch.tensor([2.0]))
 
 
 def test_hparams_hold_the_subclass_and_base_arguments():
