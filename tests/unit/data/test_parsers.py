@@ -93,11 +93,95 @@ def _check_convert(fmt, src, out, gt, scale=1.0):
     return _check(out, gt, scale)
 
 
+def test_a_camera_for_another_size_is_rescaled_and_one_for_another_aspect_is_refused(tmp_path):
+    gt = _gt()
+    src = tmp_path / "scene"
+    (src / "images").mkdir(parents=True)
+    for i in range(N):  # stored at twice the camera's resolution: K follows
+        cv2.imwrite(str(src / "images" / f"v{i}.png"), np.zeros((2 * H, 2 * W, 3), np.uint8))
+    _write_colmap_bin(src / "sparse" / "0", gt)
+    convert("colmap", src, tmp_path / "out")
+    assert np.allclose(_read(tmp_path / "out")[0]["views"][0]["K"], np.diag([2.0, 2.0, 1.0]) @ K)
+    for i in range(N):  # saved again rotated (an EXIF orientation applied): stretching K would be wrong
+        cv2.imwrite(str(src / "images" / f"v{i}.png"), np.zeros((W, H, 3), np.uint8))
+    with pytest.raises(ValueError, match=rf"v0\.png: the image is {H}x{W} but its camera is for {W}x{H}, another "
+                                         "aspect ratio"):
+        convert("colmap", src, tmp_path / "out2")
+
+
+def _blobs(K, dist, pts, h, w):
+    """``[h, w, 3]`` uint8: a Gaussian blob (sigma 1.5 px) where each normalised point ``pts [P, 2]`` lands through
+    the camera ``K`` (pixel centres at +0.5) with OpenCV distortion ``dist``."""
+    K_cv = K - np.array([[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]])
+    uv = cv2.projectPoints(np.c_[pts, np.ones(len(pts))], np.zeros(3), np.zeros(3), K_cv, dist)[0][:, 0]
+    ii, jj = np.mgrid[0:h, 0:w]
+    img = sum(np.exp(-((jj - u) ** 2 + (ii - v) ** 2) / (2 * 1.5 ** 2)) for u, v in uv)
+    return np.repeat(np.round(255 * img).astype(np.uint8)[..., None], 3, -1), uv + 0.5
+
+
+def _centroids(img, near, r=4):
+    """Intensity centroids (pixel centres at +0.5) of the blobs within ``r`` px of each ``near [P, 2]``."""
+    g = img[..., 0].astype(float)
+    out = []
+    for u, v in near:
+        i0, j0 = int(v), int(u)
+        ii, jj = np.mgrid[i0 - r:i0 + r + 1, j0 - r:j0 + r + 1]
+        win = g[i0 - r:i0 + r + 1, j0 - r:j0 + r + 1]
+        out.append([(win * (jj + 0.5)).sum() / win.sum(), (win * (ii + 0.5)).sum() / win.sum()])
+    return np.array(out)
+
+
+@pytest.mark.parametrize("fmt", ["colmap", "nerfstudio"])
+def test_a_distorted_camera_is_stored_undistorted_with_its_pinhole_k(tmp_path, fmt):
+    """Each point of the scene is where the stored pinhole K puts it: COLMAP's OPENCV model, and DL3DV's layout (a
+    json for the full resolution with k1 k2 p1 p2, the images in ``images_4``)."""
+    gt, w, h = _gt(), 64, 48
+    K_img = np.array([[40.0, 0, 32.0], [0, 41.0, 24.0], [0, 0, 1]])  # at the images' 64x48
+    dist = np.array([-0.25, 0.05, 0.002, -0.001])  # k1 k2 p1 p2: a wide drone lens
+    pts = np.array([[0.0, 0.0], [0.35, 0.25], [-0.4, -0.3], [0.45, -0.2]])
+    img, seen = _blobs(K_img, dist, pts, h, w)
+    src = tmp_path / "scene"
+    folder = src / "images" if fmt == "colmap" else src / "images_4"
+    folder.mkdir(parents=True)
+    for i in range(N):
+        cv2.imwrite(str(folder / f"v{i}.png"), img)
+    if fmt == "colmap":  # its camera is for 32x24: rescaled to the images first
+        _write_colmap_bin(src / "sparse" / "0", gt, model_id=4, params=(20.0, 20.5, 16.0, 12.0, *dist))
+    else:
+        frames = [{"file_path": f"images/v{i}.png", "transform_matrix": (np.linalg.inv(g) @ GL_TO_CV).tolist()}
+                  for i, g in enumerate(gt)]
+        (src / "transforms.json").write_text(json.dumps({
+            "camera_model": "OPENCV", "fl_x": 160.0, "fl_y": 164.0, "cx": 128.0, "cy": 96.0, "w": 4 * w, "h": 4 * h,
+            **dict(zip(("k1", "k2", "p1", "p2"), dist.tolist())), "frames": frames}))
+    convert(fmt, src, tmp_path / "out")
+    sample = next(iter(wds.WebDataset(str(next((tmp_path / "out").glob("*.tar"))), shardshuffle=False)))
+    meta = read_meta(sample)
+    K_new = np.array(meta["views"][0]["K"])
+    for v, g in zip(meta["views"], gt):
+        np.testing.assert_allclose(np.array(v["w2c"]), g, atol=1e-6)  # undistortion leaves the pose alone
+    stored = cv2.imdecode(np.frombuffer(sample["000.png"], np.uint8), cv2.IMREAD_COLOR)
+    assert stored.shape[:2] == (h, w)
+    want = (np.c_[pts, np.ones(len(pts))] @ K_new.T)[:, :2]
+    assert np.abs(want - seen).max() > 2  # the distortion moves these points by more than the tolerance below
+    np.testing.assert_allclose(_centroids(stored, want), want, atol=0.25)
+
+
+def test_photos_colmap_did_not_register_are_named_not_dropped_silently(tmp_path):
+    src = tmp_path / "scene"
+    _images(src / "images", [f"v{i}.png" for i in range(N)] + ["stray.jpg", "blurred.png"])
+    (src / "images" / "notes.txt").write_text("not a photo")
+    _write_colmap_bin(src / "sparse" / "0", _gt())
+    with pytest.warns(UserWarning, match=r"images: 2 image\(s\) are not in the COLMAP model \(not registered\) and "
+                                         r"are left out: blurred\.png, stray\.jpg$"):
+        convert("colmap", src, tmp_path / "out")
+    assert len(_read(tmp_path / "out")[0]["views"]) == N
+
+
 def test_colmap_distorted_and_missing(tmp_path):
     src = tmp_path / "scene"
     _images(src / "images", [f"v{i}.png" for i in range(N)])
-    _write_colmap_bin(src / "sparse" / "0", _gt(), model_id=4, params=(30, 31, 16, 12, 0.1, 0, 0, 0))
-    with pytest.raises(ValueError, match="undistort"):
+    _write_colmap_bin(src / "sparse" / "0", _gt(), model_id=5, params=(30, 31, 16, 12, 0.1, 0, 0, 0))
+    with pytest.raises(ValueError, match="OPENCV_FISHEYE .*; undistort first"):
         convert("colmap", src, tmp_path / "o")
     with pytest.raises(FileNotFoundError, match="COLMAP"):
         convert("colmap", tmp_path / "scene" / "images", tmp_path / "o2")
@@ -126,8 +210,8 @@ def test_nerfstudio(tmp_path):
     (src / "transforms.json").write_text(json.dumps({"fl_x": 30, "fl_y": 31, "cx": 16, "cy": 12, "w": W, "h": H,
                                                      "frames": frames[::-1]}))
     _check_convert("nerfstudio", src, tmp_path / "out_reversed", gt)
-    (src / "transforms.json").write_text(json.dumps({"fl_x": 30, "w": W, "h": H, "k1": 0.1, "frames": frames}))
-    with pytest.raises(ValueError, match="undistort"):
+    (src / "transforms.json").write_text(json.dumps({"fl_x": 30, "w": W, "h": H, "k4": 0.1, "frames": frames}))
+    with pytest.raises(ValueError, match="fisheye lens.*undistort the images first"):
         convert("nerfstudio", src, tmp_path / "o2")
     # depth PNGs are read while the shards are written: a damaged one is named in one line, and no shard set is left
     (src / "depth").mkdir()
@@ -195,6 +279,46 @@ def test_matrixcity_raw_block_and_split_files_as_released(tmp_path, rotation_sca
                                                             "h": H, "frames": frames}))
     convert("matrixcity", split, tmp_path / "out_split")
     _check(tmp_path / "out_split", gt)
+
+
+def test_a_raw_matrixcity_block_takes_its_image_size_from_its_images(tmp_path):
+    """Raw block files give only ``camera_angle_x``: street renders (1000x1000) are not aerial ones (1920x1080)."""
+    gt = _gt()
+    raw = tmp_path / "street" / "small_city_road_down"
+    _images(raw, [f"{i:04d}.png" for i in range(N)])
+    frames = [{"frame_index": i, "rot_mat": (np.linalg.inv(g) @ GL_TO_CV).tolist()} for i, g in enumerate(gt)]
+    (raw / "transforms.json").write_text(json.dumps({"camera_angle_x": 2 * np.arctan(0.5 * W / 30.0),
+                                                    "frames": frames}))
+    convert("matrixcity", raw, tmp_path / "out")
+    assert np.allclose(_read(tmp_path / "out")[0]["views"][0]["K"], [[30, 0, W / 2], [0, 30, H / 2], [0, 0, 1]])
+
+
+def test_matrixcity_depth_drops_its_sentinels_and_keeps_far_pixels():
+    from anycity.data.parsers.matrixcity import depth_metres
+
+    cm = np.array([[1234.0, 80000.0, 65504.0, 65535.0], [np.inf, np.nan, 0.0, -5.0]], np.float32)
+    np.testing.assert_allclose(depth_metres(cm), [[12.34, 800.0, 0, 0], [0, 0, 0, 0]], rtol=1e-6)
+
+
+def test_matrixcity_pose_files_name_their_split(tmp_path):
+    gt = _gt()
+    img_dir = tmp_path / "aerial" / "block_1"
+    _images(img_dir, [f"{i:04d}.png" for i in range(N)])
+    pose = tmp_path / "pose" / "block_A"
+    pose.mkdir(parents=True)
+    frames = []
+    for i, g in enumerate(gt):
+        c2w = np.linalg.inv(g) @ GL_TO_CV
+        c2w[:3, 3] /= 100.0
+        frames.append({"file_path": f"../../aerial/block_1/{i:04d}.png", "transform_matrix": c2w.tolist()})
+    for name in ("train", "train_dense", "test"):  # three files: an 8:1:1 split by scene would make one val
+        (pose / f"transforms_{name}.json").write_text(json.dumps({"fl_x": 30, "fl_y": 31, "cx": 16, "cy": 12,
+                                                                  "w": W, "h": H, "frames": frames}))
+    convert("matrixcity", pose, tmp_path / "out")
+    shards = sorted(p.name.split("-")[0] for p in (tmp_path / "out").glob("*.tar"))
+    counts = {sp: sum(1 for p in (tmp_path / "out").glob(f"{sp}-*.tar")
+                      for _ in wds.WebDataset(str(p), shardshuffle=False)) for sp in set(shards)}
+    assert counts == {"train": 2, "test": 1}
 
 
 def test_blendedmvs_with_pfm(tmp_path):

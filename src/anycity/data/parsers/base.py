@@ -32,6 +32,7 @@ class ParsedView:
     width: int
     height: int
     depth: Callable[[], np.ndarray] | None = None  # -> [H, W] z-depth in the scene's output units, 0 invalid
+    dist: np.ndarray | None = None  # OpenCV lens distortion (k1, k2, p1, p2[, k3]) of K; undistorted when loaded
 
 
 @dataclass
@@ -70,6 +71,26 @@ def c2w_gl_to_w2c(c2w_gl: np.ndarray) -> np.ndarray:
     return np.linalg.inv(c2w @ GL_TO_CV)
 
 
+_HALF = np.array([[1.0, 0, -0.5], [0, 1, -0.5], [0, 0, 1]])  # K with +0.5 pixel centres -> OpenCV's integer ones
+
+
+def undistort(img: np.ndarray, depth: np.ndarray | None, K: np.ndarray,
+              dist: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    """Resample ``img [H, W, 3]`` (bilinear) and ``depth [H, W]`` (nearest; z-depth is unchanged, the camera does
+    not rotate) from the camera ``K`` with OpenCV distortion ``dist`` to a pinhole camera of the same size, which
+    OpenCV's ``getOptimalNewCameraMatrix`` picks so every pixel sees the source (alpha 0: the borders are cropped, as
+    LaCT's DL3DV step does). Returns ``(img, depth, K_new)``. K uses pixel centres at +0.5, OpenCV integers."""
+    h, w = img.shape[:2]
+    K_cv = _HALF @ K
+    new_cv, _ = cv2.getOptimalNewCameraMatrix(K_cv, dist, (w, h), 0, (w, h))
+    mx, my = cv2.initUndistortRectifyMap(K_cv, dist, None, new_cv, (w, h), cv2.CV_32FC1)
+    img = cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    if depth is not None:
+        depth = cv2.remap(depth.astype(np.float32), mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
+                          borderValue=0)
+    return img, depth, np.linalg.inv(_HALF) @ new_cv
+
+
 def _load_view(v: ParsedView, max_side: int | None) -> ViewRecord:
     raw = require(v.image_path, f"the image of view {v.name}").read_bytes()
     # The stored pixels, which the cameras describe (COLMAP ignores the EXIF orientation); the shards are decoded so.
@@ -79,9 +100,17 @@ def _load_view(v: ParsedView, max_side: int | None) -> ViewRecord:
     h, w = img.shape[:2]
     K = np.asarray(v.K, np.float64).copy()
     if (w, h) != (v.width, v.height):  # camera given for another resolution of the same image
+        if abs(w * v.height - h * v.width) > v.width + v.height:  # more than a pixel of rounding on either axis
+            raise ValueError(f"{v.image_path}: the image is {w}x{h} but its camera is for {v.width}x{v.height}, "
+                             "another aspect ratio (rotated or cropped since?); give the image the camera describes")
         K[0] *= w / v.width
         K[1] *= h / v.height
     depth = v.depth() if v.depth is not None else None
+    distorted = v.dist is not None and bool(np.any(np.asarray(v.dist) != 0))
+    if distorted:
+        if depth is not None and depth.shape[:2] != (h, w):
+            depth = cv2.resize(depth.astype(np.float32), (w, h), interpolation=cv2.INTER_NEAREST)
+        img, depth, K = undistort(img, depth, K, np.asarray(v.dist, np.float64))
     ext = v.image_path.suffix.lower().lstrip(".")
     ext = "jpg" if ext in ("jpg", "jpeg") else "png"
     s = min(1.0, max_side / max(h, w)) if max_side else 1.0
@@ -95,7 +124,8 @@ def _load_view(v: ParsedView, max_side: int | None) -> ViewRecord:
         w, h = nw, nh
         image: np.ndarray | bytes = img[..., ::-1]
     else:
-        image = raw if v.image_path.suffix.lower() in (".jpg", ".jpeg", ".png") else img[..., ::-1]
+        stored = not distorted and v.image_path.suffix.lower() in (".jpg", ".jpeg", ".png")
+        image = raw if stored else img[..., ::-1]  # the file's own bytes when its pixels are kept as they are
     if depth is not None and depth.shape[:2] != (h, w):
         depth = cv2.resize(depth.astype(np.float32), (w, h), interpolation=cv2.INTER_NEAREST)
     mask = None if depth is None else (depth > 0) & np.isfinite(depth)

@@ -1,4 +1,7 @@
-"""COLMAP sparse models (text and binary; PINHOLE / SIMPLE_PINHOLE, i.e. undistorted).
+"""COLMAP sparse models (text and binary). PINHOLE and SIMPLE_PINHOLE cameras are kept; SIMPLE_RADIAL (COLMAP's
+default), RADIAL and OPENCV images are undistorted to a pinhole camera while converting (``base.undistort``);
+fisheye and thin-prism models are refused (undistort them with COLMAP first). Photos in ``images/`` the model did
+not register are named in a warning and left out.
 
 Layout: ``SCENE/images/*`` and ``SCENE/sparse/0/{cameras,images,points3D}.{bin,txt}`` (or ``SCENE/sparse/``);
 ``--src`` may also be a folder of such scenes. Poses are world-to-camera with wxyz quaternions and OpenCV axes,
@@ -8,6 +11,7 @@ so the world frame is kept as is (``world_from_source = I``, units "sfm", metres
 from __future__ import annotations
 
 import struct
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -15,6 +19,7 @@ import numpy as np
 import torch
 
 from anycity.data.parsers.base import ParsedScene, ParsedView, require, rigid
+from anycity.data.photos import PHOTO_SUFFIXES
 from anycity.geometry import quat_to_rotmat
 
 # model id -> (name, number of params)
@@ -114,16 +119,23 @@ def read_model(scene: str | Path) -> ColmapModel:
     return _read_txt(d)
 
 
-def intrinsics(model: str, params: np.ndarray, where: str) -> np.ndarray:
-    if model == "PINHOLE":
-        fx, fy, cx, cy = params[:4]
-    elif model == "SIMPLE_PINHOLE":
-        fx = fy = params[0]
-        cx, cy = params[1:3]
+def intrinsics(model: str, params: np.ndarray, where: str) -> tuple[np.ndarray, np.ndarray | None]:
+    """``K [3, 3]`` and OpenCV distortion ``(k1, k2, p1, p2)`` (None for a pinhole model) of a COLMAP camera."""
+    p = np.asarray(params, float)
+    if model in ("PINHOLE", "OPENCV"):
+        fx, fy, cx, cy = p[:4]
+    elif model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL"):
+        fx = fy = p[0]
+        cx, cy = p[1:3]
     else:
-        raise ValueError(f"{where}: camera model {model} has lens distortion; undistort first (colmap "
-                         "image_undistorter or pycolmap.undistort_images) so the model is PINHOLE")
-    return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], float)
+        raise ValueError(f"{where}: camera model {model} (a fisheye or thin-prism lens) is not read here; undistort "
+                         "first (colmap image_undistorter or pycolmap.undistort_images) so the model is PINHOLE")
+    K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], float)
+    if model == "SIMPLE_RADIAL":
+        return K, np.array([p[3], 0, 0, 0])
+    if model == "RADIAL":
+        return K, np.array([p[3], p[4], 0, 0])
+    return K, p[4:8] if model == "OPENCV" else None
 
 
 def w2c_of(image: dict) -> np.ndarray:
@@ -149,11 +161,25 @@ def parse(src: str | Path) -> list[ParsedScene]:
             if root is not None:
                 raise FileNotFoundError(f"{sc} is the scene's COLMAP model folder; pass --src the scene folder that "
                                         f"holds images/ and sparse/: {root}")
+        _warn_unregistered(sc / "images", {img["name"] for img in m.images.values()})
         views = []
         for img in sorted(m.images.values(), key=lambda x: x["name"]):
             model, w, h, params = m.cameras[img["camera_id"]]
+            K, dist = intrinsics(model, params, where)
             views.append(ParsedView(name=img["name"], image_path=sc / "images" / img["name"], w2c=w2c_of(img),
-                                    K=intrinsics(model, params, where), width=w, height=h))
+                                    K=K, width=w, height=h, dist=dist))
         out.append(ParsedScene(name=sc.name, views=views, source="colmap", units="sfm", metres_per_unit=None,
                                extra={"model": where}))
     return out
+
+
+def _warn_unregistered(images: Path, registered: set[str]) -> None:
+    """Warn, naming a few, when ``images`` holds photos the model did not register: they are left out, and the
+    llffhold split counts the registered views only."""
+    if not images.is_dir():
+        return
+    left = sorted(p.relative_to(images).as_posix() for p in images.rglob("*")
+                  if p.suffix.lower() in PHOTO_SUFFIXES and p.relative_to(images).as_posix() not in registered)
+    if left:
+        warnings.warn(f"{images}: {len(left)} image(s) are not in the COLMAP model (not registered) and are left "
+                      f"out: {', '.join(left[:3])}{', ...' if len(left) > 3 else ''}", stacklevel=2)

@@ -1,7 +1,12 @@
 """nerfstudio ``transforms.json`` (also DL3DV): OpenGL camera-to-world -> OpenCV world-to-camera.
 
 The poses stay in the json's world frame (``world_from_source = I``); the file's own ``applied_transform`` /
-``applied_scale`` (nerfstudio's COLMAP -> json map) are kept in ``extra``. Distorted cameras are rejected.
+``applied_scale`` (nerfstudio's COLMAP -> json map) are kept in ``extra``. ``OPENCV`` cameras with ``k1 k2 k3 p1
+p2`` are undistorted to a pinhole camera while converting (``base.undistort``); fisheye cameras are refused.
+
+A frame whose ``file_path`` (``images/x.png``) is missing is read from nerfstudio's downscaled folders, the largest
+found of ``images_2``, ``images_4``, ``images_8``: DL3DV's 960P release ships ``images_4`` only, beside a json
+written for the full resolution. ``--src`` is the folder holding ``transforms.json`` (DL3DV: ``SCENE/nerfstudio``).
 """
 
 from __future__ import annotations
@@ -14,22 +19,36 @@ import numpy as np
 
 from anycity.data.parsers.base import ParsedScene, ParsedView, c2w_gl_to_w2c, require
 
-_DIST = ("k1", "k2", "k3", "k4", "p1", "p2")
+_DIST = ("k1", "k2", "p1", "p2", "k3")  # OpenCV's order
 
 
-def _intrinsics(d: dict, where: str) -> tuple[np.ndarray, int, int]:
+def _intrinsics(d: dict, where: str) -> tuple[np.ndarray, int, int, np.ndarray | None]:
+    """``(K, w, h, dist)``: OpenCV distortion ``(k1, k2, p1, p2, k3)``, None when every term is 0."""
     try:
         fx, fy = float(d["fl_x"]), float(d.get("fl_y", d["fl_x"]))
         w, h = int(d["w"]), int(d["h"])
     except KeyError as e:
         raise ValueError(f"{where}: missing intrinsics key {e}; transforms.json needs fl_x, w, h (top level or "
                          "per frame)") from e
-    if any(abs(float(d.get(k, 0.0))) > 1e-9 for k in _DIST) or d.get("camera_model", "OPENCV") not in (
-            "OPENCV", "PINHOLE", "SIMPLE_PINHOLE"):
-        raise ValueError(f"{where}: the camera has lens distortion ({d.get('camera_model', 'OPENCV')} with "
-                         "k/p terms); undistort the images first (e.g. colmap image_undistorter)")
+    model = d.get("camera_model", "OPENCV")
+    if abs(float(d.get("k4", 0.0))) > 1e-9 or model not in ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE"):
+        raise ValueError(f"{where}: camera model {model} (k4: a fisheye lens) is not read here; undistort the images "
+                         "first (e.g. colmap image_undistorter) and write a PINHOLE transforms.json")
+    dist = np.array([float(d.get(k, 0.0)) for k in _DIST])
     cx, cy = float(d.get("cx", w / 2)), float(d.get("cy", h / 2))
-    return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]]), w, h
+    return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]]), w, h, dist if np.any(dist != 0) else None
+
+
+def _image_path(root: Path, file_path: str) -> Path:
+    """``root / file_path``, else the same name in the largest of nerfstudio's downscaled folders present."""
+    p = root / file_path
+    if p.exists() or p.parent == root:
+        return p
+    for n in (2, 4, 8):
+        q = p.parent.with_name(f"{p.parent.name}_{n}") / p.name
+        if q.exists():
+            return q
+    return p  # missing: named when the view is loaded
 
 
 def parse(src: str | Path) -> list[ParsedScene]:
@@ -44,7 +63,7 @@ def parse(src: str | Path) -> list[ParsedScene]:
     frames = sorted(enumerate(meta.get("frames", [])), key=lambda f: str(f[1].get("file_path", "")))
     for i, fr in frames:
         where = f"{path} frame {i}"
-        K, w, h = _intrinsics({**meta, **fr}, where)
+        K, w, h, dist = _intrinsics({**meta, **fr}, where)
         if "transform_matrix" not in fr or "file_path" not in fr:
             raise ValueError(f"{where}: missing 'transform_matrix' or 'file_path'")
         depth = None
@@ -57,8 +76,8 @@ def parse(src: str | Path) -> list[ParsedScene]:
                     raise ValueError(f"{dp}: not a one-channel depth png; re-export it, or drop its depth_file_path")
                 return raw.astype(np.float32) * scale
         c2w = np.asarray(fr["transform_matrix"], float)
-        views.append(ParsedView(name=Path(fr["file_path"]).name, image_path=root / fr["file_path"],
-                                w2c=c2w_gl_to_w2c(c2w), K=K, width=w, height=h, depth=depth))
+        views.append(ParsedView(name=Path(fr["file_path"]).name, image_path=_image_path(root, fr["file_path"]),
+                                w2c=c2w_gl_to_w2c(c2w), K=K, width=w, height=h, depth=depth, dist=dist))
     extra = {k: meta[k] for k in ("applied_transform", "applied_scale") if k in meta}
     return [ParsedScene(name=root.name, views=views, source="nerfstudio", units="nerfstudio",
                         metres_per_unit=None, extra=extra)]
