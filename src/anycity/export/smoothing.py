@@ -87,6 +87,6 @@ def smooth_3d(g: Gaussians, w2c: Tensor, K: Tensor, width: int, height: int,
         before = T @ (R * var[:, sl, None, :]) @ R.transpose(-1, -2) @ T.transpose(-1, -2) + EPS2D * eye
         after = before + filt[:, sl, None, None] * (T @ T.transpose(-1, -2))
         gains.append(torch.sqrt(torch.linalg.det(before) / torch.linalg.det(after)).clamp(max=1.0))
-    gain = torch.cat(gains, 1)
+    gain = torch.where(nu > 0, torch.cat(gains, 1), 1.0)  # behind every camera: no footprint, no filter (inf/inf)
     return Gaussians(means=g.means, quats=g.quats, scales=(var + filt[..., None]).sqrt().to(g.scales.dtype),
                      opacities=(g.opacities * gain.to(g.opacities.dtype)), sh=g.sh, valid=g.valid)

@@ -36,6 +36,17 @@ def test_tiny_gaussians_grow_to_the_sampling_limit_big_ones_stay():
     assert 0 < s.opacities[0, 2] < 0.8
 
 
+def test_a_gaussian_behind_every_camera_is_kept_as_it_is():
+    w2c = torch.eye(4)[None, None]
+    K = torch.tensor([[48.3, 0, 28], [0, 34.4, 20], [0, 0, 1]]).expand(1, 1, 3, 3)
+    means = torch.tensor([[[3.0, 2.0, -0.5], [50.0, 40.0, -1e-3], [0.0, 0.0, -2.0], [0.0, 0.0, 5.0]]])
+    g = _gaussians(means, torch.full((1, 4, 3), 1e-3), opacity=0.9)
+    s = smooth_3d(g, w2c, K, 56, 40)
+    torch.testing.assert_close(s.opacities[0, :3], g.opacities[0, :3])  # was NaN: inf / inf footprints
+    torch.testing.assert_close(s.scales[0, :3], g.scales[0, :3])
+    assert torch.isfinite(s.opacities).all() and s.scales[0, 3, 0] > 1e-3
+
+
 def test_render_at_the_input_camera_keeps_each_splats_mass_and_zoom_in_has_no_holes():
     """A thin sub-pixel splat (a 1e-5 flat disc, as the network predicts them) renders with the same integrated
     alpha before and after the filter at the input resolution, and at 8x zoom it covers pixels instead of
