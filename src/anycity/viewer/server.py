@@ -60,6 +60,34 @@ def save_render(scene: ViewScene, wxyz, position, fov_y: float, aspect: float, h
     return f
 
 
+def frustum_shape(K: np.ndarray, width: int, height: int) -> tuple[float, float]:
+    """``(fov_y, aspect)`` of a ``width x height`` camera ``K [3, 3]`` as viser's frustums take them: vertical field
+    of view (radians) and the image plane's width over height, ``(W / fx) / (H / fy)`` (not W / H when fx != fy)."""
+    fx, fy = float(K[0, 0]), float(K[1, 1])
+    return 2 * math.atan(0.5 * height / fy), (width / fx) / (height / fy)
+
+
+def initial_view(c2w: np.ndarray, centres: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(up, position, look_at)``, each ``[3]``: the viewer's up axis, :func:`anycity.viewer.video.scene_up` (the
+    ground's normal for a flat scene, so orbiting turns about the vertical; the cameras' mean "up" otherwise), and a
+    first camera behind the mean input camera (``c2w [V, 4, 4]``), looking along its mean direction at the splats'
+    median (``centres [N, 3]``). A direction within 18° of vertical (a nadir flight) is tilted to 30° off it, so the
+    orbit controls have a horizontal to turn about."""
+    from anycity.viewer.video import scene_up
+
+    eyes, image_up = c2w[:, :3, 3], -c2w[:, :3, 1].mean(0)
+    up = scene_up(torch.as_tensor(centres), torch.as_tensor(eyes), torch.as_tensor(image_up)).numpy()
+    fwd = c2w[:, :3, 2].mean(0)
+    fwd = fwd / (np.linalg.norm(fwd) or 1.0)
+    along = image_up - (image_up @ up) * up  # the images' "up", on the ground
+    if abs(fwd @ up) > 0.95 and np.linalg.norm(along) > 1e-6:
+        fwd = -math.cos(math.pi / 6) * up + math.sin(math.pi / 6) * along / np.linalg.norm(along)
+    extent = float(np.linalg.norm(eyes - eyes.mean(0), axis=-1).mean()) or 1.0
+    centre = np.median(centres, 0)
+    depth = float(np.dot(centre - eyes.mean(0), fwd))
+    return up, centre - fwd * 1.6 * max(depth, extent), centre
+
+
 def build_server(path: str | Path, host: str = "127.0.0.1", port: int = 8080, cameras: bool = True):
     """Start the viewer on ``scene`` at ``path``; returns ``(server, scene)``. ``port=0`` picks a free port;
     ``cameras=False`` hides the camera frustums."""
@@ -67,29 +95,27 @@ def build_server(path: str | Path, host: str = "127.0.0.1", port: int = 8080, ca
 
     scene = load_view_scene(path)
     server = viser.ViserServer(host=host, port=port, verbose=False)
-    server.scene.set_up_direction("-y")  # OpenCV world of the predicted cameras: y points down
+    server.scene.set_up_direction("-y")  # no cameras: the first camera's "up" (OpenCV: y points down)
     centres, cov, rgb, opac = splat_arrays(scene.gaussians)
     splats = {"h": server.scene.add_gaussian_splats("/splats", centres, cov, rgb, opac)}
 
-    if scene.w2c is not None and cameras:
-        c2w = torch.linalg.inv(scene.w2c).numpy()
-        fov = 2 * math.atan(0.5 * scene.height / float(scene.K[0, 1, 1]))
+    if scene.w2c is not None:
+        c2w = torch.linalg.inv(scene.w2c.double()).numpy()
+        fov = frustum_shape(scene.K[0].numpy(), scene.width, scene.height)[0]
+        up, position, look_at = initial_view(c2w, centres)
+        server.scene.set_up_direction(tuple(float(x) for x in up))
+        server.initial_camera.position = tuple(position)
+        server.initial_camera.look_at = tuple(look_at)
+        server.initial_camera.up = tuple(float(x) for x in up)
+        server.initial_camera.fov = fov
         extent = float(np.linalg.norm(c2w[:, :3, 3] - c2w[:, :3, 3].mean(0), axis=-1).mean()) or 1.0
-        for v in range(len(c2w)):
+        for v in range(len(c2w) if cameras else 0):
+            fov_v, aspect = frustum_shape(scene.K[v].numpy(), scene.width, scene.height)
             server.scene.add_camera_frustum(
-                f"/cameras/{v:03d}", fov=fov, aspect=scene.width / scene.height, scale=0.15 * extent,
+                f"/cameras/{v:03d}", fov=fov_v, aspect=aspect, scale=0.15 * extent,
                 thickness=1.5, thickness_units="screen",
                 image=scene.thumbs[v] if scene.thumbs else None, wxyz=_rotmat_to_wxyz(c2w[v, :3, :3]),
                 position=c2w[v, :3, 3], color=(255, 160, 0))
-        # Start behind the mean camera, looking the mean viewing direction: the cameras and the scene in view.
-        fwd = c2w[:, :3, 2].mean(0)
-        fwd /= np.linalg.norm(fwd) or 1.0
-        centre = np.median(centres, 0)
-        depth = float(np.dot(centre - c2w[:, :3, 3].mean(0), fwd))
-        server.initial_camera.position = tuple(centre - fwd * 1.6 * max(depth, extent))
-        server.initial_camera.look_at = tuple(centre)
-        server.initial_camera.up = (0.0, -1.0, 0.0)
-        server.initial_camera.fov = fov
 
     choices = [c for c in COLOURINGS if c == "colour" or c.split()[0] in scene.extras]
     colouring = server.gui.add_dropdown("Colour by", tuple(choices), initial_value="colour")
