@@ -36,3 +36,30 @@ def test_render_video_keeps_an_existing_file(tmp_path, capsys):
     assert f"{out} exists; pass --overwrite" in capsys.readouterr().err
     assert out.read_bytes() == b"an earlier video"
     assert main([*args, "--overwrite"]) == 0 and out.stat().st_size > 100
+
+
+def test_a_render_that_fails_midway_keeps_the_earlier_video_and_leaves_no_part(tmp_path, monkeypatch):
+    """ffmpeg wrote straight to --out: a failed --overwrite run destroyed the old video and left a short one."""
+    pytest.importorskip("imageio_ffmpeg")
+    from anycity.viewer import video
+
+    (tmp_path / "s").mkdir()
+    folder = tiny_predict_folder(tmp_path / "s", n=50, with_prov=False)
+    out = tmp_path / "fly.mp4"
+    out.write_bytes(b"an earlier video")
+    frames = video.render_frames
+
+    def fail_after_two(*args, **kwargs):
+        for i, frame in enumerate(frames(*args, **kwargs)):
+            if i == 2:
+                raise RuntimeError("out of memory (simulated)")
+            yield frame
+
+    monkeypatch.setattr(video, "render_frames", fail_after_two)
+    with pytest.raises(RuntimeError, match="simulated"):
+        video.render_video(folder, out, per_segment=2, width=16, progress=False)
+    assert out.read_bytes() == b"an earlier video"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["fly.mp4", "s"]
+    monkeypatch.setattr(video, "render_frames", frames)
+    assert video.render_video(folder, out, per_segment=2, width=16, progress=False) > 0
+    assert out.stat().st_size > 100 and sorted(p.name for p in tmp_path.iterdir()) == ["fly.mp4", "s"]

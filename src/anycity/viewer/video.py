@@ -6,13 +6,14 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 from pathlib import Path
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from anycity.atomic import check_writable_folder
+from anycity.atomic import check_writable_folder, publish
 from anycity.viewer.scene import ViewScene, load_view_scene
 
 
@@ -127,16 +128,28 @@ def render_video(path: str | Path, out: str | Path, per_segment: int = 12, orbit
         w2c, K = torch.cat([w2c, ow]), torch.cat([K, oK])
     width = width or scene.width
     width -= width % 2  # yuv420p needs even sizes
-    height = round(width * scene.height / scene.width / 2) * 2
+    height = max(2, round(width * scene.height / scene.width / 2) * 2)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    writer = imageio_ffmpeg.write_frames(str(out), (width, height), fps=fps, quality=8, macro_block_size=2)
-    writer.send(None)
+    # ffmpeg writes a hidden file of the same suffix (it picks the container by it), renamed when complete: a run
+    # that fails or is killed leaves no short mp4 that looks whole, and an --overwrite run keeps the old one
+    tmp = out.with_name(f".{out.stem}.tmp-{os.getpid()}{out.suffix}")
     n = 0
-    for frame in render_frames(scene, w2c, K, width, height, progress):
-        writer.send(np.ascontiguousarray(frame))
-        n += 1
-    writer.close()
+    try:
+        writer = imageio_ffmpeg.write_frames(str(tmp), (width, height), fps=fps, quality=8, macro_block_size=2)
+        writer.send(None)
+        try:
+            for frame in render_frames(scene, w2c, K, width, height, progress):
+                writer.send(np.ascontiguousarray(frame))
+                n += 1
+        finally:
+            writer.close()
+        with open(tmp, "rb") as f:
+            os.fsync(f.fileno())
+        publish(tmp, out)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
     return n
 
 
