@@ -39,7 +39,8 @@ def save_cameras(path: str | Path, w2c: Tensor, K: Tensor, width: int, height: i
 
 
 def load_cameras(path: str | Path) -> dict:
-    """Read and check a ``cameras.json``: a ``views`` list, each with ``name``, a finite rigid ``w2c`` (4x4), a finite
+    """Read and check a ``cameras.json``: convention ``opencv_w2c`` and a schema version this code reads (when
+    given), a ``views`` list, each with ``name``, a finite rigid ``w2c`` (4x4), a finite
     ``K`` (3x3) with focal lengths > 0 (:func:`anycity.geometry.camera_problem`) and the same ``width`` / ``height``
     (1..65536) as the others, and a ``metres_per_unit`` that is positive or null. A file that is not that raises a
     one-line ``ValueError`` naming it (JSON's ``NaN``, a zeroed rotation or a string scale would otherwise reach
@@ -57,13 +58,20 @@ def load_cameras(path: str | Path) -> dict:
     views = cams.get("views") if isinstance(cams, dict) else None
     if not isinstance(views, list) or not views:
         raise bad("no 'views' list")
+    if cams.get("convention", "opencv_w2c") != "opencv_w2c":  # e.g. OpenGL camera-to-world: read as w2c, wrong
+        raise bad(f"its 'convention' is {str(cams['convention'])[:40]!r}, not 'opencv_w2c'")
+    version = cams.get("schema_version", SCHEMA_VERSION)
+    if not isinstance(version, int) or isinstance(version, bool) or version > SCHEMA_VERSION:
+        raise bad(f"its 'schema_version' is {str(version)[:40]!r}; this anycity reads up to {SCHEMA_VERSION} "
+                  "(a newer anycity wrote it? upgrade)")
     for i, v in enumerate(views):
         if not isinstance(v, dict):
             raise bad(f"view {i} is a {type(v).__name__}, not an object")
         for key, shape in (("w2c", (4, 4)), ("K", (3, 3))):
             m = v.get(key)
             ok = isinstance(m, list) and len(m) == shape[0] and all(
-                isinstance(r, list) and len(r) == shape[1] and all(isinstance(x, (int, float)) for x in r) for r in m)
+                isinstance(r, list) and len(r) == shape[1]
+                and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in r) for r in m)
             if not ok:
                 raise bad(f"view {i} has no {shape[0]}x{shape[1]} numeric '{key}'")
         problem = camera_problem(v["w2c"], v["K"])

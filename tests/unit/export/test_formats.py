@@ -215,7 +215,12 @@ def test_a_malformed_cameras_json_is_one_line_naming_it(tmp_path):
                           "view 1 is 47x32, view 0 48x32"),
                          (json.dumps({"views": [{**cams["views"][0], "K": [[10 ** 400, 0, 8], [0, 1, 8], [0, 0, 1]]}]}),
                           "view 0: camera holds a number too large for a float"),  # was an OverflowError
-                         (json.dumps({**cams, "metres_per_unit": "2"}), "'metres_per_unit' is '2', not a positive")):
+                         (json.dumps({**cams, "metres_per_unit": "2"}), "'metres_per_unit' is '2', not a positive"),
+                         (json.dumps({**cams, "convention": "opengl_c2w"}), "'convention' is 'opengl_c2w', not"),
+                         (json.dumps({**cams, "schema_version": 99}), "'schema_version' is '99'; this anycity reads "
+                                                                      "up to 1"),
+                         (json.dumps({"views": [{**cams["views"][0], "K": [[True, 0, 8], [0, 1, 8], [0, 0, 1]]}]}),
+                          "no 3x3 numeric 'K'")):
         (d / "cameras.json").write_text(broken)
         with pytest.raises(ValueError, match=f"cameras.json: .*{what}.*not a cameras.json written by") as e:
             export(d, "colmap", tmp_path / "o")
