@@ -20,7 +20,8 @@ def relative_pose_errors(pred_w2c: Tensor, gt_w2c: Tensor) -> tuple[Tensor, Tens
             only relative poses are compared).
     Returns:
         ``rre [B, P]``: angle of ``R_rel_pred^T R_rel_gt`` in degrees; ``rte [B, P]``: angle between the relative
-        translations in degrees, sign-agnostic (``min(a, 180 - a)``, as VGGT); P = V (V - 1) / 2.
+        translations in degrees, sign-agnostic (``min(a, 180 - a)``, as VGGT); P = V (V - 1) / 2. A pair with a
+        non-finite predicted camera gets the largest errors, 180 and 90 degrees, in every metric built on them.
     """
     v = pred_w2c.shape[1]
     i, j = torch.triu_indices(v, v, offset=1, device=pred_w2c.device)
@@ -35,7 +36,8 @@ def relative_pose_errors(pred_w2c: Tensor, gt_w2c: Tensor) -> tuple[Tensor, Tens
     rre = _angle_deg((tr - 1) / 2)
     cos_t = (tp * tg).sum(-1) / (tp.norm(dim=-1) * tg.norm(dim=-1)).clamp_min(1e-12)
     rte = _angle_deg(cos_t.abs())
-    return rre.float(), rte.float()
+    bad = ~(torch.isfinite(Rp).flatten(-2).all(-1) & torch.isfinite(tp).all(-1))
+    return rre.masked_fill(bad, 180.0).float(), rte.masked_fill(bad, 90.0).float()
 
 
 def pose_auc(rre: Tensor, rte: Tensor, max_threshold: int = 30) -> Tensor:

@@ -51,6 +51,15 @@ def test_depth_metrics_known_values():
     assert depth_metrics(pred, gt, mask)["delta1"].item() == 1.0
 
 
+def test_a_pixel_the_render_leaves_empty_is_a_depth_failure_not_left_out():
+    gt = torch.full((1, 1, 1, 2, 2), 2.0)
+    pred = torch.tensor([2.0, 2.0, 0.0, float("nan")]).reshape(1, 1, 1, 2, 2)  # two holes
+    out = depth_metrics(pred, gt)
+    assert out["abs_rel"].item() == pytest.approx(0.5) and out["delta1"].item() == pytest.approx(0.5)
+    aligned = depth_metrics(pred * 3, gt, align="median")  # the median comes from the covered pixels
+    assert aligned["abs_rel"].item() == pytest.approx(0.5) and aligned["delta1"].item() == pytest.approx(0.5)
+
+
 def test_depth_metrics_median_alignment_and_empty():
     gt = torch.rand(2, 1, 8, 8) + 1
     out = depth_metrics(3.0 * gt, gt, align="median")

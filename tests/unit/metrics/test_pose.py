@@ -49,3 +49,14 @@ def test_auc_counts_thresholds_below_the_worse_error():
     rte = torch.tensor([0.2, 1.0, 0.0, 25.5])
     expected = torch.tensor([30 / 30, 20 / 30, 0.0, 5 / 30])
     torch.testing.assert_close(pose_auc(rre, rte, 30), expected)
+
+
+def test_a_non_finite_predicted_camera_is_the_worst_error_in_every_pose_metric():
+    gt = _cams([torch.eye(3), _rot_y(20), _rot_y(-35)], [(0, 0, 0), (1, 0, 0.2), (-0.5, 0.3, 1)])
+    pred = gt.clone()
+    pred[0, 2, 0, 3] = float("nan")
+    rre, rte = relative_pose_errors(pred, gt)
+    assert rre[0, 0] < 0.05 and rte[0, 0] < 0.05  # the pair of the two finite cameras
+    torch.testing.assert_close(rre[0, 1:], torch.tensor([180.0, 180.0]))
+    torch.testing.assert_close(rte[0, 1:], torch.tensor([90.0, 90.0]))
+    assert pose_auc(rre, rte)[0, 1:].eq(0).all()  # and a mean of rre over all pairs counts them (no NaN to drop)
