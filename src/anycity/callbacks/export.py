@@ -170,11 +170,19 @@ class PredictionExport(BasePredictionWriter):
             self.written.append(folder)
 
     def on_predict_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
-        if self._city is not None:  # interrupted: drop the spill files, write nothing
+        self._drop_city()
+
+    def on_exception(self, trainer: pl.Trainer, pl_module: pl.LightningModule, exception: BaseException) -> None:
+        self._drop_city()  # Lightning calls this, not on_predict_end, when a chunk fails (e.g. an undecodable photo)
+
+    def _drop_city(self) -> None:
+        """An unfinished whole-city scene: remove its spill files (gigabytes for a city), write nothing."""
+        if self._city is not None:
             self._city.close()
             self._city = None
         if self._bar is not None:
             self._bar.close()
+            self._bar = None
 
 
 def _shares(prov: dict, valid, scene: slice, rows) -> tuple[dict[str, float], int]:

@@ -84,10 +84,16 @@ def oracle_chunks(w2c: Tensor, points: Tensor, plan: list[list[int]], seed: int 
 def camera_errors(w2c: Tensor, w2c_gt: Tensor) -> dict:
     """Errors of cameras ``w2c [V, 4, 4]`` against ``w2c_gt`` after one global Sim(3) fit of the camera centres:
     rotation (degrees: mean, max), position (mean, max, relative to the extent = largest distance of a ground-truth
-    centre from their centroid), and the largest absolute difference of the aligned w2c matrices in extent units."""
+    centre from their centroid), and the largest absolute difference of the aligned w2c matrices in extent units.
+    Centres on one line (a straight strip) leave the roll about it free: the fit then also matches a point one
+    spread ahead of each camera and one above it, along its own axes."""
     w2c, w2c_gt = w2c.double(), w2c_gt.double()
     c, c_gt = camera_centers(w2c), camera_centers(w2c_gt)
-    s, R, t = umeyama(c, c_gt)
+    sv = torch.linalg.svdvals(c_gt - c_gt.mean(0))
+    if len(c) >= 2 and sv[1] <= 1e-3 * sv[0]:
+        s, R, t = umeyama(_with_axes(w2c, c), _with_axes(w2c_gt, c_gt))
+    else:
+        s, R, t = umeyama(c, c_gt)
     aligned = w2c_to_world(w2c, sim3_matrix(s, R, t))
     extent = float((c_gt - c_gt.mean(0)).norm(dim=-1).max())
     Rrel = aligned[:, :3, :3] @ w2c_gt[:, :3, :3].transpose(-1, -2)
@@ -105,3 +111,10 @@ def camera_errors(w2c: Tensor, w2c_gt: Tensor) -> dict:
     return {"rot_deg_mean": float(rot.mean()), "rot_deg_max": float(rot.max()),
             "rot_deg_mean_rotfit": float(rot_q.mean()), "pos_rel_mean": float(pos.mean()),
             "pos_rel_max": float(pos.max()), "w2c_max_abs": float(diff.max())}
+
+
+def _with_axes(w2c: Tensor, c: Tensor) -> Tensor:
+    """Camera centres ``c [V, 3]``, then points one spread (largest distance from their centroid) ahead of each
+    camera and one spread above it (``-y``), ``[3V, 3]``: a set that fixes a rotation even when ``c`` is a line."""
+    spread = (c - c.mean(0)).norm(dim=-1).max().clamp_min(1e-12)
+    return torch.cat([c, c + spread * w2c[:, 2, :3], c - spread * w2c[:, 1, :3]])

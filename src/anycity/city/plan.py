@@ -119,6 +119,10 @@ def plan_chunks(num: int, size: int, overlap: int, loop: bool = False) -> list[l
     starts = list(range(0, num - size, step)) + [num - size]
     chunks = [list(range(s, s + size)) for s in starts]
     if loop and len(chunks) > 2:
+        if size // 2 < MIN_SHARED:  # said before the network runs, as the overlap is
+            raise ValueError(f"predict_loop: the loop-closure chunk shares {size // 2} photo(s) with the last chunk "
+                             f"(half a chunk of {size}), need {MIN_SHARED}; raise predict_chunk_size to "
+                             f"{2 * MIN_SHARED} or more, or drop predict_loop")
         chunks.append(list(range(num - size // 2, num)) + list(range(size - size // 2)))
     return chunks
 

@@ -162,9 +162,11 @@ class ChunkedScene:
         chunks = [{"index": k, "photos": [self.names[v] for v in views],
                    "owned": sum(self.owner[v] == k for v in views), "scale_to_world": float(s[k])}
                   for k, views in enumerate(self.chunks)]
+        # a pair's fit is measured in chunk a's frame: scaled by chunk a's scale to chunk 0's units, as labelled
         pairs = [{"chunks": [e.a, e.b], "shared_photos": len(e.shared), "points": int(e.fit.inliers.numel()),
-                  "inliers": e.fit.num_inliers, "rms_residual": e.fit.rms, "median_residual": e.fit.median,
-                  "inlier_threshold": e.fit.threshold} for e in edges]
+                  "inliers": e.fit.num_inliers, "rms_residual": e.fit.rms * float(s[e.a]),
+                  "median_residual": e.fit.median * float(s[e.a]),
+                  "inlier_threshold": e.fit.threshold * float(s[e.a])} for e in edges]
         return {"num_photos": len(self.names), "num_chunks": len(self.chunks), "chunks": chunks, "pairs": pairs,
                 "pose_graph": {k: (v if math.isfinite(v) else None) for k, v in rep.items()},
                 "gaussians": ply.count, "dropped": ply.dropped,

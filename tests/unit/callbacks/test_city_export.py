@@ -148,3 +148,43 @@ def test_a_chunked_prediction_shows_its_bar_before_the_first_chunk_is_done(capsy
     assert cb._bar.total == 3  # the same bar, not a new one per chunk
     cb.on_predict_end(None, None)
     assert "city: chunks of beach" in capsys.readouterr().err
+
+
+def test_a_chunk_that_fails_leaves_no_spill_files(tmp_path):
+    """Lightning calls ``on_exception``, not ``on_predict_end``, when a chunk fails (a photo that passes the header
+    check but does not decode): the earlier chunks' spill files (gigabytes for a city) went on taking the disk."""
+    import lightning.pytorch as pl
+    import pytest
+
+    plan, h, w = plan_chunks(12, 6, 3), 2, 2
+
+    class Chunks(torch.utils.data.Dataset):
+        def __len__(self):
+            return len(plan)
+
+        def __getitem__(self, k):
+            if k == 2:
+                raise ValueError("predict_images: cannot decode flight/p9.jpg")
+            return {"images": torch.rand(1, 6, 3, h, w), "scene": ["flight"],
+                    "chunk": {"index": k, "count": len(plan), "views": plan[k], "plan": plan, "hw": (h, w),
+                              "names": [f"p{i}.jpg" for i in range(12)]}}
+
+    class Oracle(pl.LightningModule):
+        def predict_step(self, batch, batch_idx):
+            gt, _ = orbit_scene(12)
+            views = batch["chunk"]["views"]
+            Ks = torch.tensor([[2.0, 0, 1], [0, 2, 1], [0, 0, 1]]).expand(1, 6, 3, 3)
+            means = unproject_depth(torch.full((1, 6, 1, h, w), 5.0), Ks, gt[views][None].float())
+            m = 6 * h * w
+            g = Gaussians(means.reshape(1, m, 3), torch.tensor([1.0, 0, 0, 0]).expand(1, m, 4),
+                          torch.full((1, m, 3), 0.01), torch.full((1, m), 0.5), torch.zeros(1, m, 1, 3))
+            return {"gaussians": g, "w2c": gt[views].float()[None], "K": Ks, "images": batch["images"]}
+
+    cb = PredictionExport(out_dir=str(tmp_path / "out"), save_renders=False, smooth_3d=0)
+    trainer = pl.Trainer(callbacks=[cb], logger=False, enable_progress_bar=False, accelerator="cpu",
+                         enable_model_summary=False, default_root_dir=str(tmp_path))
+    with pytest.raises(ValueError, match="cannot decode"):
+        trainer.predict(Oracle(), torch.utils.data.DataLoader(Chunks(), batch_size=None))
+    assert not (tmp_path / "out" / ".flight.anycity_city_work").exists()
+    assert cb._city is None and cb._bar is None
+    assert not (tmp_path / "out" / "flight" / "scene.ply").exists()

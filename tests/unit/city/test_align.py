@@ -1,3 +1,5 @@
+import math
+
 import pytest
 import torch
 
@@ -158,6 +160,71 @@ def test_chunked_scene_writes_one_ply_and_cameras(tmp_path):
     assert (tmp_path / "out" / "cameras.json").is_file() and (tmp_path / "out" / "chunks.json").is_file()
     assert not list(tmp_path.glob("anycity_city_*")), "spill folder removed"
     assert rep["num_chunks"] == len(plan) and all(p["inliers"] > 0 for p in rep["pairs"])
+
+
+def _noisy_chunks_report(tmp_path, chunk_scale: dict[int, float]) -> dict:
+    """``ChunkedScene`` over 12 orbit photos in 3 chunks, each in its own random Sim(3) frame (chunk k's scaled by
+    ``chunk_scale[k]`` more) with 2 % depth noise; returns its chunks.json report."""
+    from anycity.city.align import sim3_parts
+    from anycity.geometry.projection import unproject_depth
+
+    h = w = 4
+    w2c, _ = orbit_scene(12)
+    plan = plan_chunks(12, 6, 3)
+    K = torch.tensor([[4.0, 0, 2], [0, 4, 2], [0, 0, 1]], dtype=torch.float64).expand(6, 3, 3)
+    rng = torch.Generator().manual_seed(0)
+    depth_world = 5 + torch.rand(12, 1, h, w, generator=rng, dtype=torch.float64)  # one scene for every chunk
+    scene = ChunkedScene(plan, [f"im{i}.png" for i in range(12)], (h, w), points_per_side=3, workdir=tmp_path)
+    for k, views in enumerate(plan):
+        G = torch.diag(torch.tensor([chunk_scale.get(k, 1.0)] * 3 + [1.0], dtype=torch.float64)) @ random_sim3(rng)
+        cams = w2c_to_world(w2c[views], G)
+        noise = 1 + 0.02 * torch.randn(len(views), 1, h, w, generator=rng, dtype=torch.float64)
+        depth = depth_world[views] * sim3_parts(G)[0] * noise
+        g = _gaussians(6 * h * w, seed=k)
+        g.means = unproject_depth(depth[None], K[None], cams[None]).reshape(1, -1, 3).float()
+        scene.add(k, g, cams.float(), K.float())
+    return scene.finish(tmp_path / f"out{len(list(tmp_path.iterdir()))}")
+
+
+def test_pair_residuals_are_in_chunk_0s_units_whatever_scale_each_chunk_has(tmp_path):
+    """A pair's fit is measured in its first chunk's frame; chunks.json says chunk 0's units, so it rescales."""
+    plain, scaled = _noisy_chunks_report(tmp_path, {}), _noisy_chunks_report(tmp_path, {1: 10.0})
+    assert [p["chunks"] for p in plain["pairs"]] == [[0, 1], [1, 2]]
+    for a, b in zip(plain["pairs"], scaled["pairs"], strict=True):
+        assert a["rms_residual"] > 0
+        for key in ("rms_residual", "median_residual", "inlier_threshold"):
+            assert b[key] == pytest.approx(a[key], rel=1e-3), (key, a, b)
+
+
+def test_a_loop_chunk_too_small_to_align_is_refused_before_the_network_runs():
+    with pytest.raises(ValueError, match=r"predict_loop: the loop-closure chunk shares 1 photo\(s\) .*raise "
+                                         "predict_chunk_size to 4"):
+        plan_chunks(10, 3, 2, loop=True)
+    assert plan_chunks(10, 4, 2, loop=True)[-1] == [8, 9, 0, 1]
+
+
+def test_cameras_on_a_straight_strip_are_scored_without_a_free_roll():
+    from anycity.city.oracle import random_rotation
+    from anycity.geometry.alignment import sim3_matrix
+
+    g = torch.Generator().manual_seed(0)
+    xs = torch.linspace(-20, 20, 8, dtype=torch.float64)
+    gt = torch.stack([torch.linalg.inv(_c2w_looking_down_forward(float(x))) for x in xs])
+    T = sim3_matrix(torch.tensor(2.5, dtype=torch.float64), random_rotation(g), torch.tensor([3.0, -1, 7]))
+    err = camera_errors(w2c_to_world(gt, T), gt)  # perfect cameras in another frame
+    assert err["rot_deg_max"] < 1e-6 and err["pos_rel_max"] < 1e-9, err
+
+
+def _c2w_looking_down_forward(x: float) -> torch.Tensor:
+    """A camera at (x, 0, 50) pitched 30 degrees forward of nadir along +x (OpenCV axes)."""
+    a = math.radians(30)
+    z = torch.tensor([math.sin(a), 0.0, -math.cos(a)], dtype=torch.float64)  # looking down, ahead
+    y = torch.tensor([math.cos(a), 0.0, math.sin(a)], dtype=torch.float64)
+    y = -y  # image "down" points back along the strip
+    c2w = torch.eye(4, dtype=torch.float64)
+    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2] = torch.linalg.cross(y, z), y, z
+    c2w[:3, 3] = torch.tensor([x, 0.0, 50.0], dtype=torch.float64)
+    return c2w
 
 
 def test_chunked_scene_failure_leaves_no_ply(tmp_path):
