@@ -136,10 +136,11 @@ class SampleBuilder:
 
     def rng(self) -> np.random.Generator:
         if self._rng is None:
-            info = torch.utils.data.get_worker_info()
-            rank = int(os.environ.get("RANK", 0))
+            # the rank from RANK or torch.distributed: Lightning's DDP launcher sets no RANK, and every rank drew
+            # the same views when it was read from the environment alone
+            rank, _, worker, _ = wds.utils.pytorch_worker_info()
             epoch = [self._epoch] if self._epoch else []  # epoch 0 keeps the builder's first seed
-            self._rng = np.random.default_rng([self.seed, rank, info.id if info else 0, *epoch])
+            self._rng = np.random.default_rng([self.seed, rank, worker, *epoch])
         return self._rng
 
     def begin_epoch(self, epoch: int) -> None:
@@ -405,9 +406,10 @@ def check_finite(obj, where: str = "sample", path: str = "") -> None:
 
 class _EpochStart:
     """A resampled training stream's first stage. Each iteration of the pipeline is one epoch; this counts them from
-    ``first_epoch`` and seeds each epoch's random draws (shards, shuffle, views) from ``(seed, epoch)`` alone, so a
-    run resumed in epoch ``e`` (``first_epoch=e``) draws what the uninterrupted run drew there. Epoch 0's seeds
-    are the ones the stream had before it counted epochs."""
+    ``first_epoch`` and seeds each epoch's random draws (shards, shuffle, views) from ``(seed, epoch)`` and the
+    stream's rank and worker, so a run resumed in epoch ``e`` (``first_epoch=e``) draws what the uninterrupted run
+    drew there, and no two ranks or workers shuffle alike. Rank 0's first worker keeps the seeds the stream had
+    before it counted epochs and streams."""
 
     def __init__(self, shards: wds.ResampledShards, first_epoch: int, shuffle_rng: random.Random, seed: int,
                  builder: SampleBuilder) -> None:
@@ -417,7 +419,9 @@ class _EpochStart:
     def __call__(self):
         self.epoch += 1
         self.shards.epoch = self.epoch - 1  # it counts its own epochs from -1, one per iteration
-        self.shuffle_rng.seed(self.seed if self.epoch == 0 else f"{self.seed}:{self.epoch}")
+        rank, _, worker, _ = wds.utils.pytorch_worker_info()
+        base = self.seed if self.epoch == 0 else f"{self.seed}:{self.epoch}"
+        self.shuffle_rng.seed(f"{base}:{rank}:{worker}" if rank or worker else base)
         self.builder.begin_epoch(self.epoch)
         return iter(self.shards)
 

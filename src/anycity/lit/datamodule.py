@@ -210,8 +210,7 @@ class AerialDataModule(pl.LightningDataModule):
             epoch, done = divmod(done, max(1, per_epoch))
         loader = self._loader("train", epoch if self.hp.resampled else 0)
         if done:
-            skip = done * loader.batch_size // max(1, self.hp.num_workers)
-            loader = DataLoader(_SkipFirst(loader.dataset, skip), batch_size=loader.batch_size,
+            loader = DataLoader(_SkipFirst(loader.dataset, done, loader.batch_size), batch_size=loader.batch_size,
                                 collate_fn=loader.collate_fn, num_workers=loader.num_workers,
                                 persistent_workers=loader.persistent_workers, pin_memory=loader.pin_memory,
                                 drop_last=loader.drop_last)
@@ -280,13 +279,19 @@ class AerialDataModule(pl.LightningDataModule):
 
 
 class _SkipFirst(torch.utils.data.IterableDataset):
-    """The first iteration of ``dataset`` drops its first ``n`` samples (per worker); later ones are whole."""
+    """The first iteration of ``dataset`` drops the samples of the loader's first ``batches`` batches of
+    ``batch_size``; later ones are whole. A DataLoader takes batches from its W workers in turn, so worker k drops
+    ``ceil((batches - k) / W)`` whole batches (a count of samples split evenly could cut a batch, whose samples then
+    straddled two with ``train_num_context``)."""
 
-    def __init__(self, dataset, n: int) -> None:
-        self.dataset, self.n = dataset, int(n)
+    def __init__(self, dataset, batches: int, batch_size: int) -> None:
+        self.dataset, self.batches, self.batch_size = dataset, int(batches), int(batch_size)
 
     def __iter__(self):
-        it, n, self.n = iter(self.dataset), self.n, 0
+        info = torch.utils.data.get_worker_info()
+        k, workers = (info.id, info.num_workers) if info is not None else (0, 1)
+        n = max(0, -(-(self.batches - k) // workers)) * self.batch_size
+        it, self.batches = iter(self.dataset), 0
         for _ in range(n):
             if next(it, _END) is _END:
                 return

@@ -301,3 +301,51 @@ def test_a_split_the_index_does_not_list_says_how_to_make_one(synth_root, tmp_pa
         dm.val_dataloader()
     with pytest.raises(ValueError, match=r"test shards: .*--split test .*--data.test_shards OTHER_FOLDER$"):
         dm.test_dataloader()
+
+
+def test_each_rank_draws_its_own_stream_when_torch_distributed_names_it(synth_root, monkeypatch):
+    """Lightning's DDP launcher (and SLURM's) sets no RANK: read from the environment alone, every rank drew the
+    same views in the same shuffled order, so N GPUs trained on one GPU's data N times."""
+    import torch.distributed as dist
+
+    monkeypatch.delenv("RANK", raising=False)
+    monkeypatch.delenv("WORLD_SIZE", raising=False)
+    monkeypatch.setattr(dist, "is_initialized", lambda: True)
+    monkeypatch.setattr(dist, "get_world_size", lambda group=None: 2)
+    streams = []
+    for rank in (0, 1):
+        monkeypatch.setattr(dist, "get_rank", lambda group=None, r=rank: r)
+        dm = _dm(synth_root, batch_size=1, num_dense=0, epoch_samples=8)
+        streams.append([(b.scene[0], b.context.index[0].tolist()) for b in dm.train_dataloader()])
+    assert len(streams[0]) == len(streams[1]) == 8
+    assert sum(a == b for a, b in zip(*streams)) <= 2, streams
+
+
+def test_two_workers_reading_one_shard_shuffle_it_differently(synth_root, monkeypatch):
+    urls = shard_urls(synth_root, "train")[:1]
+    orders = []
+    for worker in (0, 1):  # webdataset reads WORKER / NUM_WORKERS as a DataLoader worker's id
+        monkeypatch.setenv("WORKER", str(worker))
+        monkeypatch.setenv("NUM_WORKERS", "2")
+        pipe = make_pipeline(urls, SampleBuilder(2, 1, 0, (16, 16), train=True), train=True, epoch_samples=8, seed=1)
+        orders.append([s["scene"] for s in pipe])
+    assert len(orders[0]) == 8 and orders[0] != orders[1]
+
+
+def test_a_run_resumed_with_workers_and_varied_context_counts_skips_whole_batches(synth_root):
+    """Resumed at step 3 with 2 workers and batches of 3: splitting 9 samples over the workers cut a batch, and
+    ``train_num_context`` (one count per batch) then failed to collate."""
+    from types import SimpleNamespace
+
+    def signatures(dm):
+        return sorted((tuple(b.scene), b.context.num_views, round(b.context.images.sum().item(), 3))
+                      for b in dm.train_dataloader())
+
+    kw = dict(batch_size=3, num_dense=0, num_workers=2, epoch_samples=24, train_num_context=(2, 4))
+    whole = _dm(synth_root, **kw)
+    resumed = _dm(synth_root, **kw)
+    resumed.trainer = SimpleNamespace(global_step=3, accumulate_grad_batches=1)
+    loader = whole.train_dataloader()
+    batches = [(tuple(b.scene), b.context.num_views, round(b.context.images.sum().item(), 3)) for b in loader]
+    assert len(batches) == 8
+    assert signatures(resumed) == sorted(batches[3:])  # the same batches; workers take turns in another order
