@@ -75,3 +75,22 @@ def test_datamodule_skips_by_default(tmp_path):
     from anycity.lit.datamodule import AerialDataModule
 
     assert AerialDataModule(root=str(tmp_path)).hparams.skip_corrupt is True
+
+
+def test_an_evaluation_says_how_many_samples_every_rank_skipped(tmp_path):
+    """Skips were said every 50 training steps, from rank 0's count alone: a test run (its step fixed at the
+    checkpoint's) could skip held-out targets and never say so."""
+    from types import SimpleNamespace
+
+    from anycity.lit import ScaffoldModule
+
+    counter = SkipCounter(tmp_path / "skips")
+    for i in range(3):
+        counter.add(f"sample {i}", ValueError("non-finite values"))
+    m = ScaffoldModule()
+    two_ranks = SimpleNamespace(reduce=lambda t, reduce_op: t * 2 if reduce_op == "sum" else None)
+    m._trainer = SimpleNamespace(datamodule=SimpleNamespace(num_skipped=counter.count, skip_counter=counter),
+                                 strategy=two_ranks)
+    with pytest.warns(UserWarning, match=r"^test: 6 corrupt sample\(s\) skipped so far on all ranks \(skip_corrupt: "
+                                         r"true\); these figures leave them out\. Rank 0's list: .*skips$"):
+        m._report_skips("test")

@@ -16,7 +16,7 @@ from typing import Any, Literal, TypedDict
 
 import lightning.pytorch as pl
 import torch
-from lightning.pytorch.utilities import rank_zero_info
+from lightning.pytorch.utilities import rank_zero_info, rank_zero_warn
 from torch import Tensor
 
 from anycity.callbacks.nonfinite import all_finite
@@ -385,6 +385,19 @@ class AnyCityModule(pl.LightningModule):
     def _log_metrics(self, metrics: EvalMetrics, split: str) -> None:
         # at epoch end on every rank: a rank without samples must still join the metric syncs (lit/distributed.py)
         log_eval_metrics(self, metrics, split)
+        self._report_skips(split)
+
+    def _report_skips(self, split: str) -> None:
+        """Say, at the end of every evaluation, how many corrupt samples ``skip_corrupt`` skipped so far summed over
+        the ranks (each counts its own): the figures leave them out, held-out targets included. Every rank calls
+        it (the sum is a collective)."""
+        dm = getattr(self.trainer, "datamodule", None)
+        if dm is None or not hasattr(dm, "num_skipped"):
+            return
+        n = int(self.trainer.strategy.reduce(torch.tensor(float(dm.num_skipped), device=self.device), reduce_op="sum"))
+        if n:
+            rank_zero_warn(f"{split}: {n} corrupt sample(s) skipped so far on all ranks (skip_corrupt: true); these "
+                           f"figures leave them out. Rank 0's list: {dm.skip_counter.directory}")
 
     def on_validation_epoch_end(self) -> None:
         self._log_metrics(self.val_metrics, "val")
