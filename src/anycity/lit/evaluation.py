@@ -16,6 +16,7 @@ from torchmetrics.image import PeakSignalNoiseRatio, StructuralSimilarityIndexMe
 from anycity.geometry import camera_centers, invert_rigid, transform_points, umeyama
 from anycity.geometry.rotations import quat_multiply, rotmat_to_quat
 from anycity.metrics.pose import pose_auc, relative_pose_errors
+from anycity.render.sh import sh_rotation
 from anycity.structures import Gaussians
 
 AlignMode = Literal["sim3", "none"]
@@ -73,7 +74,8 @@ def cameras_in_pred_frame(gt_w2c: Tensor, s: Tensor, R: Tensor, t: Tensor) -> Te
 
 
 def transform_gaussians(g: Gaussians, A: Tensor) -> Gaussians:
-    """Rigid world-to-world transforms of a batch of B scenes: centres and rotations.
+    """Rigid world-to-world transforms of a batch of B scenes: centres, rotations and the SH bands (a view's
+    colour field turns with its Gaussians, ``render.sh.sh_rotation``).
 
     ``A [B, 4, 4]`` moves each scene; ``A [B, V, 4, 4]`` moves each view's pixel-aligned Gaussians (N = V*H*W in
     view order, as the network emits them without voxel merging) by its own transform.
@@ -87,7 +89,11 @@ def transform_gaussians(g: Gaussians, A: Tensor) -> Gaussians:
     means = transform_points(per_view, g.means.unflatten(1, (v, n // v)))
     rot = rotmat_to_quat(per_view[..., :3, :3])[:, :, None].expand(b, v, n // v, 4)
     quats = quat_multiply(rot, g.quats.unflatten(1, (v, n // v)))
-    return Gaussians(means.flatten(1, 2), quats.flatten(1, 2), g.scales, g.opacities, g.sh, g.valid)
+    sh = g.sh
+    if g.sh_degree >= 1:
+        D = sh_rotation(per_view[..., :3, :3], g.sh_degree).to(sh.dtype)  # [B, V, K, K]
+        sh = torch.einsum("bvij,bvnjc->bvnic", D, sh.unflatten(1, (v, n // v))).flatten(1, 2)
+    return Gaussians(means.flatten(1, 2), quats.flatten(1, 2), g.scales, g.opacities, sh, g.valid)
 
 
 def _se3(rot: Tensor, trans: Tensor) -> Tensor:

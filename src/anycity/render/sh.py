@@ -45,15 +45,17 @@ def sh_basis(dirs: Tensor, degree: int) -> Tensor:
 
 
 def sh_rotation(R: Tensor, degree: int) -> Tensor:
-    """``[K, K]`` (K = (degree+1)**2) matrix ``D`` that turns SH coefficients ``sh [..., K, 3]`` into ``D @ sh`` when
-    the scene is rotated by ``R [3, 3]``: ``sh_basis(R d) @ (D @ sh) == sh_basis(d) @ sh`` for every unit ``d``, so
-    each Gaussian keeps its view-dependent colour. Every band is closed under rotation, so the least-squares fit on
-    64 spread directions (float64) is exact and block-diagonal. Same device and dtype as ``R``."""
-    i = torch.arange(64, dtype=torch.float64) + 0.5
+    """``[..., K, K]`` (K = (degree+1)**2) matrices ``D`` that turn SH coefficients ``sh [..., K, 3]`` into
+    ``D @ sh`` when the scene is rotated by ``R [..., 3, 3]``: ``sh_basis(R d) @ (D @ sh) == sh_basis(d) @ sh`` for
+    every unit ``d``, so each Gaussian keeps its view-dependent colour. Every band is closed under rotation, so the
+    least-squares fit on 64 spread directions (float64) is exact and block-diagonal. Differentiable in ``R``; same
+    device and dtype as ``R``."""
+    i = torch.arange(64, dtype=torch.float64, device=R.device) + 0.5
     polar, azimuth = torch.acos(1 - i / 32), torch.pi * (1 + 5**0.5) * i  # a Fibonacci sphere
     d = torch.stack([azimuth.cos() * polar.sin(), azimuth.sin() * polar.sin(), polar.cos()], -1)
-    rotated = sh_basis(d @ R.detach().double().cpu().T, degree)
-    return torch.linalg.lstsq(rotated, sh_basis(d, degree)).solution.to(R)
+    rotated = sh_basis(torch.einsum("...ij,pj->...pi", R.double(), d), degree)  # [..., 64, K]
+    At = rotated.transpose(-1, -2)  # normal equations: well conditioned (the basis is orthogonal on the sphere)
+    return torch.linalg.solve(At @ rotated, At @ sh_basis(d, degree)).to(R.dtype)
 
 
 def eval_sh(sh: Tensor, dirs: Tensor | None) -> Tensor:

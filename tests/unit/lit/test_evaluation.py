@@ -61,11 +61,14 @@ def _scene_and_cameras():
     return g, w2c, K
 
 
-def test_transform_gaussians_equals_moving_the_camera():
+@pytest.mark.parametrize("sh_coeffs", [1, 9])
+def test_transform_gaussians_equals_moving_the_camera(sh_coeffs):
+    """Also with view-dependent colour (degree 2): the moved Gaussians' SH turn with them."""
     from anycity.lit.evaluation import transform_gaussians
     from anycity.render import render
 
     g, w2c, K = _scene_and_cameras()
+    g.sh = 0.5 * torch.randn(1, g.num_gaussians, sh_coeffs, 3, generator=torch.Generator().manual_seed(5))
     A = _rand_w2c(1, 1, seed=7)[:, 0] * 0.1
     A[:, :3, :3] = quat_to_rotmat(torch.tensor([[1.0, 0.05, -0.03, 0.02]]))
     A[:, 3, 3] = 1.0
