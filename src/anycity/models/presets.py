@@ -124,6 +124,10 @@ def preset_config(preset: str, **overrides) -> NetConfig:
     for name, allowed in (("color_mode", ("head", "pixel")), ("scale_mode", ("absolute", "pixel"))):
         if getattr(cfg, name) not in allowed:
             raise ValueError(f"{name}: expected one of {list(allowed)}, got {getattr(cfg, name)!r}")
+    layers = cfg.resolved_head_layers()
+    if len(layers) != 4 or not all(0 <= i < cfg.depth for i in layers):
+        raise ValueError(f"head_layers: the DPT heads read 4 aggregator layers of 0..{cfg.depth - 1}, got "
+                         f"{list(layers)} (depth {cfg.depth}); use depth >= 4 or give head_layers 4 indices")
     return cfg
 
 

@@ -128,7 +128,8 @@ def test_a_stage1_checkpoint_that_does_not_fit_the_scaffold_is_one_line_not_rand
     path = tmp_path / "s1.ckpt"
     torch.save({"state_dict": s1.state_dict()}, path)
     cases = (({"camera_trunk_depth": 2}, "scaffold weights of this network are not in it .*camera_head.trunk.1"),
-             ({"depth": 2}, "of its keys are not in this network .*aggregator.frame_blocks.2"),
+             ({"depth": 3, "head_layers": (0, 1, 2, 2)}, "of its keys are not in this network .*aggregator."
+                                                         "frame_blocks.3"),
              ({"sh_degree": 2}, "shapes differ .*gaussian_head.scratch.output_conv2.2.weight: \\[21, "))
     for net, what in cases:
         with pytest.raises(ValueError, match=f"model.init_from: .*s1.ckpt does not fit .*{what}") as e:

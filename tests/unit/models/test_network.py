@@ -105,6 +105,12 @@ def test_unknown_preset_and_option():
         build_network("huge")
     with pytest.raises(ValueError, match="unknown option"):
         build_network("tiny", embed_dimm=3)
+    # a shallower aggregator than the heads' 4 layers: one line, not an unpacking error inside the DPT head
+    with pytest.raises(ValueError, match=r"head_layers: the DPT heads read 4 aggregator layers of 0\.\.1, got "
+                                         r"\[0, 1\] \(depth 2\); use depth >= 4"):
+        build_network("tiny", depth=2)
+    with pytest.raises(ValueError, match=r"got \[0, 1, 9, 3\]"):
+        build_network("tiny", head_layers=(0, 1, 9, 3))
 
 
 def test_layer_scaling():
