@@ -37,14 +37,16 @@ def fit_gt_to_pred(pred_w2c: Tensor, gt_w2c: Tensor, mode: AlignMode = "sim3") -
 
     Args:
         pred_w2c, gt_w2c: ``[B, V, 4, 4]`` the same context views, predicted and ground truth.
-        mode: ``"sim3"`` (Umeyama fit; identity when V == 1) or ``"none"`` (identity: both frames put the first
-            context camera at the origin with the same scale convention).
+        mode: ``"sim3"`` (Umeyama fit; as ``"none"`` when V == 1) or ``"none"`` (the frame of the first
+            ground-truth camera, unscaled: the network puts its first input camera at the origin, and the ground
+            truth's scale is taken as its own; the identity for context views, whose first camera is the origin,
+            but not for the D2S teacher's dense views).
     Returns:
         ``s [B]``, ``R [B, 3, 3]``, ``t [B, 3]`` (float32, no gradient).
     """
     b = pred_w2c.shape[0]
-    eye = torch.eye(3, device=pred_w2c.device).expand(b, 3, 3)
-    ident = (torch.ones(b, device=pred_w2c.device), eye, torch.zeros(b, 3, device=pred_w2c.device))
+    first = gt_w2c[:, 0].detach().float().to(pred_w2c.device)
+    ident = (torch.ones(b, device=pred_w2c.device), first[:, :3, :3], first[:, :3, 3])
     if mode == "none" or pred_w2c.shape[1] < 2:
         return ident
     if mode != "sim3":

@@ -28,23 +28,30 @@ from anycity.structures import RenderOutput, ViewBatch, Views
 OPTIONAL_SCAFFOLD_PREFIXES = ("gaussian_head.offset_conv.",)
 
 
-def far_views(views: Views, context: Views, k: int | None) -> Views:
-    """The ``k`` views of ``views`` whose camera centres are farthest from their nearest context camera (per scene,
-    ground-truth cameras), in their original order; all of them when ``k`` is None or not smaller."""
+def far_index(views: Views, context: Views, k: int | None) -> Tensor | None:
+    """Positions ``[B, k]`` of the ``k`` views of ``views`` whose camera centres are farthest from their nearest
+    context camera (per scene, ground-truth cameras), in their original order; None (all) when ``k`` is None or
+    not smaller."""
     if k is None or k >= views.num_views:
-        return views
+        return None
     if k <= 0:
         raise ValueError(f"model.d2s_views: expected a positive number of dense views or None, got {k}")
     c, cc = camera_centers(views.w2c.float()), camera_centers(context.w2c.float())
     dist = torch.cdist(c, cc).amin(-1)  # [B, D]
-    idx = dist.topk(k, dim=1).indices.sort(dim=1).values  # [B, k]
+    return dist.topk(k, dim=1).indices.sort(dim=1).values
 
-    def take(x: Tensor | None) -> Tensor | None:
-        if x is None:
-            return None
-        return torch.gather(x, 1, idx.view(*idx.shape, *([1] * (x.dim() - 2))).expand(-1, -1, *x.shape[2:]))
 
-    return Views(*(take(getattr(views, f.name)) for f in fields(Views)))
+def _take(x: Tensor | None, idx: Tensor | None) -> Tensor | None:
+    """``x [B, D, ...]`` at the positions ``idx [B, k]`` of dim 1 (all when ``idx`` is None)."""
+    if x is None or idx is None:
+        return x
+    return torch.gather(x, 1, idx.view(*idx.shape, *([1] * (x.dim() - 2))).expand(-1, -1, *x.shape[2:]))
+
+
+def far_views(views: Views, context: Views, k: int | None) -> Views:
+    """The views of :func:`far_index`; ``views`` itself when that is all of them."""
+    idx = far_index(views, context, k)
+    return views if idx is None else Views(*(_take(getattr(views, f.name), idx) for f in fields(Views)))
 
 
 def _scaled(r: RenderOutput, s: Tensor) -> RenderOutput:
@@ -244,14 +251,15 @@ class RefinementModule(AnyCityModule):
             raise ValueError(f"model.d2s_weight is {hp.d2s_weight}, but the batches hold no dense views "
                              "(data.num_dense: 0); set data.num_dense (the paper: 12) or model.d2s_weight: 0")
         if hp.d2s_weight > 0:
-            dense = far_views(dense, ctx, hp.d2s_views)
+            idx = far_index(dense, ctx, hp.d2s_views)  # the cameras rendered; the teacher reads every dense view
+            shown = far_views(dense, ctx, hp.d2s_views)
             with torch.no_grad():
                 t_out = self.forward_net(dense.images, refine=False)
                 t_g = t_out.get("scaffold_gaussians") or t_out["gaussians"]
-                w2c_td, s_t = self.target_cameras(t_out["w2c"], dense, dense)
-                teacher = _scaled(self.render(t_g, w2c_td, dense.K, dense.hw, ctx.images), s_t)
-            w2c_sd, s_s = self.target_cameras(out["w2c"], ctx, dense)
-            student = _scaled(self.render(final, w2c_sd, dense.K, dense.hw, ctx.images), s_s)
+                w2c_td, s_t = self.target_cameras(t_out["w2c"], dense, dense)  # its frame: dense view 0's
+                teacher = _scaled(self.render(t_g, _take(w2c_td, idx), shown.K, shown.hw, ctx.images), s_t)
+            w2c_sd, s_s = self.target_cameras(out["w2c"], ctx, shown)
+            student = _scaled(self.render(final, w2c_sd, shown.K, shown.hw, ctx.images), s_s)
             terms["d2s"] = d2s_loss(student, teacher, scale_align=hp.d2s_depth_scale == "median")["total"]
             loss = loss + hp.d2s_weight * terms["d2s"]
         if hp.reg_weight > 0:

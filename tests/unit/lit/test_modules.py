@@ -275,6 +275,23 @@ def test_far_views_keeps_the_dense_cameras_farthest_from_the_context():
         far_views(dense, ctx, 0)
 
 
+def test_d2s_views_renders_the_far_cameras_of_a_teacher_that_read_every_dense_view(batch):
+    torch.manual_seed(0)
+    m = _no_log(RefinementModule(d2s_views=1, render_backend="torch"))
+    seen, forward = [], m.forward_net
+
+    def recording(images, **kw):
+        seen.append(images.shape[1])
+        return forward(images, **kw)
+
+    m.forward_net = recording
+    rendered, render = [], m.render
+    m.render = lambda g, w2c, *a, **k: rendered.append(w2c.shape[1]) or render(g, w2c, *a, **k)
+    m.training_step(batch, 0)
+    assert batch.dense.num_views == 3 and 3 in seen  # the teacher: every dense view, not the one rendered
+    assert rendered.count(1) >= 2  # the teacher and the student, each at the one far camera
+
+
 def test_stage2_camera_option_trains_the_camera_residual_and_scores_each_variant_at_its_own_cameras(batch):
     """``net.refine_cameras`` + ``camera_weight`` (beyond the paper): the camera loss reaches the camera residual,
     the preservation term renders the scaffold at the scaffold's cameras, and evaluation places each variant with the
