@@ -25,12 +25,16 @@ def test_render_video_frames(tmp_path):
     assert min(diffs) > 0.1, diffs
 
 
-def test_render_video_keeps_an_existing_file(tmp_path, capsys):
+def _scene_and_an_earlier_video(tmp_path):
     pytest.importorskip("imageio_ffmpeg")
     (tmp_path / "s").mkdir()
-    folder = tiny_predict_folder(tmp_path / "s", n=50, with_prov=False)
     out = tmp_path / "fly.mp4"
     out.write_bytes(b"an earlier video")
+    return tiny_predict_folder(tmp_path / "s", n=50, with_prov=False), out
+
+
+def test_render_video_keeps_an_existing_file(tmp_path, capsys):
+    folder, out = _scene_and_an_earlier_video(tmp_path)
     args = ["render-video", str(folder), "--out", str(out), "--per-segment", "1", "--width", "16"]
     assert main(args) == 2
     assert f"{out} exists; pass --overwrite" in capsys.readouterr().err
@@ -40,13 +44,9 @@ def test_render_video_keeps_an_existing_file(tmp_path, capsys):
 
 def test_a_render_that_fails_midway_keeps_the_earlier_video_and_leaves_no_part(tmp_path, monkeypatch):
     """ffmpeg wrote straight to --out: a failed --overwrite run destroyed the old video and left a short one."""
-    pytest.importorskip("imageio_ffmpeg")
     from anycity.viewer import video
 
-    (tmp_path / "s").mkdir()
-    folder = tiny_predict_folder(tmp_path / "s", n=50, with_prov=False)
-    out = tmp_path / "fly.mp4"
-    out.write_bytes(b"an earlier video")
+    folder, out = _scene_and_an_earlier_video(tmp_path)
     frames = video.render_frames
 
     def fail_after_two(*args, **kwargs):

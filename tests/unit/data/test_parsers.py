@@ -226,6 +226,17 @@ def test_nerfstudio(tmp_path):
     assert not (tmp_path / "o3" / "index.json").exists()
 
 
+def _split_frames(gt, folder, last=1.0):
+    """MatrixCity split-file frames of ``gt``: OpenGL c2w in 100 m units (``c2w[3][3] = last``, as released)."""
+    frames = []
+    for i, g in enumerate(gt):
+        c2w = np.linalg.inv(g) @ GL_TO_CV
+        c2w[:3, 3] /= 100.0  # MatrixCity split files store 100 m units
+        c2w[3, 3] = last
+        frames.append({"file_path": f"../../{folder}/{i:04d}.png", "transform_matrix": c2w.tolist()})
+    return frames
+
+
 def test_matrixcity_split_file_with_depth(tmp_path):
     gt = _gt()
     src = tmp_path / "pose" / "block_A"
@@ -234,11 +245,7 @@ def test_matrixcity_split_file_with_depth(tmp_path):
     (img_dir / "depth").mkdir()
     for i in range(N):
         np.save(img_dir / "depth" / f"{i:04d}.npy", np.full((H, W), 1234.0, np.float32))  # centimetres
-    frames = []
-    for i, g in enumerate(gt):
-        c2w = np.linalg.inv(g) @ GL_TO_CV
-        c2w[:3, 3] /= 100.0  # MatrixCity split files store 100 m units
-        frames.append({"file_path": f"../../train/block_1/{i:04d}.png", "transform_matrix": c2w.tolist()})
+    frames = _split_frames(gt, "train/block_1")
     src.mkdir(parents=True)
     (src / "transforms_train.json").write_text(json.dumps({"fl_x": 30, "fl_y": 31, "cx": 16, "cy": 12, "w": W, "h": H,
                                                           "frames": frames}))
@@ -269,12 +276,7 @@ def test_matrixcity_raw_block_and_split_files_as_released(tmp_path, rotation_sca
     _check(tmp_path / "out_raw", gt)
     split = tmp_path / "pose" / "block_A"
     split.mkdir(parents=True)
-    frames = []
-    for i, g in enumerate(gt):
-        c2w = np.linalg.inv(g) @ GL_TO_CV
-        c2w[:3, 3] /= 100.0
-        c2w[3, 3] = 0.01
-        frames.append({"file_path": f"../../aerial/block_1/{i:04d}.png", "transform_matrix": c2w.tolist()})
+    frames = _split_frames(gt, "aerial/block_1", last=0.01)
     (split / "transforms_train.json").write_text(json.dumps({"fl_x": 30, "fl_y": 31, "cx": 16, "cy": 12, "w": W,
                                                             "h": H, "frames": frames}))
     convert("matrixcity", split, tmp_path / "out_split")
@@ -306,11 +308,7 @@ def test_matrixcity_pose_files_name_their_split(tmp_path):
     _images(img_dir, [f"{i:04d}.png" for i in range(N)])
     pose = tmp_path / "pose" / "block_A"
     pose.mkdir(parents=True)
-    frames = []
-    for i, g in enumerate(gt):
-        c2w = np.linalg.inv(g) @ GL_TO_CV
-        c2w[:3, 3] /= 100.0
-        frames.append({"file_path": f"../../aerial/block_1/{i:04d}.png", "transform_matrix": c2w.tolist()})
+    frames = _split_frames(gt, "aerial/block_1")
     for name in ("train", "train_dense", "test"):  # three files: an 8:1:1 split by scene would make one val
         (pose / f"transforms_{name}.json").write_text(json.dumps({"fl_x": 30, "fl_y": 31, "cx": 16, "cy": 12,
                                                                   "w": W, "h": H, "frames": frames}))
