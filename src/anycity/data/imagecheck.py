@@ -29,23 +29,47 @@ def check_image_file(path: str | Path, max_pixels: int = MAX_PIXELS) -> None:
     if w < 0 or w * h > max_pixels:
         raise ValueError(f"{path}: header declares {w}x{h} pixels, over the {max_pixels // 10**6} MP limit "
                          "(a decompression bomb or a corrupt header); downscale it or remove it")
-    if fmt == "JPEG":
-        with open(path, "rb") as f:
-            f.seek(max(0, path.stat().st_size - 4096))
-            tail = f.read().rstrip(b"\x00")
-        if not tail.endswith(b"\xff\xd9"):
-            raise ValueError(f"{path}: truncated JPEG (no end-of-image marker); re-copy or re-save it, or remove it")
+    if fmt in ("JPEG", "MPO") and not _jpeg_complete(path):  # MPO: a drone's JPEG with an embedded preview
+        raise ValueError(f"{path}: truncated JPEG (no end-of-image marker); re-copy or re-save it, or remove it")
+
+
+def _jpeg_complete(path: Path) -> bool:
+    """Whether the primary image of a JPEG has its end-of-image marker: walked from the start past the header
+    segments (an EXIF thumbnail inside APP1 holds one of its own) to the first scan, then searched after it. Data
+    after the marker (a phone's motion-photo video, an MPO's preview) is allowed."""
+    import mmap
+
+    with open(path, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as data:
+        i, n = 2, len(data)
+        while i + 4 <= n and data[i] == 0xFF:
+            marker = data[i + 1]
+            if marker == 0xDA:  # start of scan: entropy-coded data follows, where 0xFF is always stuffed
+                return data.find(b"\xff\xd9", i) != -1
+            if marker == 0xFF:  # fill byte
+                i += 1
+                continue
+            i += 2 + int.from_bytes(data[i + 2:i + 4], "big")
+        return False
+
+
+def exif_orientation(path: str | Path) -> int:
+    """The EXIF orientation (1..8; 1 when absent or out of range) Pillow reads from any image's header."""
+    from PIL import Image
+
+    with Image.open(path) as im:
+        o = im.getexif().get(0x0112, 1)
+    return o if o in range(1, 9) else 1
 
 
 def image_size(path: str | Path, *, as_shown: bool) -> tuple[int, int]:
-    """``(h, w)`` from the header only: as stored, or ``as_shown`` with the EXIF orientation applied as OpenCV's
-    decoders apply it. Posed datasets describe the stored pixels (COLMAP ignores the orientation); a photo folder
-    without cameras is read as shown. Raises what Pillow raises on an unreadable file; callers name the file and the
-    fix."""
+    """``(h, w)`` from the header only: as stored, or ``as_shown`` with the EXIF orientation applied (as
+    :func:`anycity.data.photos.load_photo` applies it). Posed datasets describe the stored pixels (COLMAP ignores
+    the orientation); a photo folder without cameras is read as shown. Raises what Pillow raises on an unreadable
+    file; callers name the file and the fix."""
     from PIL import Image
 
     with Image.open(path) as im:
         w, h = im.size
-        if as_shown and im.getexif().get(0x0112, 1) in (5, 6, 7, 8):  # rotated by 90 degrees when shown
-            w, h = h, w
+    if as_shown and exif_orientation(path) in (5, 6, 7, 8):  # rotated by 90 degrees when shown
+        w, h = h, w
     return h, w

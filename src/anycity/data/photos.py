@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 import torch
 
-from anycity.data.imagecheck import check_image_file, image_size
+from anycity.data.imagecheck import check_image_file, exif_orientation, image_size
 from anycity.data.views import jpeg_reduction, resize_plan, resize_view
 
 PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".webp")
@@ -100,17 +100,27 @@ def load_photo(path: Path, hw: tuple[int, int], mode: str = "keep", patch: int =
 
     r = 1
     if path.suffix.lower() in (".jpg", ".jpeg"):
-        h, w = size or photo_size(path)  # as shown: OpenCV applies a JPEG's EXIF orientation too
+        h, w = size or photo_size(path)  # as shown
         r = jpeg_reduction(h, w, *resize_plan(h, w, hw, fit(h, w), patch)[:2])
     flag = {1: cv2.IMREAD_COLOR, 2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4,
             8: cv2.IMREAD_REDUCED_COLOR_8}[r]
-    bgr = cv2.imread(str(path), flag)  # applies the EXIF orientation
+    # the orientation from where photo_size read it (Pillow), not OpenCV's: a PNG's ImageMagick "Raw profile type
+    # exif" chunk is one that Pillow reads and OpenCV does not, which left such a photo sideways and cropped
+    bgr = cv2.imread(str(path), flag | cv2.IMREAD_IGNORE_ORIENTATION)
     if bgr is None:
         raise ValueError(f"predict_images: cannot decode {path}; re-save it as JPEG or PNG, or remove it")
+    bgr = oriented(bgr, exif_orientation(path))
     h, w = bgr.shape[0] * r, bgr.shape[1] * r  # the full size (r divides both sides)
     K = np.array([[max(h, w), 0, w / 2], [0, max(h, w), h / 2], [0, 0, 1]], np.float64)  # unused placeholder
     rgb, *_ = resize_view(np.ascontiguousarray(bgr[..., ::-1]), K, hw, fit(h, w), patch, src_hw=(h, w))
     return torch.from_numpy(np.ascontiguousarray(rgb)).permute(2, 0, 1).float() / 255
+
+
+def oriented(img: np.ndarray, orientation: int) -> np.ndarray:
+    """``img [H, W, C]`` as shown for an EXIF ``orientation`` (1..8): flipped and/or turned by 90-degree steps."""
+    turned = {1: img, 2: img[:, ::-1], 3: img[::-1, ::-1], 4: img[::-1], 5: img.swapaxes(0, 1),
+              6: np.rot90(img, -1), 7: img.swapaxes(0, 1)[::-1, ::-1], 8: np.rot90(img, 1)}
+    return np.ascontiguousarray(turned.get(orientation, img))
 
 
 GENERIC_FOLDERS = {"images", "imgs", "image", "photos", "input", "inputs", "rgb", "jpg", "jpgs"}

@@ -40,6 +40,65 @@ def test_exif_orientation_is_applied(tmp_path):
     assert h > w  # portrait, as the phone showed it
 
 
+@pytest.mark.parametrize("orientation", range(1, 9))
+def test_every_exif_orientation_is_shown_as_opencv_shows_a_jpeg(tmp_path, orientation):
+    from PIL import Image
+
+    from anycity.data.photos import load_photo, photo_size
+
+    yy, xx = np.mgrid[0:24, 0:40]
+    img = np.stack([xx * 6, yy * 10, (xx * yy) % 256], -1).astype(np.uint8)  # no symmetry
+    exif = Image.Exif()
+    exif[0x0112] = orientation
+    Image.fromarray(img).save(tmp_path / "a.jpg", quality=100, exif=exif)
+    shown = cv2.imread(str(tmp_path / "a.jpg"))[..., ::-1]  # OpenCV applies a JPEG's orientation
+    assert photo_size(tmp_path / "a.jpg") == shown.shape[:2]
+    got = load_photo(tmp_path / "a.jpg", shown.shape[:2], mode="keep", patch=8)
+    np.testing.assert_allclose(got.permute(1, 2, 0).numpy(), shown / 255, atol=1e-6)
+
+
+def test_a_png_turned_by_an_imagemagick_exif_chunk_loads_upright_and_whole(tmp_path):
+    """Pillow reads the orientation from a PNG's "Raw profile type exif" text chunk, OpenCV does not: the size came
+    from one and the pixels from the other, and the photo loaded sideways with 44% cropped away."""
+    from PIL import Image, PngImagePlugin
+
+    from anycity.data.photos import load_photo, photo_size
+
+    exif = Image.Exif()
+    exif[0x0112] = 6
+    raw = exif.tobytes().hex()
+    text = f"\nexif\n{len(raw) // 2:8d}\n" + "\n".join(raw[i:i + 72] for i in range(0, len(raw), 72)) + "\n"
+    info = PngImagePlugin.PngInfo()
+    info.add_text("Raw profile type exif", text, zip=True)
+    img = np.zeros((48, 64, 3), np.uint8)
+    img[:, :8] = 255  # a white left edge: the top edge once turned clockwise
+    Image.fromarray(img).save(tmp_path / "p.png", pnginfo=info)
+    assert photo_size(tmp_path / "p.png") == (64, 48)
+    got = load_photo(tmp_path / "p.png", (64, 48), mode="keep", patch=8)
+    assert got[:, :8].mean() > 0.99 and got[:, 8:].mean() < 0.01
+
+
+def test_a_drone_photo_with_a_preview_is_refused_when_cut_short_and_read_with_data_after_it(tmp_path):
+    """DJI photos are MPO (a JPEG with an embedded preview); the truncation check read "JPEG" only and let a cut one
+    load with a grey half. A JPEG followed by other data (a motion photo's video) is whole, not truncated."""
+    from PIL import Image
+
+    from anycity.data.photos import load_photo, photo_size
+
+    rng = np.random.default_rng(0)
+    img = rng.integers(0, 255, (96, 128, 3), np.uint8)
+    Image.fromarray(img).save(tmp_path / "m.jpg", "MPO", save_all=True, append_images=[Image.fromarray(img[::4, ::4])])
+    data = (tmp_path / "m.jpg").read_bytes()
+    assert Image.open(tmp_path / "m.jpg").format == "MPO"
+    (tmp_path / "cut.jpg").write_bytes(data[: data.find(b"\xff\xd9") // 2])
+    with pytest.raises(ValueError, match=r"cut\.jpg: truncated JPEG"):
+        photo_size(tmp_path / "cut.jpg")
+    Image.fromarray(img).save(tmp_path / "plain.jpg", quality=95)
+    (tmp_path / "motion.jpg").write_bytes((tmp_path / "plain.jpg").read_bytes() + b"ftypmp42" + bytes(8000))
+    assert photo_size(tmp_path / "motion.jpg") == (96, 128) == photo_size(tmp_path / "m.jpg")
+    assert load_photo(tmp_path / "motion.jpg", (96, 128), patch=8).shape == (3, 96, 128)
+
+
 def test_webp_and_16_bit_photos_load_upright(tmp_path):
     from PIL import Image
 
@@ -93,7 +152,8 @@ def test_large_jpegs_decode_at_a_fraction_of_their_size(tmp_path, monkeypatch):
     imread = cv2.imread
     monkeypatch.setattr(photos.cv2, "imread", lambda f, flag: flags.append(flag) or imread(f, flag))
     out = load_photo_folder(d, (64, 48), mode="keep", patch=8)
-    assert flags == [cv2.IMREAD_REDUCED_COLOR_8] * 2 and out["images"].shape == (2, 3, 64, 48)
+    assert flags == [cv2.IMREAD_REDUCED_COLOR_8 | cv2.IMREAD_IGNORE_ORIENTATION] * 2
+    assert out["images"].shape == (2, 3, 64, 48)
     full = imread(str(d / "a.jpg"), cv2.IMREAD_COLOR)[..., ::-1]
     assert full.shape[:2] == (640, 480)  # upright
     ref, *_ = resize_view(np.ascontiguousarray(full), np.eye(3), (64, 48), "keep", 8)
