@@ -98,6 +98,16 @@ def _cli_class():
                 # resumed fit keeps it, so that the checkpoints it writes still say what the run started from)
                 self.config[f"{sub}.model.init_args.pretrained"] = None
 
+        def instantiate_classes(self) -> None:
+            import contextlib
+
+            from anycity.lit.base import resuming
+
+            sub = self.config.get("subcommand")
+            ckpt = self.config[sub].get("ckpt_path") if sub == "fit" else None
+            with resuming() if ckpt and Path(ckpt).is_file() else contextlib.nullcontext():  # not "last": it may
+                super().instantiate_classes()  # find no checkpoint, and the fit would start from random weights
+
         def _run_subcommand(self, subcommand: str) -> None:
             from lightning.pytorch.utilities import rank_zero_info
 
@@ -120,6 +130,11 @@ def _cli_class():
                     from anycity.data.photos import scene_name
 
                     scene = scene_name(photos)
+                    folder = (export_root / scene).resolve() if export_root is not None else None
+                    if folder is not None and folder in (Path(photos).resolve(), *Path(photos).resolve().parents):
+                        raise ValueError(f"--export.out_dir: the scene folder {folder} would hold the photos "
+                                         f"{photos} (an earlier export there is moved aside); pass an "
+                                         "--export.out_dir outside it")
             keep_previous_run(self.trainer, subcommand, self.config[subcommand].get("ckpt_path"), export_root, scene)
             if subcommand == "fit":
                 super()._run_subcommand(subcommand)

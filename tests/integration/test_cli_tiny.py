@@ -134,6 +134,12 @@ def test_resume_continues_step_optimizer_and_schedule(tiny_shards, tmp_path):
     sched = cli.trainer.lr_scheduler_configs[0].scheduler
     assert sched.last_epoch == 4
     assert opt.param_groups[0]["lr"] == pytest.approx(sched.get_last_lr()[0])
+    # a run started from pretrained weights resumes on a machine without that file: the checkpoint's weights
+    # replace them, so it is not read (it stopped the resume with FileNotFoundError), and it stays on record
+    ckpt["hyper_parameters"]["pretrained"] = str(tmp_path / "elsewhere" / "vggt_model.pt")
+    torch.save(ckpt, tmp_path / "from_vggt.ckpt")
+    cli = build_cli(["fit", *_tiny_args(tiny_shards, run, steps=3), "--ckpt_path", str(tmp_path / "from_vggt.ckpt")])
+    assert cli.trainer.global_step == 3 and cli.model.hparams.pretrained.endswith("vggt_model.pt")
 
 
 def test_fit_with_varied_context_counts(tiny_shards, tmp_path, monkeypatch):

@@ -121,9 +121,13 @@ def test_a_run_that_fails_before_its_first_step_leaves_the_checkpoints_and_expor
     assert f"anycity: last checkpoint {last} (--ckpt_path last resumes from it)" in caplog.text
     with pytest.raises(ValueError, match="multiples of the patch size"):
         build_cli(["fit", *_args(tiny_shards, run, [*ck, "--data.image_size", "[36, 36]"])])
+    logs = {f: (run / f).read_bytes() for f in ("config.yaml", "metrics.csv", "hparams.yaml")}
+    files = sorted(run.iterdir())
     build_cli(["fit", *_args(tiny_shards, run, [*ck, "--trainer.fast_dev_run", "true"])])
     assert last.read_bytes() == first and not (run / "checkpoints.1").exists()
     assert sorted(p.name for p in (run / "checkpoints").iterdir()) == ["last.ckpt"]  # fast_dev_run wrote none
+    # nor any log file (its logger is a dummy): the training's config.yaml, metrics.csv and hparams.yaml stay
+    assert {f: (run / f).read_bytes() for f in logs} == logs and sorted(run.iterdir()) == files
 
     # a fresh fit that takes a step does move them aside (and writes its own)
     build_cli(["fit", *_args(tiny_shards, run, [*ck, "--seed_everything", "1"])])
@@ -147,3 +151,15 @@ def test_a_run_that_fails_before_its_first_step_leaves_the_checkpoints_and_expor
     (tmp_path / "a_file").write_text("x")
     with pytest.raises(NotADirectoryError, match="--export.out_dir .*a_file is a file, not a folder"):
         build_cli([*predict[:-4], "--export.out_dir", str(tmp_path / "a_file" / "out"), *predict[-2:]])
+    # the export folder the user's photos are in: refused before the network runs (it was moved aside, photos too)
+    with pytest.raises(ValueError, match=r"--export.out_dir: the scene folder .*farm would hold the photos .*pass an "
+                                         "--export.out_dir outside it"):
+        build_cli([*predict[:-4], "--export.out_dir", str(tmp_path), *predict[-2:]])
+    assert sorted(p.name for p in photos.iterdir()) == ["0.jpg", "1.jpg", "2.jpg"]
+    # a scene folder of someone else's files: refused, not moved aside and not written into
+    (tmp_path / "mine" / "farm").mkdir(parents=True)
+    (tmp_path / "mine" / "farm" / "notes.txt").write_text("not a predict output")
+    with pytest.raises(ValueError, match=r"--export.out_dir: .*mine/farm holds files `anycity predict` did not write"):
+        build_cli([*predict[:-4], "--export.out_dir", str(tmp_path / "mine"), *predict[-2:]])
+    assert sorted(p.name for p in (tmp_path / "mine").iterdir()) == ["farm"]
+    assert sorted(p.name for p in (tmp_path / "mine" / "farm").iterdir()) == ["notes.txt"]

@@ -7,9 +7,12 @@ Stage-specific training lives in :mod:`anycity.lit.scaffold` (Stage I) and :mod:
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import functools
 import math
 import typing
+from collections.abc import Iterator
 from dataclasses import fields
 from fnmatch import fnmatchcase
 from typing import Any, Literal, TypedDict
@@ -84,6 +87,21 @@ def warmup_cosine(step: int, warmup: int, total: int, min_ratio: float) -> float
         return (step + 1) / warmup
     progress = min(1.0, (step - warmup) / max(1, total - warmup))
     return min_ratio + (1 - min_ratio) * 0.5 * (1 + math.cos(math.pi * progress))
+
+
+_RESUMING = contextvars.ContextVar("anycity_resuming", default=False)
+
+
+@contextlib.contextmanager
+def resuming() -> Iterator[None]:
+    """Modules built in this block are for a ``fit`` that resumes from a checkpoint file: its weights replace the
+    pretrained ones, so ``pretrained`` (kept in the hyperparameters: it says what the run started from) is not read;
+    the machine that resumes may not have that file."""
+    token = _RESUMING.set(True)
+    try:
+        yield
+    finally:
+        _RESUMING.reset(token)
 
 
 class AnyCityModule(pl.LightningModule):
@@ -161,7 +179,10 @@ class AnyCityModule(pl.LightningModule):
         self.net = build_network(preset, **dict(net or {}))
         if gradient_checkpointing:
             self.net.set_gradient_checkpointing(True)
-        if pretrained:
+        if pretrained and _RESUMING.get():
+            rank_zero_info(f"model.pretrained {pretrained}: not read, the fit resumes from a checkpoint whose "
+                           "weights replace it")
+        elif pretrained:
             from anycity.models.pretrained import load_pretrained
 
             report = load_pretrained(self.net, pretrained, kind=pretrained_kind)

@@ -33,6 +33,15 @@ def move_aside(path: Path) -> Path | None:
     return dest
 
 
+PREDICT_OUTPUTS = ("scene.ply", "cameras.json", "chunks.json", "inputs", "renders")  # what an export writes
+
+
+def holds_predict_output(path: Path) -> bool:
+    """Whether ``path`` is what ``anycity predict`` exports: a scene folder, or a folder of scene folders."""
+    folders = [path, *(c for c in path.iterdir() if c.is_dir())]
+    return any((d / name).exists() for d in folders for name in PREDICT_OUTPUTS)
+
+
 def keep_previous_run(trainer, subcommand: str, ckpt_path=None, export_root: Path | None = None,
                       scene: str | None = None) -> list[Path]:
     """Move aside the log files an earlier run left where ``subcommand`` will write (now: Lightning writes them
@@ -56,6 +65,8 @@ def keep_previous_run(trainer, subcommand: str, ckpt_path=None, export_root: Pat
         keep = KeepPreviousRun([export_root / scene if scene else export_root], checkpoints=False)
     if keep is not None:  # first in the list: its hooks run before ModelCheckpoint's and the export's
         trainer.callbacks.insert(0, keep)
+    if trainer.fast_dev_run:  # its DummyLogger writes no log file (log_dir None: the fallback is a training's own)
+        return []
     log_dir = Path(trainer.log_dir or trainer.default_root_dir)  # where Lightning writes them; every rank asks
     if trainer.global_rank != 0:
         return []
@@ -128,6 +139,11 @@ class KeepPreviousRun(Callback):
         self.paths = []
 
     def _at_start(self, trainer) -> None:
+        if not self.checkpoints:  # an export folder: only an earlier export is moved aside, never other files
+            for path in self.paths:
+                if path.is_dir() and any(path.iterdir()) and not holds_predict_output(path):
+                    raise ValueError(f"--export.out_dir: {path} holds files `anycity predict` did not write (it "
+                                     "moves aside only its own earlier exports); pass another --export.out_dir")
         if trainer.world_size > 1:  # another rank may write before this one's first batch ends: all wait for the move
             self._keep(trainer)
             trainer.strategy.barrier("anycity-keep-previous-run")
