@@ -4,6 +4,7 @@ import json
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 import torch
 from PIL import Image
 
@@ -150,11 +151,11 @@ def test_a_chunked_prediction_shows_its_bar_before_the_first_chunk_is_done(capsy
     assert "city: chunks of beach" in capsys.readouterr().err
 
 
+@pytest.mark.filterwarnings("ignore:Couldn't infer the batch indices")  # the CLI silences it too; the export needs none
 def test_a_chunk_that_fails_leaves_no_spill_files(tmp_path):
     """Lightning calls ``on_exception``, not ``on_predict_end``, when a chunk fails (a photo that passes the header
     check but does not decode): the earlier chunks' spill files (gigabytes for a city) went on taking the disk."""
     import lightning.pytorch as pl
-    import pytest
 
     plan, h, w = plan_chunks(12, 6, 3), 2, 2
 
