@@ -70,6 +70,24 @@ def atomic_open(path: str | os.PathLike, tmp_dir: str | os.PathLike | None = Non
         raise
 
 
+@contextmanager
+def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
+    """A hidden temporary path beside ``path``, with its suffix (for writers that take a file name and pick a
+    format by it, as ffmpeg does), that becomes ``path`` (fsync, rename) only when the block ends without an
+    exception; on one it is removed and ``path`` is unchanged."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
+    try:
+        yield tmp
+        with open(tmp, "rb") as f:
+            os.fsync(f.fileno())
+        publish(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
 def publish(src: str | os.PathLike, dst: str | os.PathLike) -> None:
     """Rename the finished, fsynced file (or folder of them) ``src`` to ``dst`` (same filesystem) and fsync
     ``dst``'s folder, so the new name survives a power loss."""

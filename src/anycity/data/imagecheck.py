@@ -57,7 +57,11 @@ def exif_orientation(path: str | Path) -> int:
     from PIL import Image
 
     with Image.open(path) as im:
-        o = im.getexif().get(0x0112, 1)
+        return _orientation(im)
+
+
+def _orientation(im) -> int:
+    o = im.getexif().get(0x0112, 1)
     return o if o in range(1, 9) else 1
 
 
@@ -70,6 +74,6 @@ def image_size(path: str | Path, *, as_shown: bool) -> tuple[int, int]:
 
     with Image.open(path) as im:
         w, h = im.size
-    if as_shown and exif_orientation(path) in (5, 6, 7, 8):  # rotated by 90 degrees when shown
-        w, h = h, w
+        if as_shown and _orientation(im) in (5, 6, 7, 8):  # rotated by 90 degrees when shown
+            w, h = h, w
     return h, w

@@ -7,7 +7,6 @@ written through :mod:`anycity.atomic`: a killed export leaves no partial file un
 
 from __future__ import annotations
 
-import io
 import json
 from pathlib import Path
 
@@ -108,7 +107,7 @@ def save_points_ply(path: str | Path, g: Gaussians, index: int = 0, max_points: 
     """The Gaussian centres of scene ``index`` as a coloured point cloud (``x y z`` float, ``red green blue``
     uchar), the seed layout nerfstudio's ``ply_file_path`` and graphdeco's ``fetchPly`` read; returns ``path``.
     Points as in :func:`save_colmap`."""
-    from plyfile import PlyData, PlyElement
+    from anycity.export.ply import write_vertices
 
     xyz, rgb = _coloured_points(g, index, max_points)
     data = np.empty(len(xyz), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
@@ -117,10 +116,7 @@ def save_points_ply(path: str | Path, g: Gaussians, index: int = 0, max_points: 
         data[c] = xyz[:, i]
     for i, c in enumerate(("red", "green", "blue")):
         data[c] = rgb[:, i]
-    buf = io.BytesIO()
-    PlyData([PlyElement.describe(data, "vertex")], text=False, byte_order="<").write(buf)
-    with buf.getbuffer() as view:  # released even on an error (see lit/checkpoint_io.py)
-        atomic_write_bytes(path, view)
+    write_vertices(path, data)
     return Path(path)
 
 

@@ -74,13 +74,19 @@ def save_ply(g: Gaussians, path: str | Path, index: int = 0, max_degree: int = 3
     data = np.empty(n, dtype=[(k, "f4") for k in cols])
     for k, v in cols.items():
         data[k] = v
+    write_vertices(path, data)
+    return dropped
+
+
+def write_vertices(path: str | Path, data: np.ndarray) -> None:
+    """A binary little-endian PLY of one ``vertex`` element (a structured array, one field per property) at
+    ``path``, written whole then renamed: a killed export leaves no file that looks complete."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    buf = io.BytesIO()  # written whole then renamed: a killed export leaves no scene.ply that looks complete
+    buf = io.BytesIO()
     PlyData([PlyElement.describe(data, "vertex")], text=False, byte_order="<").write(buf)
     with buf.getbuffer() as view:  # released even on an error (see lit/checkpoint_io.py)
         atomic_write_bytes(path, view)
-    return dropped
 
 
 def load_ply(path: str | Path) -> Gaussians:

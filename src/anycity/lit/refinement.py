@@ -50,7 +50,10 @@ def _take(x: Tensor | None, idx: Tensor | None) -> Tensor | None:
 
 def far_views(views: Views, context: Views, k: int | None) -> Views:
     """The views of :func:`far_index`; ``views`` itself when that is all of them."""
-    idx = far_index(views, context, k)
+    return _take_views(views, far_index(views, context, k))
+
+
+def _take_views(views: Views, idx: Tensor | None) -> Views:
     return views if idx is None else Views(*(_take(getattr(views, f.name), idx) for f in fields(Views)))
 
 
@@ -252,7 +255,7 @@ class RefinementModule(AnyCityModule):
                              "(data.num_dense: 0); set data.num_dense (the paper: 12) or model.d2s_weight: 0")
         if hp.d2s_weight > 0:
             idx = far_index(dense, ctx, hp.d2s_views)  # the cameras rendered; the teacher reads every dense view
-            shown = far_views(dense, ctx, hp.d2s_views)
+            shown = _take_views(dense, idx)
             with torch.no_grad():
                 t_out = self.forward_net(dense.images, refine=False)
                 t_g = t_out.get("scaffold_gaussians") or t_out["gaussians"]

@@ -6,14 +6,13 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
 from pathlib import Path
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from anycity.atomic import check_writable_folder, publish
+from anycity.atomic import atomic_path, check_writable_folder
 from anycity.viewer.scene import ViewScene, load_view_scene
 
 
@@ -129,13 +128,10 @@ def render_video(path: str | Path, out: str | Path, per_segment: int = 12, orbit
     width = width or scene.width
     width -= width % 2  # yuv420p needs even sizes
     height = max(2, round(width * scene.height / scene.width / 2) * 2)
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    # ffmpeg writes a hidden file of the same suffix (it picks the container by it), renamed when complete: a run
-    # that fails or is killed leaves no short mp4 that looks whole, and an --overwrite run keeps the old one
-    tmp = out.with_name(f".{out.stem}.tmp-{os.getpid()}{out.suffix}")
     n = 0
-    try:
+    # renamed into place when complete: a run that fails or is killed leaves no short mp4 that looks whole, and an
+    # --overwrite run that fails keeps the old one
+    with atomic_path(out) as tmp:
         writer = imageio_ffmpeg.write_frames(str(tmp), (width, height), fps=fps, quality=8, macro_block_size=2)
         writer.send(None)
         try:
@@ -144,12 +140,6 @@ def render_video(path: str | Path, out: str | Path, per_segment: int = 12, orbit
                 n += 1
         finally:
             writer.close()
-        with open(tmp, "rb") as f:
-            os.fsync(f.fileno())
-        publish(tmp, out)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
     return n
 
 
