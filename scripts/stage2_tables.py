@@ -107,7 +107,9 @@ def run_row(row: Row, ckpt: Path, out: Path, common: list[str], steps: int, pose
     """Fit and test one row (or reuse its finished run). Returns ``{"settings", "refined", "scaffold"}``."""
     d = out / row.name
     overrides = [*row.overrides, *(["--model.init_args.net.pose_prior", pose_prior] if row.pose_prior else [])]
-    settings = {"stage1": str(ckpt), "steps": steps, "args": [*common, *overrides]}
+    st = ckpt.stat()  # the file's identity too: a rerun of Stage I to the same path makes earlier rows stale
+    settings = {"stage1": str(ckpt), "stage1_file": [st.st_size, st.st_mtime_ns], "steps": steps,
+                "args": [*common, *overrides]}
     done = d / "metrics.json"
     if done.is_file():
         saved = json.loads(done.read_text())

@@ -1,13 +1,17 @@
-"""The sbatch scripts' own launch line, run as SLURM would run it: 1 node x 2 tasks on CPU, each task a process
-with the SLURM_* variables srun sets. Both ranks must join one process group (Lightning's SLURMEnvironment, no
-launcher of ours) and train; a second submission resumes from last.ckpt."""
+"""The sbatch scripts' own batch shell (docker/slurm/job.sh), run as SLURM would run it on one CPU node: a stand-in
+``srun`` starts 2 tasks of ``launch.sh`` with the SLURM_* variables srun sets, and a stand-in ``scontrol`` records
+what it is asked. Both ranks must join one process group (Lightning's SLURMEnvironment, no launcher of ours) and
+train; SIGUSR1 to the batch shell (``--signal=B:USR1``) must leave a complete preemption checkpoint before the job
+is requeued; and the requeued job resumes from the newest checkpoint."""
 
 import os
 import re
 import shlex
+import signal
 import socket
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -16,14 +20,33 @@ from helpers.ddp_probe import assert_params_equal, subprocess_env
 
 ROOT = Path(__file__).resolve().parents[2]
 
+FAKE_SRUN = r"""#!/usr/bin/env bash
+# srun for tests: SLURM_NTASKS copies of the command here, each with its SLURM_PROCID/SLURM_LOCALID; a SIGUSR1 to
+# srun goes to every task, as the real srun forwards it
+while [[ "$1" == --* ]]; do shift; done
+pids=()
+for ((r = 0; r < SLURM_NTASKS; r++)); do
+    SLURM_PROCID=$r SLURM_LOCALID=$r "$@" &
+    pids+=($!)
+done
+trap 'kill -USR1 "${pids[@]}" 2>/dev/null' USR1
+rc=0
+for p in "${pids[@]}"; do
+    while true; do s=0; wait "$p" || s=$?; kill -0 "$p" 2>/dev/null || break; done
+    if (( s != 0 )); then rc=$s; fi
+done
+exit $rc
+"""
 
-def _launch_line(script: str) -> list[str]:
-    """The command srun runs in ``docker/slurm/<script>``, srun and its options removed."""
-    line = next(ln for ln in (ROOT / "docker" / "slurm" / script).read_text().splitlines() if ln.startswith("srun "))
-    words = shlex.split(line)[1:]
-    while words[0].startswith("--"):
-        words.pop(0)
-    return words
+FAKE_SCONTROL = """#!/usr/bin/env bash
+echo "$* by $(cat /proc/$PPID/comm)" >> "$SCONTROL_LOG"   # by bash: job.sh; by python: Lightning's own handler
+"""
+
+
+def _sbatch_line(script: str) -> list[str]:
+    """The command ``docker/slurm/<script>`` hands over to, e.g. ['docker/slurm/job.sh', CONFIG, RUN_DIR, '$@']."""
+    line = next(ln for ln in (ROOT / "docker" / "slurm" / script).read_text().splitlines() if ln.startswith("exec "))
+    return shlex.split(line)[1:]
 
 
 def _free_port() -> int:
@@ -32,68 +55,84 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _srun(words: list[str], run_dir: Path, extra: list[str], cwd: Path) -> list[str]:
-    """Start the 2 tasks of one node as srun would, wait for both; returns their outputs."""
-    argv = []
-    for w in words:
-        if w == "$@":
-            argv += extra
-        else:
-            argv.append(w.replace("${RUN_DIR}", str(run_dir)))
-    argv[0] = str(ROOT / argv[0])
-    argv[1] = str(ROOT / argv[1])
-    port, job = _free_port(), str(40000 + os.getpid() % 10000)
-    procs = []
-    for rank in (0, 1):
-        env = subprocess_env()
-        env.update(SLURM_JOB_ID=job, SLURM_JOB_NAME="anycity-test", SLURM_NNODES="1", SLURM_NTASKS="2",
-                   SLURM_NTASKS_PER_NODE="2", SLURM_NODEID="0", SLURM_PROCID=str(rank), SLURM_LOCALID=str(rank),
-                   SLURM_NODELIST="localhost", SLURM_JOB_NODELIST="localhost", MASTER_PORT=str(port),
-                   CONTAINER="", ANYCITY=f"{shlex.quote(sys.executable)} -m anycity.cli")
-        procs.append(subprocess.Popen(["bash", *argv], cwd=cwd, env=env, stdout=subprocess.PIPE,
-                                      stderr=subprocess.STDOUT, text=True))
-    outs = []
+def _job(tmp: Path, extra: list[str]) -> subprocess.Popen:
+    """Start stage1.sbatch's batch shell as its own process group; stdout+stderr go to tmp/job-<n>.out."""
+    words = _sbatch_line("stage1.sbatch")
+    assert words[0] == "docker/slurm/job.sh" and words[-1] == "$@"
+    bin_dir = tmp / "bin"
+    bin_dir.mkdir(exist_ok=True)
+    for name, text in (("srun", FAKE_SRUN), ("scontrol", FAKE_SCONTROL)):
+        (bin_dir / name).write_text(text)
+        (bin_dir / name).chmod(0o755)
+    env = subprocess_env()
+    env.update(PATH=f"{bin_dir}{os.pathsep}{env['PATH']}", SCONTROL_LOG=str(tmp / "scontrol.log"),
+               SLURM_JOB_ID=str(40000 + os.getpid() % 10000), SLURM_JOB_NAME="anycity-test", SLURM_NNODES="1",
+               SLURM_NTASKS="2", SLURM_NTASKS_PER_NODE="2", SLURM_NODEID="0", SLURM_NODELIST="localhost",
+               SLURM_JOB_NODELIST="localhost", MASTER_PORT=str(_free_port()), CONTAINER="",
+               ANYCITY=f"{shlex.quote(sys.executable)} -m anycity.cli", RUN_DIR=str(tmp / "runs" / "stage1"))
+    log = tmp / f"job-{len(list(tmp.glob('job-*.out')))}.out"
+    argv = ["bash", str(ROOT / words[0]), str(ROOT / words[1]), *words[2:-1], *extra]
+    return subprocess.Popen(argv, cwd=tmp, env=env, stdout=open(log, "w"), stderr=subprocess.STDOUT,
+                            start_new_session=True)
+
+
+def _extra(ddp_shards, tmp: Path, steps: int) -> list[str]:
+    probe = tmp / "probe.yaml"
+    probe.write_text("trainer:\n  callbacks:\n"
+                     "    - class_path: lightning.pytorch.callbacks.ModelCheckpoint\n"
+                     "      init_args: {save_last: true, save_top_k: 0, every_n_train_steps: 2}\n"
+                     f"    - class_path: helpers.ddp_probe.DDPProbe\n      init_args: {{out_dir: {tmp / 'probe'}}}\n")
+    return ["-c", str(ROOT / "configs" / "debug" / "cpu_ddp.yaml"), "--data.root", str(ddp_shards), "-c", str(probe),
+            "--trainer.max_steps", str(steps)]
+
+
+def _wait_for(cond, proc: subprocess.Popen, what: str, timeout: float = 150.0) -> None:
+    t0 = time.monotonic()
+    while not cond():
+        assert proc.poll() is None, f"the job ended (rc {proc.returncode}) before {what}"
+        assert time.monotonic() - t0 < timeout, f"no {what} after {timeout:.0f} s"
+        time.sleep(0.5)
+
+
+def _step(path: Path) -> int:
+    return torch.load(path, map_location="cpu", weights_only=False)["global_step"]
+
+
+def test_time_limit_signal_saves_then_requeues(ddp_shards, tmp_path):
+    """SIGUSR1 to the batch shell: every task saves RUN_DIR/hpc_ckpt_1.ckpt, then job.sh runs scontrol requeue."""
+    run = tmp_path / "runs" / "stage1"
+    proc = _job(tmp_path, _extra(ddp_shards, tmp_path, 100_000))
     try:
-        for p in procs:
-            outs.append(p.communicate(timeout=180)[0])
+        _wait_for((run / "checkpoints" / "last.ckpt").exists, proc, "checkpoints/last.ckpt (training started)")
+        os.kill(proc.pid, signal.SIGUSR1)
+        requeued = tmp_path / "scontrol.log"
+        _wait_for(lambda: requeued.exists() and
+                  f"requeue {40000 + os.getpid() % 10000} by bash" in requeued.read_text(), proc, "job.sh's requeue")
     finally:
-        for p in procs:
-            if p.poll() is None:
-                p.kill()
-    for p, out in zip(procs, outs):
-        assert p.returncode == 0, out[-4000:]
-    return outs
+        os.killpg(proc.pid, signal.SIGKILL)  # SLURM ends the requeued job's steps
+        proc.wait()
+    out = _log(tmp_path)
+    assert "GLOBAL_RANK: 0, MEMBER: 1/2" in out and "GLOBAL_RANK: 1, MEMBER: 2/2" in out, out[-3000:]
+    assert "time limit near" in out and "no new preemption checkpoint" not in out, out[-3000:]
+    assert _step(run / "hpc_ckpt_1.ckpt") >= 2  # complete: it loads, and it holds trained steps
 
 
-def _probe_overlay(tmp: Path, probe: Path) -> Path:
-    path = tmp / "probe.yaml"
-    path.write_text("trainer:\n  callbacks:\n"
-                    "    - class_path: lightning.pytorch.callbacks.ModelCheckpoint\n"
-                    "      init_args: {save_last: true, save_top_k: 0, every_n_train_steps: 2}\n"
-                    f"    - class_path: helpers.ddp_probe.DDPProbe\n      init_args: {{out_dir: {probe}}}\n")
-    return path
-
-
-def _run_stage1(ddp_shards, tmp_path, steps: int) -> list[str]:
-    words = _launch_line("stage1.sbatch")
-    assert words[:3] == ["docker/slurm/launch.sh", "configs/stage1.yaml", "${RUN_DIR}"] and words[-1] == "$@"
-    extra = ["-c", str(ROOT / "configs" / "debug" / "cpu_ddp.yaml"), "--data.root", str(ddp_shards),
-             "-c", str(_probe_overlay(tmp_path, tmp_path / "probe")), "--trainer.max_steps", str(steps)]
-    return _srun(words, tmp_path / "runs" / "stage1", extra, tmp_path)
-
-
-def test_sbatch_launch_line_one_node_two_tasks(ddp_shards, tmp_path):
-    outs = _run_stage1(ddp_shards, tmp_path, 2)
-    assert "GLOBAL_RANK: 0, MEMBER: 1/2" in outs[0] and "GLOBAL_RANK: 1, MEMBER: 2/2" in outs[1]
-    assert_params_equal(tmp_path / "probe")  # both trained, in one process group (DDP kept them identical)
-    ckpt = tmp_path / "runs" / "stage1" / "checkpoints" / "last.ckpt"
-    assert torch.load(ckpt, map_location="cpu", weights_only=False)["global_step"] == 2
+def _log(tmp: Path) -> str:
+    return "".join(p.read_text() for p in sorted(tmp.glob("job-*.out")))
 
 
 @pytest.mark.slow
-def test_requeued_job_resumes_from_last_ckpt(ddp_shards, tmp_path):
-    _run_stage1(ddp_shards, tmp_path, 2)
-    outs = _run_stage1(ddp_shards, tmp_path, 4)  # the same submission again, as after a requeue
-    assert all(re.search(r"resuming from .*stage1/checkpoints/last.ckpt", o) for o in outs)
-    ckpt = tmp_path / "runs" / "stage1" / "checkpoints" / "last.ckpt"
-    assert torch.load(ckpt, map_location="cpu", weights_only=False)["global_step"] == 4
+def test_requeued_job_resumes_from_the_newest_checkpoint(ddp_shards, tmp_path):
+    run = tmp_path / "runs" / "stage1"
+    test_time_limit_signal_saves_then_requeues(ddp_shards, tmp_path)
+    candidates = [run / "hpc_ckpt_1.ckpt", run / "checkpoints" / "last.ckpt"]
+    newest = max(candidates, key=lambda p: p.stat().st_mtime)
+    start = _step(newest)
+    proc = _job(tmp_path, _extra(ddp_shards, tmp_path, start + 2))  # the same submission, as after the requeue
+    assert proc.wait(timeout=300) == 0, _log(tmp_path)[-4000:]
+    out = _log(tmp_path)
+    assert re.search(rf"launch.sh: resuming from {re.escape(str(newest))}", out), out[-3000:]
+    assert _step(run / "checkpoints" / "last.ckpt") == start + 2
+    assert_params_equal(tmp_path / "probe")  # both ranks resumed and trained in one process group
+    if newest != candidates[0]:  # a preemption checkpoint older than the one resumed from is deleted
+        assert not candidates[0].exists()

@@ -3,6 +3,7 @@ figures, finished rows are reused and foreign ones refused."""
 
 import json
 import math
+import os
 import sys
 
 import pytest
@@ -77,6 +78,9 @@ def test_rows_tables_reuse_and_refusal(tiny_shards, tmp_path, capsys):
     assert (out / "full" / "metrics.json").stat().st_mtime_ns == stamp
     with pytest.raises(SystemExit, match=f"{out / 'full'} holds a run made with other settings.*delete"):
         mod.main([*argv[:argv.index("--steps") + 1], "3", *argv[argv.index("--steps") + 2:]])
+    os.utime(ckpt, ns=(stamp, stamp + 1))  # Stage I trained again to the same path: the rows are stale
+    with pytest.raises(SystemExit, match=f"{out / 'full'} holds a run made with other settings.*delete"):
+        mod.main(argv)
 
 
 def test_each_command_is_its_own_anycity_process(monkeypatch):
