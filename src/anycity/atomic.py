@@ -3,17 +3,73 @@
 A reader (or a rerun after SIGKILL / power loss) sees the old file or the new one, never a partial one; a folder
 written by :func:`staged_folder` appears whole or not at all. Files an earlier run left are moved aside to
 :func:`free_name`, never overwritten (:mod:`anycity.lit.keep`).
+
+Temp files: :func:`atomic_open` writes ``.anycity-tmp-<pid>-<16 hex digits>`` and :func:`atomic_path`
+``.anycity-tmp-<pid>-<16 hex digits><suffix>`` (the target's suffix, e.g. ``.mp4``) in the target's folder (or
+``tmp_dir``), then renames it over the target. The name never contains the target's name: Lightning's HPC-resume
+scan reads the digits after ``hpc_ckpt_`` (and ``hpc_save_path`` those after ``ckpt_``) in every file name of the
+folder, so a temp file named after ``hpc_ckpt_2.ckpt`` that a kill left would become "version 2<pid>" and break
+every later resume. The random part keeps two threads writing one path apart. A temp file that a killed process
+left is never read; :func:`stale_temp_files` / :func:`remove_stale_temp_files` list or remove them, and a shell
+script may do the same, while no anycity process writes in that folder::
+
+    find FOLDER -maxdepth 1 -type f -name '.anycity-tmp-*' -delete
+
+A file that is replaced keeps its permission bits (a private ``0o600`` checkpoint stays private).
 """
 
 from __future__ import annotations
 
 import errno
 import os
+import re
+import secrets
 import shutil
+import stat
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import BinaryIO
+
+TEMP_PREFIX = ".anycity-tmp-"
+"""Every temp file this module writes is named ``TEMP_PREFIX + "<pid>-<16 hex digits>" [+ suffix]``."""
+_TEMP_RE = re.compile(re.escape(TEMP_PREFIX) + r"\d+-[0-9a-f]{16}(\.[^/]*)?")
+_writing: set[str] = set()  # this process's temp files being written now (not stale)
+
+
+def temp_name(folder: str | os.PathLike, suffix: str = "") -> Path:
+    """A fresh temp file name in ``folder``: ``.anycity-tmp-<pid>-<16 hex digits><suffix>``. It never contains the
+    name of the file it will become (see the module docstring), and differs per call (threads of one process)."""
+    return Path(folder) / f"{TEMP_PREFIX}{os.getpid()}-{secrets.token_hex(8)}{suffix}"
+
+
+def stale_temp_files(folder: str | os.PathLike, min_age_s: float = 0.0) -> list[Path]:
+    """The temp files (see :func:`temp_name`) in ``folder`` (not its subfolders) that were last modified at least
+    ``min_age_s`` seconds ago, except those this process is writing now. Call it when no other process writes in
+    ``folder`` (a job's start), or with a ``min_age_s`` longer than any write takes."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return []
+    now, out = time.time(), []
+    for p in sorted(folder.iterdir()):
+        if not _TEMP_RE.fullmatch(p.name) or os.path.abspath(p) in _writing:
+            continue
+        try:
+            st = p.lstat()
+        except FileNotFoundError:  # published or removed meanwhile
+            continue
+        if stat.S_ISREG(st.st_mode) and now - st.st_mtime >= min_age_s:
+            out.append(p)
+    return out
+
+
+def remove_stale_temp_files(folder: str | os.PathLike, min_age_s: float = 0.0) -> list[Path]:
+    """Remove :func:`stale_temp_files` (temp files that killed writers left in ``folder``); returns them."""
+    gone = stale_temp_files(folder, min_age_s)
+    for p in gone:
+        p.unlink(missing_ok=True)
+    return gone
 
 
 def free_name(path: Path) -> Path:
@@ -54,11 +110,13 @@ def atomic_open(path: str | os.PathLike, tmp_dir: str | os.PathLike | None = Non
     filesystem). ``size``: the bytes it will take, for the disk-full message."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tmp_dir or path.parent) / f".{path.name}.tmp-{os.getpid()}"
+    tmp = temp_name(tmp_dir or path.parent)
+    _writing.add(os.path.abspath(tmp))
     try:
         with open(tmp, "wb") as f:
             yield f
             f.flush()
+            _keep_mode(path, f.fileno())
             os.fsync(f.fileno())
         publish(tmp, path)
     except BaseException as e:
@@ -68,24 +126,30 @@ def atomic_open(path: str | os.PathLike, tmp_dir: str | os.PathLike | None = Non
             raise OSError(e.errno, f"disk full writing {path}: {need}; free space on {path.parent} (the previous "
                                    "file, if any, is unchanged)") from e
         raise
+    finally:
+        _writing.discard(os.path.abspath(tmp))
 
 
 @contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
-    """A hidden temporary path beside ``path``, with its suffix (for writers that take a file name and pick a
-    format by it, as ffmpeg does), that becomes ``path`` (fsync, rename) only when the block ends without an
-    exception; on one it is removed and ``path`` is unchanged."""
+    """A hidden temporary path beside ``path`` (:func:`temp_name`), with its suffix (for writers that take a file
+    name and pick a format by it, as ffmpeg does), that becomes ``path`` (fsync, rename) only when the block ends
+    without an exception; on one it is removed and ``path`` is unchanged."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
+    tmp = temp_name(path.parent, path.suffix)
+    _writing.add(os.path.abspath(tmp))
     try:
         yield tmp
         with open(tmp, "rb") as f:
+            _keep_mode(path, f.fileno())
             os.fsync(f.fileno())
         publish(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+    finally:
+        _writing.discard(os.path.abspath(tmp))
 
 
 def publish(src: str | os.PathLike, dst: str | os.PathLike) -> None:
@@ -114,6 +178,16 @@ def staged_folder(path: str | os.PathLike) -> Iterator[Path]:
     if path.exists():  # the rename would replace an empty folder that appeared meanwhile
         raise FileExistsError(f"{path} appeared while it was being written; the new one is kept as {stage}")
     publish(stage, path)
+
+
+def _keep_mode(target: Path, fd: int) -> None:
+    """Give the temp file open as ``fd`` the permission bits of ``target`` when that exists, so replacing a file
+    keeps its mode (a fresh temp file gets ``0o666 & ~umask``, which would make a ``0o600`` file world-readable)."""
+    try:
+        mode = stat.S_IMODE(os.stat(target).st_mode)
+    except OSError:  # no file to replace (or not one we may stat): the temp file's own mode
+        return
+    os.fchmod(fd, mode)
 
 
 def _fsync_dir(d: Path) -> None:

@@ -4,7 +4,7 @@
 start in about a second; ``anycity --help`` does not import torch either); ``fit|validate|test|predict`` are the
 LightningCLI subcommands. Errors a user caused (``ValueError``/``FileNotFoundError``, also when raised inside a
 DataLoader worker, and unknown config keys) print as one line; ``--debug`` or ``ANYCITY_DEBUG=1`` shows the
-traceback.
+traceback. A training command stopped by SIGTERM exits with 143 and one line: where it stopped and how to go on.
 """
 
 from __future__ import annotations
@@ -43,6 +43,19 @@ def merge_ckpt_net(asked: dict | None, stored: dict | None, preset: str) -> tupl
     return merged, ignored
 
 
+class Stopped(SystemExit):
+    """A training command stopped by SIGTERM: exit code 143 (128 + 15, what a shell reports for a process the signal
+    ended) and, on rank 0, one line saying where it stopped and how to go on (:func:`main` prints it)."""
+
+    def __init__(self, message: str | None, code: int = 143) -> None:
+        super().__init__(code)
+        self.message = message
+
+
+def _resume_verb(subcommand: str) -> str:
+    return "resume from" if subcommand == "fit" else f"{subcommand} with"
+
+
 def _cli_class():
     from lightning.pytorch.cli import LightningCLI
 
@@ -51,7 +64,10 @@ def _cli_class():
     class AnyCityCLI(LightningCLI):
         """LightningCLI with the always-present ("forced") callbacks as top-level config groups:
         ``freeze``, ``previews``, ``progress``, ``export``, ``nonfinite``. They merge key by key across ``--config``
-        files, unlike the ``trainer.callbacks`` list."""
+        files, unlike the ``trainer.callbacks`` list. The ``progress`` bar stays out when the trainer's bars are off
+        or another progress bar is listed. ``predict`` keeps no predictions in memory (the export wrote them;
+        ``--return_predictions true`` keeps them). ``--ckpt_path`` reads with the checkpoint allow-list of
+        :mod:`anycity.safe_load`; ``--ckpt_path last`` with no last checkpoint is refused."""
 
         def add_arguments_to_parser(self, parser) -> None:
             parser.add_lightning_class_args(FreezeModules, "freeze")
@@ -60,14 +76,95 @@ def _cli_class():
             parser.add_lightning_class_args(PredictionExport, "export")
             parser.add_lightning_class_args(NonFiniteGuard, "nonfinite")
 
+        def _prepare_subcommand_parser(self, klass, subcommand: str, **kwargs):
+            parser = super()._prepare_subcommand_parser(klass, subcommand, **kwargs)
+            if subcommand == "predict":  # the export writes every prediction; Lightning would also keep them all in
+                parser.set_defaults(return_predictions=False)  # RAM (~350 MB a sample at paper size) until the end
+            return parser
+
+        def _prepare_subcommand_kwargs(self, subcommand: str) -> dict:
+            kwargs = super()._prepare_subcommand_kwargs(subcommand)
+            if kwargs.get("ckpt_path") == "last" and getattr(self, "_last_ckpt", None):
+                kwargs["ckpt_path"] = self._last_ckpt  # the file checked before the run (_find_last)
+            return kwargs
+
+        def instantiate_trainer(self, **kwargs):
+            """The trainer, with the ``progress`` bar unless the config turns bars off
+            (``trainer.enable_progress_bar: false``) or lists another progress bar (Lightning refuses both)."""
+            from lightning.pytorch.callbacks import ProgressBar
+
+            extra = [self._get(self.config_init, c) for c in self._parser(self.subcommand).callback_keys]
+            config = {**self._get(self.config_init, "trainer", default={}), **kwargs}
+            listed = config.get("callbacks") or []
+            listed = listed if isinstance(listed, list) else [listed]
+            if config.get("enable_progress_bar") is False or any(isinstance(c, ProgressBar) for c in listed):
+                extra = [c for c in extra if not isinstance(c, LossProgressBar)]
+            return self._instantiate_trainer(config, extra)
+
+        def _find_last(self, subcommand: str) -> str:
+            """The checkpoint ``--ckpt_path last`` means, found as Lightning finds it (the newest ``last*.ckpt`` of
+            the checkpoint callbacks' folders), before a ``validate|test|predict`` run moves its log folder (which
+            would move where Lightning looks). None found: one line naming any ``<folder>.N/last*.ckpt`` that an
+            earlier fresh fit moved aside (Lightning would only warn and go on from the config's weights)."""
+            from lightning.pytorch.callbacks import ModelCheckpoint, OnExceptionCheckpoint
+
+            from anycity.lit.keep import _checkpoint_dirs
+
+            found = {getattr(c, "ckpt_path", None) for c in self.trainer.callbacks
+                     if isinstance(c, OnExceptionCheckpoint)}
+            for c in self.trainer.checkpoint_callbacks:
+                if isinstance(c, ModelCheckpoint):
+                    found |= c._find_last_checkpoints(self.trainer)
+            found = [Path(f) for f in found if f and Path(f).is_file()]
+            if found:
+                return str(max(found, key=lambda f: f.stat().st_mtime))
+            dirs = _checkpoint_dirs(self.trainer) or [Path(self.trainer.default_root_dir) / "checkpoints"]
+            aside = sorted((f for d in dirs for f in d.parent.glob(f"{d.name}.*/last*.ckpt")),
+                           key=lambda f: f.stat().st_mtime)
+            where = ", ".join(str(d) for d in dirs)
+            if aside:
+                raise FileNotFoundError(
+                    f"--ckpt_path last: no last*.ckpt in {where}; an earlier run's is {aside[-1]} (a fresh fit moves "
+                    f"the checkpoints before it aside): pass --ckpt_path {aside[-1]} to {_resume_verb(subcommand)} it")
+            raise FileNotFoundError(f"--ckpt_path last: no last*.ckpt in {where}, so there is nothing to "
+                                    f"{_resume_verb(subcommand)}; pass a checkpoint file"
+                                    + (", or leave --ckpt_path out to start afresh" if subcommand == "fit" else ""))
+
+        def _stopped(self, subcommand: str) -> str | None:
+            """The line for a run stopped by SIGTERM (rank 0's; None on the other ranks)."""
+            t = self.trainer
+            if t.global_rank != 0:
+                return None
+            if subcommand == "fit":
+                ckpts = [f for c in t.checkpoint_callbacks if getattr(c, "dirpath", None)
+                         for f in Path(c.dirpath).glob("*.ckpt") if f.is_file()]
+                newest = max(ckpts, key=lambda f: f.stat().st_mtime) if ckpts else None
+                how = (f"resume with the same command and --ckpt_path {newest}" if newest else
+                       "nothing to resume from: rerun the command to start again")
+                return (f"stopped by SIGTERM at step {t.global_step}; the newest checkpoint is "
+                        f"{newest or 'none'}; {how}")
+            line = f"stopped by SIGTERM during {subcommand}"
+            export = next((c for c in t.callbacks if isinstance(c, PredictionExport)), None)
+            if subcommand == "predict" and export is not None:
+                line += f" after {len(export.written)} exported scene(s)"
+                if export.unfinished:
+                    line += f"; the city {export.unfinished} was not finished, so nothing was written for it"
+                return line + "; rerun the command to predict them all"
+            return line + "; no results were reported; rerun the command"
+
         def _parse_ckpt_path(self) -> None:
             sub = self.config.get("subcommand")
             init = self.config.get(f"{sub}.model.init_args") if sub else None
             keep = {k: init[k] for k in TEST_TIME_KEYS if init is not None and k in init}
             asked_net = (init.get("net") if init is not None else None) or {}
             asked_class = self.config.get(f"{sub}.model.class_path") if sub else None
-            try:  # Lightning reads the checkpoint's hyperparameters with a bare torch.load
-                super()._parse_ckpt_path()
+            import torch
+
+            from anycity.safe_load import _safe_globals
+
+            try:  # Lightning reads the checkpoint's hyperparameters with a bare weights_only torch.load: the types
+                with torch.serialization.safe_globals(_safe_globals()):  # every other read allows, it allows too
+                    super()._parse_ckpt_path()
             except (pickle.UnpicklingError, RuntimeError, EOFError):
                 from anycity.safe_load import safe_torch_load
 
@@ -113,6 +210,9 @@ def _cli_class():
 
             from anycity.lit.keep import keep_previous_run, separate_from_training
 
+            self._last_ckpt = None
+            if self.config[subcommand].get("ckpt_path") == "last":
+                self._last_ckpt = self._find_last(subcommand)
             moved_to = separate_from_training(self.trainer, subcommand)  # the training's own files stay as they are
             if moved_to is not None:
                 rank_zero_info(f"anycity: this {subcommand} run's config, logs and previews go to {moved_to}")
@@ -136,6 +236,16 @@ def _cli_class():
                                          f"{photos} (an earlier export there is moved aside); pass an "
                                          "--export.out_dir outside it")
             keep_previous_run(self.trainer, subcommand, self.config[subcommand].get("ckpt_path"), export_root, scene)
+            from lightning.pytorch.utilities.exceptions import SIGTERMException
+
+            try:
+                self._run_lightning(subcommand)
+            except SIGTERMException as e:  # a SystemExit with no code: the shell would see success, and no word
+                raise Stopped(self._stopped(subcommand)) from e
+
+        def _run_lightning(self, subcommand: str) -> None:
+            from lightning.pytorch.utilities import rank_zero_info
+
             if subcommand == "fit":
                 super()._run_subcommand(subcommand)
                 last = next((c.last_model_path for c in self.trainer.checkpoint_callbacks if c.last_model_path), None)
@@ -457,14 +567,19 @@ def main(argv: list[str] | None = None) -> int:
     args = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in args or os.environ.get("ANYCITY_DEBUG", "") not in ("", "0")
     args = [a for a in args if a != "--debug"]
-    if debug:
-        return _dispatch(args, argv is not None)
     try:
-        return _dispatch(args, argv is not None)
-    except (ValueError, FileNotFoundError, FileExistsError, NotADirectoryError, IsADirectoryError,
-            PermissionError) as e:
-        print(f"anycity: error: {_one_line(e)}  (--debug for the traceback)", file=sys.stderr)
-        return 2
+        if debug:
+            return _dispatch(args, argv is not None)
+        try:
+            return _dispatch(args, argv is not None)
+        except (ValueError, FileNotFoundError, FileExistsError, NotADirectoryError, IsADirectoryError,
+                PermissionError) as e:
+            print(f"anycity: error: {_one_line(e)}  (--debug for the traceback)", file=sys.stderr)
+            return 2
+    except Stopped as e:  # SIGTERM (a cluster's preemption, kill): exit 143, not the 0 of a finished run
+        if e.message:
+            print(f"anycity: {e.message}", file=sys.stderr)
+        return e.code
 
 
 if __name__ == "__main__":

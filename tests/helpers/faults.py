@@ -6,6 +6,7 @@ import builtins
 import errno
 import io
 import os
+import sys
 
 
 class _HalfThenFull:
@@ -30,12 +31,19 @@ class _HalfThenFull:
 
 
 def fail_writes_midway(monkeypatch, name: str) -> None:
-    """Every file opened for writing whose path contains ``name`` fails half-way through its first write."""
+    """Every file opened for writing whose path contains ``name`` fails half-way through its first write; so does
+    the temp file ``anycity.atomic.atomic_open`` writes for such a path (a temp name never holds its target's)."""
+    from anycity.atomic import TEMP_PREFIX
+
     real_open = builtins.open
 
     def fake_open(p, mode="r", *a, **k):
         f = real_open(p, mode, *a, **k)
-        return _HalfThenFull(f) if "w" in mode and name in os.fspath(p) else f
+        hit = name in os.fspath(p)
+        if not hit and os.path.basename(os.fspath(p)).startswith(TEMP_PREFIX):
+            target = sys._getframe(1).f_locals.get("path")  # the caller is atomic_open: its target
+            hit = target is not None and name in os.fspath(target)
+        return _HalfThenFull(f) if "w" in mode and hit else f
 
     monkeypatch.setattr(builtins, "open", fake_open)
     monkeypatch.setattr(io, "open", fake_open)  # pathlib's write_bytes / write_text

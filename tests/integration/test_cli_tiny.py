@@ -182,3 +182,122 @@ def test_data_subcommand_dispatch_is_lazy(tmp_path):
     assert out.split() == ["False", "False"]
     with pytest.raises(SystemExit):
         main(["data", "--help"])
+
+
+@pytest.fixture(scope="module")
+def fitted(tiny_shards, tmp_path_factory):
+    """A 2-step Stage I run: ``run/checkpoints/last.ckpt``."""
+    run = tmp_path_factory.mktemp("fitted") / "run"
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr("sys.argv", ["anycity"])
+        build_cli(["fit", *_tiny_args(tiny_shards, run, extra=["--trainer.limit_val_batches", "0"])])
+    assert (run / "checkpoints" / "last.ckpt").is_file()
+    return run
+
+
+FAST_EVAL = ["--model.init_args.camera_refine_steps", "0", "--model.init_args.eval_pose_align_steps", "0"]
+
+
+def test_predict_keeps_no_predictions_in_memory(tiny_shards, fitted):
+    """Lightning's return_predictions (default True) kept every exported sample's Gaussians and renders in RAM until
+    the end (~350 MB a sample at paper size). Also: ``--ckpt_path last`` in a training folder is the training's
+    last.ckpt (the predict run's own log folder, <run>/predict/, has no checkpoints)."""
+    cli = build_cli(["predict", *_tiny_args(tiny_shards, fitted), *FAST_EVAL, "--ckpt_path", "last",
+                     "--export.save_renders", "false"])
+    assert cli.trainer.predict_loop.predictions == []
+    assert list((fitted / "predict" / "predictions").iterdir())  # exported
+    assert cli.trainer.ckpt_path == str(fitted / "checkpoints" / "last.ckpt")
+    cli = build_cli(["predict", *_tiny_args(tiny_shards, fitted), *FAST_EVAL, "--ckpt_path", "last",
+                     "--export.save_renders", "false", "--return_predictions", "true"])
+    assert len(cli.trainer.predict_loop.predictions) == 1  # asked for: kept
+
+
+def test_a_checkpoint_holding_allow_listed_types_is_read_by_ckpt_path(tiny_shards, fitted, tmp_path):
+    """--ckpt_path's first read (Lightning's, for the hyperparameters) was a bare weights_only torch.load: a
+    checkpoint holding a type every other read allows (a Path, a defaultdict: a script's data module or callback
+    state) was refused there, with the unpickler's multi-line error."""
+    import collections
+    from pathlib import Path
+
+    from anycity.safe_load import safe_torch_load
+
+    ckpt = safe_torch_load(fitted / "checkpoints" / "last.ckpt")
+    ckpt["datamodule_hyper_parameters"] = {"root": Path(tiny_shards)}
+    ckpt["callbacks"]["anycity-notes"] = collections.defaultdict(list)
+    torch.save(ckpt, tmp_path / "paths.ckpt")
+    with pytest.raises(Exception, match="Unsupported global"):
+        torch.load(tmp_path / "paths.ckpt", weights_only=True)  # what Lightning's own read does
+    cli = build_cli(["validate", *_tiny_args(tiny_shards, tmp_path / "v"), *FAST_EVAL,
+                     "--ckpt_path", str(tmp_path / "paths.ckpt")])
+    psnr = [v for k, v in cli.trainer.callback_metrics.items() if k.startswith("val/psnr")]
+    assert psnr and all(torch.isfinite(v) for v in psnr)
+
+
+def test_ckpt_path_last_without_a_last_checkpoint_is_refused(tiny_shards, fitted, tmp_path, capsys, monkeypatch):
+    """Lightning only warns, and the fit started from random weights: after a fresh fit moved the checkpoints to
+    checkpoints.1/, ``--ckpt_path last`` silently started over."""
+    import shutil
+
+    monkeypatch.delenv("ANYCITY_DEBUG", raising=False)
+    run = tmp_path / "r"
+    (run / "checkpoints.1").mkdir(parents=True)
+    shutil.copy(fitted / "checkpoints" / "last.ckpt", run / "checkpoints.1" / "last.ckpt")
+    assert main(["fit", *_tiny_args(tiny_shards, run), "--ckpt_path", "last"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert err == (f"anycity: error: --ckpt_path last: no last*.ckpt in {run / 'checkpoints'}; an earlier run's is "
+                   f"{run / 'checkpoints.1' / 'last.ckpt'} (a fresh fit moves the checkpoints before it aside): pass "
+                   f"--ckpt_path {run / 'checkpoints.1' / 'last.ckpt'} to resume from it  (--debug for the traceback)")
+    assert not (run / "checkpoints").exists() and not (run / "metrics.csv").exists()  # nothing ran
+    assert main(["test", *_tiny_args(tiny_shards, tmp_path / "empty"), "--ckpt_path", "last"]) == 2
+    assert "--ckpt_path last: no last*.ckpt in " in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("bar", ["off", "rich"])
+def test_turning_the_progress_bar_off_or_choosing_another_one_is_allowed(tiny_shards, tmp_path, bar):
+    """The ``progress`` bar was added whatever the config said: Lightning refused --trainer.enable_progress_bar
+    false, and a second progress bar, with a MisconfigurationException traceback."""
+    from lightning.pytorch.callbacks import RichProgressBar
+
+    from anycity.callbacks import LossProgressBar
+
+    cli = build_cli(_tiny_args(tiny_shards, tmp_path / "default"), run=False)
+    assert isinstance(cli.trainer.progress_bar_callback, LossProgressBar)
+    if bar == "off":
+        extra = ["--trainer.enable_progress_bar", "false"]
+    else:
+        (tmp_path / "rich.yaml").write_text("trainer:\n  callbacks:\n"
+                                            "  - class_path: lightning.pytorch.callbacks.RichProgressBar\n")
+        extra = ["-c", str(tmp_path / "rich.yaml")]
+    cli = build_cli([*_tiny_args(tiny_shards, tmp_path / bar), *extra], run=False)
+    assert not any(isinstance(c, LossProgressBar) for c in cli.trainer.callbacks)
+    want = RichProgressBar if bar == "rich" else type(None)
+    assert isinstance(cli.trainer.progress_bar_callback, want)
+
+
+def test_a_predict_that_receives_sigterm_stops_with_143_and_writes_nothing_unfinished(tiny_shards, tmp_path,
+                                                                                       monkeypatch):
+    """predict never checked Lightning's SIGTERM flag: a preempted city ran to its end, and every stopped training
+    command exited 0 (Lightning's SIGTERMException is a SystemExit with no code)."""
+    from anycity.callbacks import PredictionExport
+    from anycity.cli import Stopped
+
+    photos = tmp_path / "flight"
+    photos.mkdir()
+    for i in range(6):
+        Image.fromarray(np.random.default_rng(i).integers(0, 255, (32, 32, 3), dtype=np.uint8)).save(
+            photos / f"{i}.png")
+    write = PredictionExport.write_on_batch_end
+
+    def sigterm_during_the_first_chunk(self, trainer, *a, **k):
+        trainer._signal_connector.received_sigterm = True  # what Lightning's SIGTERM handler sets
+        return write(self, trainer, *a, **k)
+
+    monkeypatch.setattr(PredictionExport, "write_on_batch_end", sigterm_during_the_first_chunk)
+    with pytest.raises(Stopped) as stop:
+        build_cli(["predict", *_tiny_args(tiny_shards, tmp_path / "p"), *FAST_EVAL, "--data.predict_images",
+                   str(photos), "--data.predict_chunk_size", "4", "--data.predict_chunk_overlap", "2",
+                   "--export.out_dir", str(tmp_path / "out")])
+    assert stop.value.code == 143
+    assert stop.value.message == ("stopped by SIGTERM during predict after 0 exported scene(s); the city flight was "
+                                  "not finished, so nothing was written for it; rerun the command to predict them all")
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 
@@ -266,3 +267,34 @@ def test_version(capsys):
     assert cli.main(["--version"]) == 0 and capsys.readouterr().out == f"anycity {__version__}\n"
     pyproject = (Path(cli.__file__).parents[2] / "pyproject.toml").read_text()
     assert re.search(r'^version = "([^"]+)"', pyproject, re.M).group(1) == __version__
+
+
+def test_a_fit_stopped_by_sigterm_exits_143_naming_its_newest_checkpoint(tiny_shards, tmp_path):
+    """Lightning stops a fit on SIGTERM with a SystemExit that has no code: ``anycity fit`` exited 0 (a preempted
+    job looked finished) and said nothing."""
+    import signal
+    import time
+
+    from reliability import harness as H
+
+    run, log = tmp_path / "run", tmp_path / "fit.log"
+    p = H.start(H.tiny_fit_args(tiny_shards, run, 200), log)
+    try:
+        t0 = time.monotonic()
+        while p.poll() is None and log.read_bytes().count(b"] step ") < 2 and time.monotonic() - t0 < 120:
+            time.sleep(0.05)
+        assert p.poll() is None, log.read_text()[-3000:]
+        os.kill(p.pid, signal.SIGTERM)
+        rc = p.wait(120)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    text = log.read_text()
+    assert rc == 143, text[-3000:]
+    last = text.strip().splitlines()[-1]
+    ckpt = run / "checkpoints" / "last.ckpt"
+    step = H.safe_torch_load(ckpt)["global_step"]
+    # the step it stopped at is the newest checkpoint's or one past it (a checkpoint every step)
+    assert re.fullmatch(rf"anycity: stopped by SIGTERM at step (\d+); the newest checkpoint is {re.escape(str(ckpt))}; "
+                        rf"resume with the same command and --ckpt_path {re.escape(str(ckpt))}", last), last
+    assert int(re.search(r"step (\d+)", last).group(1)) in (step, step + 1), (last, step)

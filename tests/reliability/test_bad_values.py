@@ -22,7 +22,7 @@ def _scene(key, bad=None):
         if bad == "camera" and i == 1:
             w2c[1, 3] = np.nan
         if bad == "depth":
-            depth[3, 4] = np.inf
+            depth[3:6, 3:6] = np.inf  # a 3x3 patch: every resize samples some of it
         if bad == "K" and i == 0:
             K[0, 0] = np.inf
         views.append(ViewRecord(name=f"{i}.png", image=rng.integers(0, 255, (24, 24, 3), dtype=np.uint8),

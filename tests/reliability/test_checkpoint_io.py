@@ -53,7 +53,7 @@ def test_disk_full_keeps_previous_and_names_path_and_bytes(tmp_path, monkeypatch
     io.save_checkpoint({"w": torch.ones(4)}, path)
     before = path.read_bytes()
 
-    fail_writes_midway(monkeypatch, ".tmp-")
+    fail_writes_midway(monkeypatch, ".anycity-tmp-")
     with pytest.raises(OSError, match=r"disk full writing .*last\.ckpt: \d+ bytes needed") as e:
         io.save_checkpoint({"w": torch.zeros(1000)}, path)
     assert e.value.errno == errno.ENOSPC

@@ -1,12 +1,19 @@
 """Shard sets: complete shards only, index.json atomic, disk-full and earlier sets handled without loss."""
 
 import errno
+import json
+import os
+import socket
+import subprocess
+import sys
+import tarfile
+import time
 
 import numpy as np
 import pytest
 
 from anycity.data.schema import SceneRecord, ViewRecord
-from anycity.data.writer import ShardSetWriter, read_index
+from anycity.data.writer import LOCK_NAME, SHARD_MTIME, ShardSetWriter, read_index
 
 
 def _record(key="scene_a", n=3):
@@ -69,3 +76,81 @@ def test_disk_full_names_path_and_bytes_and_keeps_previous_set(tmp_path, monkeyp
     monkeypatch.undo()
     assert (tmp_path / "train-000000.tar").read_bytes() == shard  # the earlier shard is intact
     assert not (tmp_path / "index.json").exists() or (tmp_path / "index.json").read_bytes() == index
+
+
+def test_a_second_run_on_the_same_folder_is_refused_while_the_first_writes(tmp_path):
+    """Two runs on one --out: the second used to delete the first's open ``*.tar.partial``, and the first then
+    published a half-written file. The first run's lock refuses the second in one line."""
+    first = ShardSetWriter(tmp_path, maxcount=4)
+    first.write(_record("a"), "train")
+    with pytest.raises(FileExistsError, match=rf"another run \(pid {os.getpid()} on .*lock file .*{LOCK_NAME}.*"
+                                              r"if that run is gone, delete"):
+        ShardSetWriter(tmp_path, overwrite=True)
+    lock = tmp_path / LOCK_NAME
+    assert json.loads(lock.read_text())["pid"] == os.getpid()
+    first.write(_record("b"), "train")
+    first.close()
+    assert not lock.exists()
+    assert [s["key"] for s in read_index(tmp_path)["samples"]] == ["a", "b"]
+    with tarfile.open(tmp_path / "train-000000.tar") as tar:  # the whole of the first run's shard
+        assert sorted({m.name.split(".")[0] for m in tar.getmembers()}) == ["a", "b"]
+    with pytest.raises(RuntimeError, match="boom"), ShardSetWriter(tmp_path / "x"):
+        raise RuntimeError("boom")
+    assert not (tmp_path / "x" / LOCK_NAME).exists()  # a failed run gives the lock back too
+
+
+def test_a_killed_runs_lock_is_taken_over_and_another_hosts_is_refused(tmp_path):
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()  # a pid of this host that no longer runs
+    lock = tmp_path / LOCK_NAME
+    lock.write_text(json.dumps({"pid": dead.pid, "host": socket.gethostname()}))
+    (tmp_path / "train-000000.tar.partial").write_bytes(b"half a tar")
+    with pytest.warns(UserWarning, match=rf"taking over the lock of pid {dead.pid} .*no longer runs"):
+        _write(tmp_path, ["a"])
+    assert not lock.exists() and not list(tmp_path.glob("*.partial"))
+    lock.write_text(json.dumps({"pid": 1, "host": "other-host"}))
+    with pytest.raises(FileExistsError, match=r"pid 1 on other-host.*delete .*\.anycity-writing\.lock"):
+        _write(tmp_path, ["b"], overwrite=True)
+    lock.write_text("")  # not a lock this writer wrote
+    with pytest.raises(FileExistsError, match=r"not readable as one.*delete"):
+        _write(tmp_path, ["b"], overwrite=True)
+    assert [s["key"] for s in read_index(tmp_path)["samples"]] == ["a"]  # the refused runs changed nothing
+
+
+def test_overwrite_and_a_rerun_after_a_crash_leave_no_unlisted_shard(tmp_path):
+    """Readers that glob ``*.tar`` (scripts/synth_to_folder.py did) mixed an earlier run's shards in."""
+    _write(tmp_path, ["a", "b", "c"])
+    assert len(list(tmp_path.glob("*.tar"))) == 3
+    with pytest.warns(UserWarning, match=r"removed 2 shard\(s\) of an earlier run .*\(train-000001\.tar, "
+                                         r"train-000002\.tar\)"):
+        _write(tmp_path, ["d"], overwrite=True)
+    assert sorted(p.name for p in tmp_path.glob("*.tar")) == ["train-000000.tar"]
+    (tmp_path / "index.json").unlink()  # as a run killed after publishing shards leaves it
+    (tmp_path / "val-000003.tar").write_bytes(b"a killed run's shard")
+    with pytest.warns(UserWarning, match=r"removed 1 shard"):
+        _write(tmp_path, ["e"])
+    assert sorted(p.name for p in tmp_path.glob("*.tar")) == ["train-000000.tar"]
+    (tmp_path / "notes.tar").write_bytes(b"not ours")  # other names are left alone
+    _write(tmp_path, ["f"], overwrite=True)
+    assert (tmp_path / "notes.tar").exists()
+
+
+def test_bad_window_stride_and_depth_dtype_are_refused_before_anything_is_written(tmp_path):
+    with pytest.raises(ValueError, match=r"window: expected .*stride=30; pass --window"):
+        ShardSetWriter(tmp_path / "a", window=24, stride=30)
+    with pytest.raises(ValueError, match=r"depth_dtype: expected one of \('float16', 'float32'\).*got 'uint8'"):
+        ShardSetWriter(tmp_path / "b", depth_dtype="uint8")
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
+def test_identical_runs_write_identical_bytes(tmp_path):
+    """Tar members carry a fixed mtime, not the time of the run."""
+    _write(tmp_path / "a", ["a", "b"])
+    time.sleep(1.1)
+    _write(tmp_path / "b", ["a", "b"])
+    names = sorted(p.name for p in (tmp_path / "a").iterdir())
+    assert names == sorted(p.name for p in (tmp_path / "b").iterdir())
+    for n in names:
+        assert (tmp_path / "a" / n).read_bytes() == (tmp_path / "b" / n).read_bytes(), n
+    with tarfile.open(tmp_path / "a" / "train-000000.tar") as tar:
+        assert {m.mtime for m in tar.getmembers()} == {SHARD_MTIME}

@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+import shutil
+import warnings
 from pathlib import Path
 from typing import Any
 
 import lightning.pytorch as pl
 from lightning.pytorch.callbacks import BasePredictionWriter
+from lightning.pytorch.utilities.exceptions import SIGTERMException
 
+from anycity.atomic import publish
 from anycity.export import save_cameras, save_ply
 from anycity.export.provenance import provenance, summary
 from anycity.export.smoothing import VARIANCE_PX, smooth_3d
@@ -36,6 +40,14 @@ class PredictionExport(BasePredictionWriter):
     (emptied in place), so ``trainer.predict`` does not keep every chunk's Gaussians in memory: they spill into the
     hidden folder ``.<scene>.anycity_city_work/`` beside the scene's (:func:`anycity.city.scene.work_dir`), removed
     when the scene is written or the run stops; one that a killed run left is removed by the next run of the scene.
+    The chunks' renders and inputs are written to the hidden ``.<scene>.anycity_city_views/`` beside it and moved
+    into the scene folder when the scene is written, so a city that does not finish (a chunk fails, SIGTERM,
+    ``--trainer.limit_predict_batches`` below the chunk count) leaves nothing in its scene folder; a run that ends
+    with a city unfinished says so in a warning.
+
+    ``trainer.log_dir`` (the default ``out_dir``'s parent) is a collective under DDP: it is read once, in
+    :meth:`setup`, which every rank runs, never per sample (ranks export different numbers of samples). A run that
+    received SIGTERM stops after the batch being written (Lightning's predict loop does not check).
 
     Args:
         out_dir: output folder; None = ``<log_dir>/predictions``.
@@ -53,12 +65,27 @@ class PredictionExport(BasePredictionWriter):
         self.written: list[Path] = []
         self._folders: set[str] = set()  # written in this run by this rank
         self._city = None
+        self._city_scene: tuple[str, Path, Path, int] | None = None  # (scene, folder, views folder, chunks)
         self._bar = None
+        self._root: Path | None = None
         self.city_report: dict | None = None
+        self.unfinished: str | None = None  # the city scene a stopped run left unwritten
 
     def root(self, trainer: pl.Trainer) -> Path:
-        """The folder the scenes are exported to: ``out_dir``, else ``<log_dir>/predictions``."""
+        """The folder the scenes are exported to: ``out_dir``, else ``<log_dir>/predictions`` (resolved once per
+        run in :meth:`setup`: ``trainer.log_dir`` broadcasts from rank 0 under DDP, so only a hook every rank runs
+        may read it)."""
+        if self._root is not None:
+            return self._root
         return Path(self.out_dir) if self.out_dir else Path(trainer.log_dir or trainer.default_root_dir) / "predictions"
+
+    def setup(self, trainer: pl.Trainer, pl_module: pl.LightningModule, stage: str) -> None:
+        super().setup(trainer, pl_module, stage)
+        self._root = None
+        self._root = self.root(trainer)  # every rank, once: the per-sample writes then run no collective
+
+    def teardown(self, trainer: pl.Trainer, pl_module: pl.LightningModule, stage: str) -> None:
+        self._root = None
 
     def _sample_folder(self, trainer: pl.Trainer, scene: str) -> Path:
         """``<scene>``, or ``<scene>-N`` for the scene's N-th sample in this run (``-rank<r>`` first on rank r > 0)."""
@@ -72,6 +99,18 @@ class PredictionExport(BasePredictionWriter):
 
     def on_predict_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
         self._folders = set()
+        self.unfinished = None
+        if self._root is None:  # a Trainer that skipped setup (none does): still once, on every rank
+            self._root = self.root(trainer)
+
+    def on_predict_batch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule, outputs: Any, batch: Any,
+                             batch_idx: int, dataloader_idx: int = 0) -> None:
+        """Write the batch, then stop the run if it received SIGTERM (a cluster's preemption or ``kill``), unless
+        that was the last batch: Lightning checks in its training and evaluation loops, not in predict's."""
+        super().on_predict_batch_end(trainer, pl_module, outputs, batch, batch_idx, dataloader_idx)
+        last = getattr(trainer.predict_loop.batch_progress, "is_last_batch", False)
+        if getattr(trainer, "received_sigterm", False) and not last:
+            raise SIGTERMException
 
     def on_predict_batch_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule, batch: Any, batch_idx: int,
                                dataloader_idx: int = 0) -> None:
@@ -129,9 +168,9 @@ class PredictionExport(BasePredictionWriter):
         k, views = info["index"], info["views"]
         folder = self.root(trainer) / f"{batch['scene'][0]}".replace("/", "_")
         if k == 0:
-            if self._city is not None:
-                self._city.close()
+            self._drop_city(bar=False)  # a city that never reached its last chunk: its files go (the bar is this one's)
             self._city = ChunkedScene(info["plan"], info["names"], info["hw"], out=folder)
+            self._city_scene = (batch["scene"][0], folder, _views_dir(folder, fresh=True), info["count"])
             self._share_sums, self._share_count = None, 0
             if self._bar is None or self._bar.n:  # not started by on_predict_batch_start
                 self._start_bar(batch)
@@ -148,16 +187,24 @@ class PredictionExport(BasePredictionWriter):
             self._share_sums = sums if self._share_sums is None else {
                 key: self._share_sums[key] + v for key, v in sums.items()}
             self._share_count += n
-        if self.save_renders:
+        views_dir = self._city_scene[2]
+        if self.save_renders:  # into the hidden views folder: the scene folder gets them when the scene is written
             own = city.owned(k)
             for kind, imgs in (("renders", prediction["renders"].rgb[0]), ("inputs", prediction["images"][0])):
-                save_view_pngs(folder, kind, imgs[own], [views[i] for i in own])
+                save_view_pngs(views_dir, kind, imgs[own], [views[i] for i in own])
         self._bar.update(1)
         if k == info["count"] - 1:
             self._bar.close()
             self._bar = None
             self._city = None
-            self.city_report = city.finish(folder)
+            try:
+                self.city_report = city.finish(folder)
+                for kind in ("renders", "inputs"):
+                    if (views_dir / kind).is_dir():
+                        publish(views_dir / kind, folder / kind)
+            finally:
+                self._city_scene = None
+                shutil.rmtree(views_dir, ignore_errors=True)
             rep = self.city_report
             if self._share_sums is not None:
                 n = max(self._share_count, 1)
@@ -170,19 +217,45 @@ class PredictionExport(BasePredictionWriter):
             self.written.append(folder)
 
     def on_predict_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
-        self._drop_city()
+        """A city whose last chunk was never predicted (``--trainer.limit_predict_batches`` below its chunk count)
+        is dropped with a warning: the run otherwise ends as if it had written it."""
+        done = self._city_scene
+        if self._drop_city() and done is not None:
+            scene, folder, _, count = done
+            warnings.warn(f"anycity predict: the run ended before the last of the {count} chunks of {scene}, so "
+                          f"nothing was written for it ({folder} has no scene); predict all its chunks (raise or "
+                          "drop --trainer.limit_predict_batches)", stacklevel=2)
 
     def on_exception(self, trainer: pl.Trainer, pl_module: pl.LightningModule, exception: BaseException) -> None:
         self._drop_city()  # Lightning calls this, not on_predict_end, when a chunk fails (e.g. an undecodable photo)
 
-    def _drop_city(self) -> None:
-        """An unfinished whole-city scene: remove its spill files (gigabytes for a city), write nothing."""
+    def _drop_city(self, bar: bool = True) -> bool:
+        """An unfinished whole-city scene: remove its spill files (gigabytes for a city) and its staged renders and
+        inputs, write nothing; ``bar``: close its progress bar too. Returns whether there was one (its name is then
+        in :attr:`unfinished`)."""
+        dropped = self._city is not None
         if self._city is not None:
             self._city.close()
             self._city = None
-        if self._bar is not None:
+        if self._city_scene is not None:  # set while self._city is
+            self.unfinished = self._city_scene[0]
+            shutil.rmtree(self._city_scene[2], ignore_errors=True)
+            self._city_scene = None
+        if bar and self._bar is not None:
             self._bar.close()
             self._bar = None
+        return dropped
+
+
+def _views_dir(folder: Path, fresh: bool = False) -> Path:
+    """Where a chunked scene's renders and inputs wait until the scene is written: the hidden
+    ``.<scene>.anycity_city_views/`` beside the scene folder (on its filesystem, so that they move in by a rename).
+    ``fresh``: emptied first (a killed run's, with a warning)."""
+    views = folder.parent / f".{folder.name}.anycity_city_views"
+    if fresh and views.exists():
+        warnings.warn(f"{views}: removing the renders an interrupted run left", stacklevel=3)
+        shutil.rmtree(views)
+    return views
 
 
 def _shares(prov: dict, valid, scene: slice, rows) -> tuple[dict[str, float], int]:

@@ -46,7 +46,10 @@ class ImagePreviews(Callback):
 
     The LightningModule returns ``{"preview": {"context", "target", "render", ...}}`` (each ``[R, 3, H, W]``)
     from ``validation_step``/``test_step`` for batch 0. The grid is saved as PNG under
-    ``<log_dir>/previews/`` and sent to the logger when it can take images (TensorBoard, W&B).
+    ``<log_dir>/previews/`` and sent to the logger when it can take images (TensorBoard, W&B). Under
+    ``fast_dev_run`` nothing is written (Lightning's stand-in logger has no log_dir: the grid would land in the
+    run folder, which a fast_dev_run leaves alone). The validation-run count is saved with the checkpoint, so a
+    resumed run keeps the ``every_n_val`` cadence.
 
     Args:
         every_n_val: write on every n-th validation run.
@@ -61,6 +64,8 @@ class ImagePreviews(Callback):
 
     def _write(self, trainer: pl.Trainer, outputs: Any, tag: str) -> None:
         if not isinstance(outputs, dict) or "preview" not in outputs or not trainer.is_global_zero:
+            return
+        if getattr(trainer, "fast_dev_run", False):
             return
         cols = [v[: self.max_rows] for v in outputs["preview"].values()]
         rows = min(c.shape[0] for c in cols)
@@ -79,6 +84,12 @@ class ImagePreviews(Callback):
                 logger.log_image(key=f"{tag}/preview", images=[grid], step=trainer.global_step)
             elif exp is not None and hasattr(exp, "add_image"):
                 exp.add_image(f"{tag}/preview", grid, trainer.global_step, dataformats="HWC")
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"count": self._count}
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        self._count = int(state_dict.get("count", 0))
 
     def on_validation_batch_end(self, trainer, pl_module, outputs, batch, batch_idx, dataloader_idx=0) -> None:
         if batch_idx == 0 and not trainer.sanity_checking:

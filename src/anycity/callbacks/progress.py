@@ -18,7 +18,8 @@ class LossProgressBar(TQDMProgressBar):
     """TQDM bar whose postfix lists the ``prog_bar`` loss terms with short names (``train/rgb`` -> ``rgb``).
 
     When stdout is not a terminal (``make``, CI, log files) the bars are replaced by one line every
-    ``print_every`` optimiser steps: step, epoch, loss terms and elapsed time.
+    ``print_every`` optimiser steps: step, epoch, loss terms and elapsed time. Only global rank 0 prints (as the
+    bars show only there), once per optimiser step however many batches it accumulates.
 
     Args:
         refresh_rate: tqdm refresh rate in batches.
@@ -31,6 +32,7 @@ class LossProgressBar(TQDMProgressBar):
         self.print_every = max(1, print_every)
         self.plain = force_plain or not sys.stdout.isatty()
         self._t0 = time.monotonic()
+        self._printed = -1  # the optimiser step of the last plain line
         if self.plain:
             self.disable()
 
@@ -41,6 +43,7 @@ class LossProgressBar(TQDMProgressBar):
 
     def on_train_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
         self._t0 = time.monotonic()
+        self._printed = trainer.global_step  # no line before the first step (nor the resumed one's again)
         super().on_train_start(trainer, pl_module)
 
     def on_train_batch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule, outputs: Any, batch: Any,
@@ -48,7 +51,10 @@ class LossProgressBar(TQDMProgressBar):
         if not self.plain:
             return super().on_train_batch_end(trainer, pl_module, outputs, batch, batch_idx)
         step = trainer.global_step
+        if not trainer.is_global_zero or step == self._printed:  # other ranks; an accumulating batch
+            return
         if step % self.print_every == 0 or step == trainer.max_steps:
+            self._printed = step
             terms = " ".join(f"{k}={float(v):.4g}" if isinstance(v, (int, float)) else f"{k}={v}"
                              for k, v in self.get_metrics(trainer, pl_module).items())
             total = trainer.max_steps if trainer.max_steps and trainer.max_steps > 0 else "?"

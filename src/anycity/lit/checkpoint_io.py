@@ -2,10 +2,13 @@
 
 ``SafeCheckpointIO`` is the Trainer's checkpoint plugin (the CLI installs it by default):
 
-- **save**: the checkpoint is serialised in memory, written to ``<name>.tmp-<pid>`` next to the target,
-  flushed and fsynced, then ``os.replace``d over the target (atomic on POSIX) and the directory fsynced.
-  A SIGKILL or power loss mid-write leaves the previous checkpoint intact; a full disk (``ENOSPC``) raises
-  a one-line ``OSError`` naming the path and the bytes needed, and the partial temp file is removed.
+- **save**: the checkpoint is serialised in memory, written to ``.anycity-tmp-<pid>-<16 hex digits>`` next to the
+  target (:func:`anycity.atomic.temp_name`: never named after the target, so a leftover one cannot pass for an
+  ``hpc_ckpt_<n>.ckpt`` in Lightning's HPC-resume scan), flushed and fsynced, given the mode of the file it
+  replaces, then ``os.replace``d over the target (atomic on POSIX) and the directory fsynced. A SIGKILL or power
+  loss mid-write leaves the previous checkpoint intact (and the temp file, which
+  :func:`anycity.atomic.remove_stale_temp_files` removes); a full disk (``ENOSPC``) raises a one-line ``OSError``
+  naming the path and the bytes needed, and the partial temp file is removed.
 - **load**: :func:`anycity.safe_load.safe_torch_load`, ``torch.load(weights_only=True)`` with an allow-list of
   the few non-tensor types a Lightning checkpoint holds, so a checkpoint crafted to run code on unpickling is
   refused with a one-line ``ValueError`` instead of being executed.
@@ -21,7 +24,7 @@ from typing import Any
 import torch
 from lightning.pytorch.plugins.io import TorchCheckpointIO
 
-from anycity.atomic import atomic_write_bytes
+from anycity.atomic import atomic_write_bytes, temp_name
 from anycity.safe_load import safe_torch_load
 
 __all__ = ["SafeCheckpointIO", "atomic_write_bytes", "safe_torch_load"]
@@ -41,7 +44,7 @@ def _maybe_die_mid_write(path, data) -> None:
     if _saves == int(k):
         import signal
 
-        tmp = Path(path).with_name(f".{Path(path).name}.tmp-{os.getpid()}")
+        tmp = temp_name(Path(path).parent)  # a temp name as atomic_write_bytes writes it
         with open(tmp, "wb") as f:
             f.write(data[: len(data) // 2])
             f.flush()

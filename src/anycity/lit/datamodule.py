@@ -10,6 +10,8 @@ YAML (LightningCLI)::
 from __future__ import annotations
 
 import math
+import os
+import signal
 from pathlib import Path
 
 import lightning.pytorch as pl
@@ -44,6 +46,38 @@ def _collate_photos(items: list[dict]) -> dict:
     if items[0].get("chunk") is not None:
         out["chunk"] = items[0]["chunk"]
     return out
+
+
+class _IgnoreSignalsInWorkers:
+    """DataLoader ``worker_init_fn``: a worker ignores SIGUSR1 and takes SIGTERM's default action, then runs
+    ``then`` (an earlier ``worker_init_fn``) if given, else Lightning's worker seeding when
+    ``seed_everything(workers=True)`` asked for it (Lightning adds that only to a loader without a ``worker_init_fn``).
+
+    A forked worker inherits Lightning's handlers: on SLURM's SIGUSR1 (sent to every process of the step) each worker
+    would save an HPC checkpoint from its stale copy of the trainer and run ``scontrol requeue``; on SIGTERM it would
+    run Lightning's handler (a collective call in a worker). SIGTERM is not ignored: torch ends a loader's workers
+    with it (``terminate()``), and a process whose workers ignore it hangs at exit. A module-level class, so spawned
+    workers can unpickle it."""
+
+    def __init__(self, then=None, rank: int | None = None) -> None:
+        self.then, self.rank = then, rank
+
+    def __call__(self, worker_id: int) -> None:
+        if hasattr(signal, "SIGUSR1"):  # not on Windows
+            signal.signal(signal.SIGUSR1, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        if self.then is not None:
+            self.then(worker_id)
+        elif int(os.environ.get("PL_SEED_WORKERS", 0)):
+            from lightning.fabric.utilities.seed import pl_worker_init_function
+
+            pl_worker_init_function(worker_id, rank=self.rank)
+
+
+def worker_init_fn(then=None, rank: int | None = None) -> _IgnoreSignalsInWorkers:
+    """The ``worker_init_fn`` of every loader of :class:`AerialDataModule` (see :class:`_IgnoreSignalsInWorkers`);
+    ``then``: a loader's own one, run after it; ``rank``: the global rank, for Lightning's worker seeding."""
+    return then if isinstance(then, _IgnoreSignalsInWorkers) else _IgnoreSignalsInWorkers(then, rank)
 
 
 class _PhotoChunks(torch.utils.data.Dataset):
@@ -196,7 +230,11 @@ class AerialDataModule(pl.LightningDataModule):
                              skip_corrupt=self.hp.skip_corrupt, counter=self.skip_counter, first_epoch=first_epoch)
         bs = self.hp.batch_size if train else (self.hp.eval_batch_size or self.hp.batch_size)
         return DataLoader(pipe, batch_size=bs, collate_fn=collate, num_workers=workers,
-                          persistent_workers=workers > 0, pin_memory=self.hp.pin_memory, drop_last=train)
+                          persistent_workers=workers > 0, pin_memory=self.hp.pin_memory, drop_last=train,
+                          worker_init_fn=worker_init_fn(rank=self._rank()))
+
+    def _rank(self) -> int | None:
+        return getattr(self.trainer, "global_rank", None)
 
     def train_dataloader(self) -> DataLoader:
         # resumed (``--ckpt_path``): start at the interrupted run's epoch and skip the samples it already trained on
@@ -213,7 +251,7 @@ class AerialDataModule(pl.LightningDataModule):
             loader = DataLoader(_SkipFirst(loader.dataset, done, loader.batch_size), batch_size=loader.batch_size,
                                 collate_fn=loader.collate_fn, num_workers=loader.num_workers,
                                 persistent_workers=loader.persistent_workers, pin_memory=loader.pin_memory,
-                                drop_last=loader.drop_last)
+                                drop_last=loader.drop_last, worker_init_fn=worker_init_fn(loader.worker_init_fn))
         return loader
 
     def val_dataloader(self) -> DataLoader:
@@ -242,7 +280,8 @@ class AerialDataModule(pl.LightningDataModule):
             self._order_by_tokens(photos)
         chunks = plan_chunks(len(photos), self.hp.predict_chunk_size, self.hp.predict_chunk_overlap,
                              self.hp.predict_loop)
-        return DataLoader(_PhotoChunks(photos, chunks), batch_size=1, collate_fn=_collate_photos)
+        return DataLoader(_PhotoChunks(photos, chunks), batch_size=1, collate_fn=_collate_photos,
+                          worker_init_fn=worker_init_fn())
 
     def _order_by_tokens(self, photos) -> None:
         """Order ``photos`` along the neighbour graph of the network's own global tokens (one pass per photo at

@@ -1,0 +1,150 @@
+"""The export callback when a run does not end normally, and its DDP-safe output folder: a chunked city that never
+finishes leaves nothing in its scene folder and says so; SIGTERM stops predict after the batch being written;
+``trainer.log_dir`` (a collective under DDP) is read once, in the hook every rank runs."""
+
+import warnings
+from types import SimpleNamespace
+
+import lightning.pytorch as pl
+import pytest
+import torch
+from lightning.pytorch.utilities.exceptions import SIGTERMException
+
+from anycity.callbacks import PredictionExport
+from anycity.city import plan_chunks
+from anycity.city.oracle import orbit_scene
+from anycity.geometry.projection import unproject_depth
+from anycity.structures import Gaussians
+
+H = W = 2
+PLAN = plan_chunks(12, 6, 3)  # 3 chunks
+
+
+class _Chunks(torch.utils.data.Dataset):
+    """A 12-photo city in chunks of 6; chunk ``fail`` does not decode."""
+
+    def __init__(self, fail: int | None = None) -> None:
+        self.fail = fail
+
+    def __len__(self):
+        return len(PLAN)
+
+    def __getitem__(self, k):
+        if k == self.fail:
+            raise ValueError("predict_images: cannot decode flight/p9.jpg")
+        return {"images": torch.rand(1, 6, 3, H, W), "scene": ["flight"],
+                "chunk": {"index": k, "count": len(PLAN), "views": PLAN[k], "plan": PLAN, "hw": (H, W),
+                          "names": [f"p{i}.jpg" for i in range(12)]}}
+
+
+class _Oracle(pl.LightningModule):
+    """True cameras and depth, with renders (so ``save_renders`` writes PNGs); ``sigterm_at``: the batch during
+    which the run receives SIGTERM."""
+
+    def __init__(self, sigterm_at: int | None = None) -> None:
+        super().__init__()
+        self.sigterm_at = sigterm_at
+
+    def predict_step(self, batch, batch_idx):
+        if batch_idx == self.sigterm_at:
+            self.trainer._signal_connector.received_sigterm = True  # what Lightning's SIGTERM handler sets
+        gt, _ = orbit_scene(12)
+        views = batch["chunk"]["views"]
+        Ks = torch.tensor([[2.0, 0, 1], [0, 2, 1], [0, 0, 1]]).expand(1, 6, 3, 3)
+        means = unproject_depth(torch.full((1, 6, 1, H, W), 5.0), Ks, gt[views][None].float())
+        m = 6 * H * W
+        g = Gaussians(means.reshape(1, m, 3), torch.tensor([1.0, 0, 0, 0]).expand(1, m, 4),
+                      torch.full((1, m, 3), 0.01), torch.full((1, m), 0.5), torch.zeros(1, m, 1, 3))
+        return {"gaussians": g, "w2c": gt[views].float()[None], "K": Ks, "images": batch["images"],
+                "renders": SimpleNamespace(rgb=batch["images"].clone())}
+
+
+def _predict(tmp_path, model, data, **trainer_kw):
+    cb = PredictionExport(out_dir=str(tmp_path / "out"), save_renders=True, smooth_3d=0)
+    trainer = pl.Trainer(callbacks=[cb], logger=False, enable_progress_bar=False, accelerator="cpu",
+                         enable_model_summary=False, default_root_dir=str(tmp_path), **trainer_kw)
+    return cb, trainer, lambda: trainer.predict(model, torch.utils.data.DataLoader(data, batch_size=None))
+
+
+def _left(tmp_path) -> list[str]:
+    out = tmp_path / "out"
+    return sorted(str(p.relative_to(out)) for p in out.rglob("*")) if out.exists() else []
+
+
+pytestmark = pytest.mark.filterwarnings("ignore:Couldn't infer the batch indices")  # the CLI silences it too
+
+
+def test_a_finished_city_gets_its_renders_and_inputs(tmp_path):
+    cb, _, run = _predict(tmp_path, _Oracle(), _Chunks())
+    run()
+    left = _left(tmp_path)
+    assert {"flight/scene.ply", "flight/cameras.json", "flight/chunks.json", "flight/renders/011.png",
+            "flight/inputs/000.png"} <= set(left)
+    assert len([p for p in left if p.startswith("flight/renders/")]) == 12
+    assert not [p for p in left if not p.startswith("flight")]  # no work or views folder left beside it
+    assert cb.unfinished is None
+
+
+def test_a_chunk_that_fails_leaves_no_renders_in_the_scene_folder(tmp_path):
+    """The first chunks' PNGs went straight into out/flight/renders and inputs: a scene folder with images and no
+    scene.ply, cameras.json or chunks.json."""
+    cb, _, run = _predict(tmp_path, _Oracle(), _Chunks(fail=2))
+    with pytest.raises(ValueError, match="cannot decode"):
+        run()
+    assert _left(tmp_path) == []
+    assert cb.unfinished == "flight"
+
+
+def test_a_city_cut_short_by_limit_predict_batches_writes_nothing_and_says_so(tmp_path):
+    """The run ended with exit 0, no warning, and renders/ + inputs/ of two chunks in the scene folder."""
+    _, _, run = _predict(tmp_path, _Oracle(), _Chunks(), limit_predict_batches=2)
+    with pytest.warns(UserWarning, match=r"ended before the last of the 3 chunks of flight, so nothing was written "
+                                         r"for it .*limit_predict_batches"):
+        run()
+    assert _left(tmp_path) == []
+
+
+def test_predict_stops_after_the_batch_that_received_sigterm(tmp_path):
+    """Lightning's predict loop never checks the SIGTERM flag: a preempted predict ran to the end."""
+    seen = []
+    cb, trainer, run = _predict(tmp_path, _Oracle(sigterm_at=0), _Chunks())
+    cb.on_predict_batch_start = lambda trainer, module, batch, i, *a: seen.append(i)
+    with pytest.raises(SIGTERMException):
+        run()
+    assert seen == [0]  # chunk 0 written, then stopped
+    assert _left(tmp_path) == [] and cb.unfinished == "flight" and cb._city is None  # the city cleanup ran
+    cb, trainer, run = _predict(tmp_path, _Oracle(sigterm_at=2), _Chunks())
+    run()  # on the last batch: nothing left to stop, the run ends as usual
+    assert "flight/scene.ply" in _left(tmp_path)
+
+
+class _CountingTrainer(SimpleNamespace):
+    reads = 0
+
+    @property
+    def log_dir(self):
+        type(self).reads += 1
+        return self._log_dir
+
+
+def test_the_default_folder_is_resolved_once_in_setup_not_per_sample(tmp_path):
+    """``trainer.log_dir`` broadcasts from rank 0 under DDP; read per exported sample, the ranks (which hold unequal
+    sample counts) ran unmatched collectives: gloo "Connection closed by peer", a hang on NCCL."""
+    trainer = _CountingTrainer(_log_dir=str(tmp_path / "logs"), default_root_dir=str(tmp_path), global_rank=0)
+    cb = PredictionExport(save_renders=False, smooth_3d=0)
+    cb.setup(trainer, _Oracle(), "predict")
+    cb.on_predict_start(trainer, None)
+    assert _CountingTrainer.reads == 1
+    K = torch.tensor([[2.0, 0, 1], [0, 2, 1], [0, 0, 1]]).expand(1, 1, 3, 3)
+    g = Gaussians(torch.rand(1, 4, 3) + torch.tensor([0, 0, 3.0]), torch.tensor([1.0, 0, 0, 0]).expand(1, 4, 4),
+                  torch.full((1, 4, 3), 0.01), torch.full((1, 4), 0.5), torch.zeros(1, 4, 1, 3))
+    pred = {"gaussians": g, "w2c": torch.eye(4)[None, None], "K": K, "images": torch.rand(1, 1, 3, H, W),
+            "renders": None, "scene": ["s"]}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        for i in range(3):
+            cb.write_on_batch_end(trainer, None, pred, None, {"scene": ["s"]}, i)
+    assert _CountingTrainer.reads == 1
+    assert sorted(p.name for p in (tmp_path / "logs" / "predictions").iterdir()) == ["s", "s-2", "s-3"]
+    cb.teardown(trainer, None, "predict")
+    assert cb.root(trainer) == tmp_path / "logs" / "predictions"
