@@ -31,6 +31,11 @@ def _check_finite(name: str, t: Tensor) -> None:
         raise ValueError(f"{name}: contains NaN or infinite values; check the upstream computation")
 
 
+def _render_dtype(dtype: torch.dtype) -> torch.dtype:
+    """The dtype a Gaussian field renders in: ``render()`` upcasts float16/bfloat16 fields to float32."""
+    return torch.float32 if dtype in (torch.float16, torch.bfloat16) else dtype
+
+
 def sh_degree_from_k(k: int) -> int:
     """Number of SH coefficients ``K = (degree + 1)**2`` -> degree; raises for other K."""
     d = math.isqrt(k) - 1
@@ -52,6 +57,9 @@ class Gaussians:
             colour = 0.282095 * sh + 0.5.
         valid: ``[B, N]`` bool, or None (all valid). Invalid Gaussians contribute nothing; ragged
             batches pad with invalid entries instead of huge values.
+
+    Every field but ``valid`` is floating point with the dtype of ``means``; float16/bfloat16 fields count as
+    float32 (``render()`` upcasts them), so a mixed-precision head's output validates.
     """
 
     means: Tensor
@@ -77,6 +85,14 @@ class Gaussians:
         m = self.means
         if m.dim() != 3 or m.shape[-1] != 3:
             raise _shape_error("gaussians.means", "[B, N, 3]", m)
+        if not m.is_floating_point():
+            raise ValueError(f"gaussians.means: expected a floating-point dtype, got {m.dtype}; cast every field "
+                             "with gaussians.to(dtype=torch.float32)")
+        for name in ("quats", "scales", "opacities", "sh"):
+            t = getattr(self, name)
+            if not t.is_floating_point() or _render_dtype(t.dtype) != _render_dtype(m.dtype):
+                raise ValueError(f"gaussians.{name}: expected dtype {m.dtype} like means, got {t.dtype}; cast every "
+                                 "field to one dtype with gaussians.to(dtype=...)")
         b, n = m.shape[:2]
         expect = {
             "quats": (self.quats, (b, n, 4), "[B, N, 4]"),
@@ -159,6 +175,9 @@ class Views:
         mask: ``[B, V, 1, H, W]`` bool, True where depth/normal are valid (not sky), or None.
         normal: ``[B, V, 3, H, W]`` unit normals in the camera frame, or None.
         index: ``[B, V]`` long, each view's position in its trajectory, or None.
+
+    ``validate(compact=True)`` also accepts the data loader's compact form (uint8 images in [0, 255]; see
+    ``anycity.data.pipeline.to_float32``).
     """
 
     images: Tensor
@@ -177,10 +196,14 @@ class Views:
     def hw(self) -> tuple[int, int]:
         return int(self.images.shape[-2]), int(self.images.shape[-1])
 
-    def validate(self, name: str = "views") -> Views:
+    def validate(self, name: str = "views", compact: bool = False) -> Views:
+        """Shapes, dtypes and devices only (no pass over the pixels); ``compact``: uint8 images are accepted."""
         img = self.images
         if img.dim() != 5 or img.shape[2] != 3:
             raise _shape_error(f"{name}.images", "[B, V, 3, H, W]", img)
+        if not (img.is_floating_point() or (compact and img.dtype == torch.uint8)):
+            raise ValueError(f"{name}.images: expected float in [0, 1]{' (or compact uint8)' if compact else ''}, got "
+                             f"{img.dtype}; convert with images.float() / 255 (anycity.data.pipeline.to_float32)")
         b, v, _, h, w = img.shape
         if tuple(self.w2c.shape) != (b, v, 4, 4):
             raise _shape_error(f"{name}.w2c", f"[B, V, 4, 4] = {(b, v, 4, 4)}", self.w2c)
@@ -192,6 +215,23 @@ class Views:
                 raise _shape_error(f"{name}.{attr}", f"[B, V, {c}, H, W] = {(b, v, c, h, w)}", t)
         if self.index is not None and tuple(self.index.shape) != (b, v):
             raise _shape_error(f"{name}.index", f"[B, V] = {(b, v)}", self.index)
+        for attr in ("w2c", "K", "depth", "normal"):
+            t = getattr(self, attr)
+            if t is not None and not t.is_floating_point():
+                raise ValueError(f"{name}.{attr}: expected a floating-point dtype, got {t.dtype}; cast it with "
+                                 ".float()")
+        if self.mask is not None and self.mask.dtype != torch.bool:
+            raise ValueError(f"{name}.mask: expected dtype bool (True where depth is valid), got {self.mask.dtype}; "
+                             "pass mask > 0.5")
+        if self.index is not None and (self.index.is_floating_point() or self.index.is_complex()
+                                       or self.index.dtype == torch.bool):
+            raise ValueError(f"{name}.index: expected an integer dtype (long), got {self.index.dtype}; cast it with "
+                             ".long()")
+        for f in fields(self):
+            t = getattr(self, f.name)
+            if t is not None and t.device != img.device:
+                raise ValueError(f"{name}.{f.name}: on {t.device}, but images are on {img.device}; move the views "
+                                 "together")
         return self
 
 
@@ -220,9 +260,30 @@ class ViewBatch:
     def batch_size(self) -> int:
         return self.context.images.shape[0]
 
-    def validate(self) -> ViewBatch:
-        self.context.validate("batch.context")
-        self.target.validate("batch.target")
-        if self.dense is not None:
-            self.dense.validate("batch.dense")
+    def validate(self, compact: bool = False) -> ViewBatch:
+        """Shapes, dtypes and devices only (cheap enough for every batch); every group has the context's B.
+        ``compact``: also accept the data loader's compact form (uint8 images)."""
+        self.context.validate("batch.context", compact)
+        b = self.batch_size
+        for name in ("target", "dense"):
+            views = getattr(self, name)
+            if views is None:
+                continue
+            views.validate(f"batch.{name}", compact)
+            if views.images.shape[0] != b:
+                raise ValueError(f"batch.{name}: expected B={b} scenes like batch.context, got "
+                                 f"{views.images.shape[0]}; build every view group from the same samples")
+        if self.scene is not None and len(self.scene) != b:
+            raise ValueError(f"batch.scene: expected {b} scene names (one per sample), got {len(self.scene)}")
+        if self.scale is not None:
+            if tuple(self.scale.shape) != (b,):
+                raise _shape_error("batch.scale", f"[B] = {(b,)}", self.scale)
+            if not self.scale.is_floating_point():
+                raise ValueError(f"batch.scale: expected a floating-point dtype, got {self.scale.dtype}")
+        if self.world_from_source is not None:
+            if tuple(self.world_from_source.shape) != (b, 4, 4):
+                raise _shape_error("batch.world_from_source", f"[B, 4, 4] = {(b, 4, 4)}", self.world_from_source)
+            if not self.world_from_source.is_floating_point():
+                raise ValueError(f"batch.world_from_source: expected a floating-point dtype, got "
+                                 f"{self.world_from_source.dtype}")
         return self

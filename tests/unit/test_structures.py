@@ -65,3 +65,69 @@ def test_render_output_and_views_validate():
     bad = Views(torch.zeros(1, 3, 3, 8, 8), torch.eye(4).repeat(1, 2, 1, 1), torch.eye(3).repeat(1, 3, 1, 1))
     with pytest.raises(ValueError, match="batch.target.w2c"):
         ViewBatch(context=v, target=bad).validate()
+
+
+@pytest.mark.parametrize("fields, match", [
+    ({"means": torch.zeros(2, 5, 3, dtype=torch.long)}, "means: expected a floating-point dtype"),
+    ({"means": torch.zeros(2, 5, 3, dtype=torch.float64)}, "quats: expected dtype torch.float64 like means"),
+    ({"sh": torch.zeros(2, 5, 4, 3, dtype=torch.float64)}, "sh: expected dtype torch.float32 like means"),
+    ({"quats": torch.ones(2, 5, 4, dtype=torch.long)}, "quats: expected dtype"),
+    ({"opacities": torch.ones(2, 5, dtype=torch.bool)}, "opacities: expected dtype"),
+])
+def test_gaussians_validate_refuses_mixed_or_integer_dtypes(fields, match):
+    # the renderer failed on these with an unexplained RuntimeError
+    with pytest.raises(ValueError, match=match):
+        Gaussians(**{**vars(gaussians()), **fields}).validate()
+
+
+def test_gaussians_validate_accepts_one_dtype_and_low_precision_fields():
+    gaussians().to(dtype=torch.float64).validate()
+    gaussians().to(dtype=torch.bfloat16).validate()
+    # a mixed-precision head: render() upcasts float16/bfloat16 fields to float32
+    Gaussians(**{**vars(gaussians()), "sh": torch.zeros(2, 5, 4, 3, dtype=torch.bfloat16)}).validate()
+    Gaussians(**{**vars(gaussians()), "means": torch.zeros(2, 5, 3, dtype=torch.float16)}).validate()
+
+
+def views(B=2, V=3, **kw):
+    v = Views(torch.zeros(B, V, 3, 8, 8), torch.eye(4).repeat(B, V, 1, 1), torch.eye(3).repeat(B, V, 1, 1),
+              depth=torch.ones(B, V, 1, 8, 8), mask=torch.ones(B, V, 1, 8, 8, dtype=torch.bool),
+              normal=torch.zeros(B, V, 3, 8, 8), index=torch.zeros(B, V, dtype=torch.long))
+    for k, val in kw.items():
+        setattr(v, k, val)
+    return v
+
+
+def batch(**kw):
+    fields = dict(context=views(), target=views(V=2), dense=views(V=4), scene=["a", "b"], scale=torch.ones(2),
+                  world_from_source=torch.eye(4).repeat(2, 1, 1))
+    return ViewBatch(**{**fields, **kw})
+
+
+@pytest.mark.parametrize("fields, match", [
+    ({"target": views(B=1)}, "batch.target: expected B=2"),
+    ({"dense": views(B=3)}, "batch.dense: expected B=2"),
+    ({"scale": torch.ones(5)}, r"batch.scale: expected shape \[B\]"),
+    ({"scale": torch.ones(2, 1)}, "batch.scale"),
+    ({"world_from_source": torch.eye(3)}, r"batch.world_from_source: expected shape \[B, 4, 4\]"),
+    ({"world_from_source": torch.eye(4)}, "batch.world_from_source"),
+    ({"scene": ["a"] * 7}, "batch.scene: expected 2 scene names"),
+    ({"context": views(mask=torch.ones(2, 3, 1, 8, 8))}, "batch.context.mask: expected dtype bool"),
+    ({"context": views(images=torch.zeros(2, 3, 3, 8, 8, dtype=torch.long))}, "batch.context.images: expected float"),
+    ({"target": views(V=2, images=torch.zeros(2, 2, 3, 8, 8, dtype=torch.uint8))}, "batch.target.images"),
+    ({"context": views(index=torch.zeros(2, 3))}, "batch.context.index: expected an integer dtype"),
+    ({"context": views(depth=torch.ones(2, 3, 1, 8, 8, dtype=torch.long))}, "batch.context.depth"),
+    ({"dense": views(V=4, w2c=torch.eye(4, dtype=torch.long).repeat(2, 4, 1, 1))}, "batch.dense.w2c"),
+])
+def test_view_batch_validate_refuses_inconsistent_batches(fields, match):
+    with pytest.raises(ValueError, match=match):
+        batch(**fields).validate()
+
+
+def test_view_batch_validate_accepts_batches_and_the_compact_form_when_asked():
+    assert batch().validate().batch_size == 2
+    batch(dense=None, scene=None, scale=None, world_from_source=None).validate()
+    compact = batch(context=views(images=torch.zeros(2, 3, 3, 8, 8, dtype=torch.uint8),
+                                  depth=torch.ones(2, 3, 1, 8, 8, dtype=torch.float16)))
+    compact.validate(compact=True)
+    with pytest.raises(ValueError, match="batch.context.images"):
+        compact.validate()

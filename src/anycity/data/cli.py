@@ -19,10 +19,15 @@ def _synth_parser() -> ArgumentParser:
     p.add_argument("--out", type=str, required=True, help="output shard directory")
     p.add_argument("--overwrite", action=ActionYesNo, default=False,
                    help="replace a shard set already in --out (default: refuse)")
-    p.add_argument("--scenes", type=int, default=8, help="number of cities (one sample each; split 8:1:1)")
+    p.add_argument("--scenes", type=int, default=8,
+                   help="number of cities, split 8:1:1 into train/val/test (training cities are written as --window "
+                        "samples, the others whole); which city lands in which split depends on --scenes, so a "
+                        "held-out set for a model trained on another set needs another --seed")
     p.add_argument("--views", type=int, default=48, help="views per city along the trajectory")
     p.add_argument("--size", type=str, default="256x256", help="image size HxW in pixels")
-    p.add_argument("--seed", type=int, default=0, help="dataset seed (scene i uses (seed, i))")
+    p.add_argument("--seed", type=int, default=0,
+                   help="dataset seed: city i is made from (seed, i) whatever --scenes, so sets made with one seed "
+                        "share cities (across their splits when --scenes differs); use another seed for a held-out set")
     p.add_argument("--trajectory", default="mixed", choices=["orbit", "nadir", "mixed"],
                    help="camera path: orbit at 30-60 deg pitch, nadir lawnmower, or a per-scene mix")
     p.add_argument("--preview", action=ActionYesNo, default=False, help="write preview.png (contact sheet)")
@@ -31,7 +36,8 @@ def _synth_parser() -> ArgumentParser:
     p.add_argument("--depth_dtype", default="float16", choices=["float16", "float32"],
                    help="stored depth precision")
     p.add_argument("--normals", action=ActionYesNo, default=False,
-                   help="also store ground-truth normals (3x the bytes of depth; readers derive them from depth)")
+                   help="also store ground-truth normals (octahedral uint8, 2 bytes a pixel, the bytes of float16 "
+                        "depth; readers derive them from depth when absent)")
     p.add_argument("--window", type=int | None, default=24,
                    help="training samples are trajectory windows of this many views (0 or None: whole scenes)")
     p.add_argument("--stride", type=int | None, default=None, help="views between window starts (default window/2)")

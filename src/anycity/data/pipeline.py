@@ -365,10 +365,11 @@ def _collate(samples: list[dict]) -> ViewBatch:
         return Views(images=_stack([x["images"] for x in grp]), w2c=opt("w2c"), K=opt("K"),
                      depth=opt("depth"), mask=opt("mask"), normal=opt("normal"), index=opt("index"))
 
-    return ViewBatch(context=views("context"), target=views("target"), dense=views("dense"),
-                     scene=[s["scene"] for s in samples],
-                     scale=torch.tensor([s["scale"] for s in samples], dtype=torch.float32),
-                     world_from_source=torch.stack([s["world_from_source"] for s in samples]))
+    batch = ViewBatch(context=views("context"), target=views("target"), dense=views("dense"),
+                      scene=[s["scene"] for s in samples],
+                      scale=torch.tensor([s["scale"] for s in samples], dtype=torch.float32),
+                      world_from_source=torch.stack([s["world_from_source"] for s in samples]))
+    return batch.validate(compact=True)  # shapes and dtypes only: no pass over the pixels
 
 
 def _eval_shard(src: Iterator[dict]) -> Iterator[dict]:

@@ -366,13 +366,15 @@ def render(scene: SceneTensors, w2c: Tensor, K: Tensor, height: int, width: int,
 def look_at(eye, target, up=(0.0, 0.0, 1.0), heading=(0.0, 1.0, 0.0)) -> np.ndarray:
     """OpenCV world-to-camera ``[4, 4]`` of a camera at ``eye`` looking at ``target`` (z-up world).
 
-    For (near-)vertical views, ``heading`` gives the direction the top of the image points to.
+    The top of the image points to ``up`` (projected), or for (near-)vertical views (``|f_z| >= 0.999``, within
+    2.6 deg of vertical) to ``heading``. A view that should keep a heading when tilted a few degrees off vertical
+    passes it as ``up`` too (the synthetic nadir lawnmower does).
     """
     eye, target = np.asarray(eye, np.float64), np.asarray(target, np.float64)
     f = target - eye
     f /= np.linalg.norm(f)
     hint = np.asarray(up, np.float64) if abs(f[2]) < 0.999 else np.asarray(heading, np.float64)
-    r = np.cross(f, hint) if abs(f[2]) < 0.999 else np.cross(f, hint)
+    r = np.cross(f, hint)
     r /= np.linalg.norm(r)
     dn = np.cross(f, r)
     R = np.stack([r, dn, f])  # rows: camera axes in world coordinates

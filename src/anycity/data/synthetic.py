@@ -82,13 +82,14 @@ def trajectory(kind: str, n: int, city: City, rng: np.random.Generator) -> tuple
             x = xs[c] if fwd > 0 else xs[cols - 1 - c]
             eye = np.array([x, ys[r], alt * rng.uniform(0.97, 1.03)]) + np.r_[rng.normal(0, 0.02 * E, 2), 0]
             heading = np.array([fwd, 0.0, 0.0])
-            if kind == "nadir":
+            if kind == "nadir":  # the top of the image points along the flight line, however far the view tilts
                 tilt = rng.normal(0, 0.015, 2)
-                poses.append(look_at(eye, eye + np.r_[tilt, -1.0], heading=heading))
-            else:  # the grid is the look-at points; the camera trails them so it always looks at the city
-                ahead = alt / math.tan(math.radians(45 + rng.uniform(-4, 4)))
-                target = np.r_[eye[:2], 0.0]
-                poses.append(look_at(np.r_[eye[:2] - ahead * heading[:2], eye[2]], target))
+                poses.append(look_at(eye, eye + np.r_[tilt, -1.0], up=heading, heading=heading))
+            else:  # the camera trails the grid point by the altitude (45 deg) and the pitch jitter moves what it
+                # looks at, not the camera: the camera steps forward along its flight line at every view
+                ahead = eye[2] / math.tan(math.radians(45 + rng.uniform(-4, 4)))
+                cam = np.r_[eye[:2] - alt * heading[:2], eye[2]]
+                poses.append(look_at(cam, np.r_[cam[:2] + ahead * heading[:2], 0.0]))
     else:
         raise ValueError(f"trajectory: expected one of {TRAJECTORIES}, got {kind!r}")
     return np.stack(poses), kind
@@ -166,9 +167,13 @@ def synth(out: str | Path, scenes: int = 8, views: int = 48, size: str | tuple[i
           hfov: float = HFOV_DEG, overwrite: bool = False) -> dict:
     """Render ``scenes`` synthetic cities into ``{train,val,test}-*.tar`` shards under ``out`` (8:1:1 split).
 
+    City ``i`` depends only on ``(seed, i)``, but the split of each city on ``scenes`` too
+    (:func:`~anycity.data.writer.split_scenes`): a held-out set for a model trained on a synthetic set needs another
+    ``seed``, not another ``scenes``.
+
     Args:
-        normals: also store ground-truth normals (float16, 3x the bytes of depth; no loss needs them and the
-            reader derives them from depth on request).
+        normals: also store ground-truth normals (octahedral uint8, 2 bytes a pixel: the bytes of float16 depth; no
+            loss needs them and the reader derives them from depth on request).
         window, stride: training samples are windows of ``window`` consecutive views every ``stride`` (default
             ``window // 2``) views; None: one sample per scene. Validation and test scenes stay whole.
         supersample: colour from a k x k box filter of sub-pixel rays (k^2 + 1 times the rays; 1 = one ray per

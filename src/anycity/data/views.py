@@ -131,7 +131,8 @@ def resize_view(image: np.ndarray, K: np.ndarray, size: tuple[int, int], mode: s
         image: ``[h, w, 3]`` uint8; K: ``[3, 3]`` pixels of the ``src_hw`` image.
         mode: "crop" scales to cover ``size`` then centre-crops (exact output size); "keep" keeps the aspect
             ratio with about ``H*W`` pixels and both sides multiples of ``patch``.
-        depth/normal/mask: ``[h, w]``, ``[h, w, 3]``, ``[h, w]`` resampled with nearest neighbours.
+        depth/normal/mask: ``[h, w]``, ``[h, w, 3]``, ``[h, w]`` resampled with nearest neighbours (the source
+            pixel under each output pixel's centre).
         src_hw: the ``(h, w)`` that K describes (default: the image's); arrays of another size covering the same
             field of view (a JPEG decoded at 1/2, 1/4 or 1/8 scale) are resampled from their own size.
     Returns:
@@ -143,10 +144,12 @@ def resize_view(image: np.ndarray, K: np.ndarray, size: tuple[int, int], mode: s
     if (nw, nh) != (w, h):
         Kt = rescale_intrinsics(Kt, nw / w, nh / h)
 
-    def fit(a, interp=cv2.INTER_NEAREST):
+    # nearest neighbours with pixel centres aligned (INTER_NEAREST_EXACT), as K is rescaled; plain INTER_NEAREST
+    # samples source pixel floor(x * scale), which puts depth, normals and mask a fraction of a pixel off
+    def fit(a, interp=cv2.INTER_NEAREST_EXACT):
         if a is None or a.shape[:2] == (nh, nw):
             return a
-        if interp != cv2.INTER_NEAREST:
+        if interp != cv2.INTER_NEAREST_EXACT:
             interp = cv2.INTER_AREA if a.shape[1] > nw else cv2.INTER_LINEAR
         return cv2.resize(a, (nw, nh), interpolation=interp)
 

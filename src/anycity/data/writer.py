@@ -1,24 +1,46 @@
-"""Write scenes into webdataset shards per split, plus ``index.json`` (shards, scenes, samples, views, split)."""
+"""Write scenes into webdataset shards per split, plus ``index.json`` (shards, scenes, samples, views, split).
+
+One run writes in a folder at a time: :class:`ShardSetWriter` holds the lock file ``.anycity-writing.lock`` there
+(pid and host of the run) from its start to its end, and a second run on the same folder is refused in one line.
+A lock left by a killed run on this host (its pid no longer runs) is taken over with a warning; one from another
+host is refused, naming the file to delete once that run is gone.
+"""
 
 from __future__ import annotations
 
 import errno
 import json
 import os
+import re
+import secrets
+import socket
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
 import webdataset as wds
 
 from anycity.atomic import atomic_write_bytes
-from anycity.data.schema import SCHEMA_VERSION, SceneRecord, encode_scene, split_windows
+from anycity.data.schema import SCHEMA_VERSION, SceneRecord, encode_scene, split_windows, window_bounds
 
 SPLITS = ("train", "val", "test")
+DEPTH_DTYPES = ("float16", "float32")
+LOCK_NAME = ".anycity-writing.lock"
+"""The lock file a writing run holds in its output folder (JSON: ``pid``, ``host``, ``started``, ``token``)."""
+_SHARD_RE = re.compile(r"(train|val|test)-\d{6}\.tar")  # the names this writer gives its shards
+SHARD_MTIME = 0
+"""Modification time of every tar member: fixed, so identical runs write identical shard bytes."""
 
 
 def split_scenes(n: int, seed: int = 0, ratios: tuple[float, float, float] = (0.8, 0.1, 0.1)) -> list[str]:
-    """Deterministic 8:1:1 train/val/test assignment of ``n`` scenes (at least one val and test when n >= 3)."""
+    """Deterministic 8:1:1 train/val/test assignment of ``n`` scenes (at least one val and test when n >= 3).
+
+    The assignment is a permutation of all ``n`` scenes, so a scene's split depends on ``n`` as well as ``seed``,
+    while a synthetic city depends only on ``(seed, scene index)`` (``anycity data synth``): sets of different
+    sizes made with one seed share cities across their splits. A held-out set for a model trained on a synthetic
+    set must be made with another ``--seed``.
+    """
     if n < 3:
         return ["train"] * n
     n_val = max(1, round(n * ratios[1]))
@@ -46,22 +68,44 @@ class ShardSetWriter:
         stride: views between window starts (default ``window // 2``: half-overlapping windows).
         window_splits: the splits that are windowed; evaluation splits stay whole scenes by default (each
             held-out view is scored once either way: windows own disjoint ranges).
+        overwrite: replace a shard set already in ``out`` (default: refuse).
+
+    The writer holds ``out``'s lock file (:data:`LOCK_NAME`) from here to :meth:`close` (or a failure in a
+    ``with`` block). Shards named like this writer's (``{train,val,test}-NNNNNN.tar``) that the new index does not
+    list, an earlier run's or a killed run's, are removed when the set is complete, with a warning naming them.
     """
 
     def __init__(self, out: str | Path, maxcount: int = 64, maxsize: float = 1e9, depth_dtype: str = "float16",
                  window: int | None = None, stride: int | None = None,
                  window_splits: tuple[str, ...] = ("train",), overwrite: bool = False) -> None:
+        try:  # an integer type would store metres truncated, modulo its range
+            name = np.dtype(depth_dtype).name
+        except (TypeError, ValueError):
+            name = None
+        if name not in DEPTH_DTYPES:
+            raise ValueError(f"depth_dtype: expected one of {DEPTH_DTYPES} (the stored depth's precision), got "
+                             f"{depth_dtype!r}")
+        depth_dtype = name
+        if window is not None:  # refused here, not after the first scene was rendered or read
+            window_bounds(window + 1, window, stride)
         self.out = Path(out)
         self.out.mkdir(parents=True, exist_ok=True)
         self.maxcount, self.maxsize, self.depth_dtype = maxcount, maxsize, depth_dtype
         self.window, self.stride, self.window_splits = window, stride, tuple(window_splits)
-        index = self.out / "index.json"
-        if index.exists() and not overwrite:
-            raise FileExistsError(f"{self.out} already holds a shard set (index.json); pass --overwrite to replace "
-                                  "it or choose another --out")
-        index.unlink(missing_ok=True)  # from here on the old index can never list a half-rewritten shard
-        for stale in self.out.glob("*.tar.partial"):  # leftovers of a killed run: never listed, safe to drop
-            stale.unlink()
+        self._lock: Path | None
+        self._lock, self._lock_text = _acquire_lock(self.out)
+        try:
+            index = self.out / "index.json"
+            if index.exists() and not overwrite:
+                raise FileExistsError(f"{self.out} already holds a shard set (index.json); pass --overwrite to "
+                                      "replace it or choose another --out")
+            self._old_shards = _listed_shards(index)
+            index.unlink(missing_ok=True)  # from here on the old index can never list a half-rewritten shard
+            for stale in self.out.glob("*.tar.partial"):  # leftovers of a killed run: never listed, safe to drop
+                stale.unlink()
+        except BaseException:
+            self._release()
+            raise
         self._writers: dict[str, wds.ShardWriter] = {}
         self._scenes: dict[str, dict] = {}
         self._samples: list[dict] = []
@@ -71,12 +115,13 @@ class ShardSetWriter:
         if split not in SPLITS:
             raise ValueError(f"split: expected one of {SPLITS}, got {split!r}")
         if split not in self._writers:
-            # an integer mtime keeps tar headers plain ustar (a float one adds a pax header to every member)
+            # a fixed integer mtime: identical runs give identical bytes, and tar headers stay plain ustar (a float
+            # one adds a pax header to every member)
             # shards are written as ``*.tar.partial`` and renamed when complete (``_publish``): a killed run
             # leaves no ``.tar`` that looks complete, and index.json (written last, atomically) lists only those
             self._writers[split] = wds.ShardWriter(str(self.out / f"{split}-%06d.tar.partial"),
                                                    maxcount=self.maxcount, maxsize=self.maxsize, verbose=0,
-                                                   mtime=int(time.time()), post=_publish)
+                                                   mtime=SHARD_MTIME, post=_publish)
         w = self._writers[split]
         parts = split_windows(rec, self.window, self.stride) if split in self.window_splits else [rec]
         for part in parts:
@@ -104,6 +149,12 @@ class ShardSetWriter:
         """
         if getattr(self, "_index", None) is not None:
             return self._index
+        try:
+            return self._close()
+        finally:
+            self._release()
+
+    def _close(self) -> dict:
         for w in self._writers.values():
             w.close()
         shards: dict[str, dict] = {}
@@ -115,6 +166,7 @@ class ShardSetWriter:
                  "window": {"size": self.window, "stride": self.stride or (self.window and self.window // 2),
                             "splits": list(self.window_splits)},
                  "splits": {sp: sorted(e["path"] for e in shards.values() if e["split"] == sp) for sp in SPLITS}}
+        self._remove_unlisted(set(shards))
         data = json.dumps(index, indent=1).encode()
         try:
             atomic_write_bytes(self.out / "index.json", data)
@@ -123,6 +175,25 @@ class ShardSetWriter:
             raise
         self._index = index
         return index
+
+    def _remove_unlisted(self, keep: set[str]) -> None:
+        """Remove the shards of an earlier (or killed) run that this set does not list: readers that glob
+        ``*.tar`` would otherwise mix them in."""
+        names = {p.name for p in self.out.iterdir() if _SHARD_RE.fullmatch(p.name) and p.is_file()}
+        names |= {n for n in self._old_shards if (self.out / n).is_file()}
+        gone = sorted(names - keep)
+        for n in gone:
+            (self.out / n).unlink(missing_ok=True)
+        if gone:
+            shown = ", ".join(gone[:4]) + (f" and {len(gone) - 4} more" if len(gone) > 4 else "")
+            warnings.warn(f"{self.out}: removed {len(gone)} shard(s) of an earlier run that this set does not list "
+                          f"({shown})", stacklevel=4)
+
+    def _release(self) -> None:
+        """Remove the lock file if it is still this writer's (idempotent)."""
+        lock, self._lock = self._lock, None
+        if lock is not None:
+            _release_lock(lock, self._lock_text)
 
     def __enter__(self) -> ShardSetWriter:
         return self
@@ -142,6 +213,101 @@ class ShardSetWriter:
                 w.tarstream = None
         for stale in self.out.glob("*.tar.partial"):
             stale.unlink(missing_ok=True)
+        self._release()
+
+
+def _listed_shards(index: Path) -> set[str]:
+    """The shard names an existing ``index.json`` lists (plain names in its folder only; none if unreadable)."""
+    try:
+        shards = json.loads(index.read_text()).get("shards", [])
+        return {e["path"] for e in shards if isinstance(e, dict) and isinstance(e.get("path"), str)
+                and _SHARD_RE.fullmatch(e["path"])}
+    except (OSError, ValueError, AttributeError, TypeError):
+        return set()
+
+
+def _read_lock(path: Path) -> tuple[str, dict | None] | None:
+    """``(text, holder)`` of a lock file (holder None when it is not a lock this module wrote); None if absent."""
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        return None
+    except (OSError, UnicodeDecodeError):
+        return "", None
+    try:
+        holder = json.loads(text)
+    except ValueError:
+        return text, None
+    ok = isinstance(holder, dict) and isinstance(holder.get("pid"), int) and holder["pid"] > 0 \
+        and isinstance(holder.get("host"), str)
+    return text, holder if ok else None
+
+
+def _pid_runs(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # another user's process (EPERM), or no way to tell: assume it runs
+        return True
+    return True
+
+
+def _acquire_lock(out: Path) -> tuple[Path, str]:
+    """Create ``out/LOCK_NAME`` exclusively (O_CREAT | O_EXCL) with this run's pid and host, or refuse in one line;
+    a lock of a process of this host that no longer runs is taken over with a warning. Returns the lock's path and
+    text."""
+    path = out / LOCK_NAME
+    host = socket.gethostname()
+    mine = json.dumps({"pid": os.getpid(), "host": host, "started": time.strftime("%Y-%m-%d %H:%M:%S"),
+                       "token": secrets.token_hex(8)})
+    for _ in range(5):
+        try:
+            fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        except FileExistsError:
+            found = _read_lock(path)
+            if found is None:  # released meanwhile
+                continue
+            text, holder = found
+            if holder is None:
+                raise FileExistsError(f"{out}: another run may be writing a shard set here (lock file {path}, not "
+                                      f"readable as one); wait for it or choose another --out, or, if no run writes "
+                                      f"there, delete {path}") from None
+            if holder["host"] != host or _pid_runs(holder["pid"]):
+                since = f", since {holder['started']}" if isinstance(holder.get("started"), str) else ""
+                raise FileExistsError(f"{out}: another run (pid {holder['pid']} on {holder['host']}{since}) is "
+                                      f"writing a shard set here (lock file {path}); wait for it to finish or choose "
+                                      f"another --out, or, if that run is gone, delete {path}") from None
+            # a killed run's lock: move it aside under a name of our own, then check that it is the one we read
+            aside = out / f"{LOCK_NAME}.stale-{os.getpid()}-{secrets.token_hex(4)}"
+            try:
+                os.rename(path, aside)
+            except FileNotFoundError:
+                continue
+            moved = _read_lock(aside)
+            if moved is None or moved[0] != text:  # another run took it over meanwhile: give its lock back
+                try:
+                    os.link(aside, path)
+                except OSError:
+                    pass
+                aside.unlink(missing_ok=True)
+                continue
+            aside.unlink(missing_ok=True)
+            warnings.warn(f"{path}: taking over the lock of pid {holder['pid']} on {host}, which no longer runs "
+                          "(a killed run); its unfinished shards are removed", stacklevel=3)
+            continue
+        with os.fdopen(fd, "w") as f:
+            f.write(mine)
+        return path, mine
+    raise FileExistsError(f"{out}: other runs keep taking the lock file {path}; run one `anycity data` at a time "
+                          "on this folder, or choose another --out")
+
+
+def _release_lock(path: Path, text: str) -> None:
+    """Remove a lock file if it still holds ``text`` (a lock another run took over is left to that run)."""
+    found = _read_lock(path)
+    if found is not None and found[0] == text:
+        path.unlink(missing_ok=True)
 
 
 def _publish(fname: str) -> None:

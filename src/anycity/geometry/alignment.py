@@ -13,13 +13,23 @@ def umeyama(
 
     Args:
         src, dst: ``[..., N, 3]`` corresponding points (N >= 3, not collinear for a unique R).
-        weights: ``[..., N]`` non-negative weights, or None.
+        weights: ``[..., N]`` non-negative weights (exactly ``src.shape[:-1]``: no broadcasting), or None.
     Returns:
         s ``[...]``, R ``[..., 3, 3]``, t ``[..., 3]``.
+
+    Gradients: the SVD has no usable gradient for degenerate inputs (fewer than 3 non-collinear points, or
+    repeated singular values, e.g. symmetric point sets give NaN); callers align under ``torch.no_grad()``.
     """
     if src.shape != dst.shape or src.shape[-1] != 3:
         raise ValueError(f"umeyama: src and dst must both be [..., N, 3], got {tuple(src.shape)} and "
                          f"{tuple(dst.shape)}")
+    if weights is not None:
+        if tuple(weights.shape) != tuple(src.shape[:-1]):
+            raise ValueError(f"umeyama: weights must have shape [..., N] = {tuple(src.shape[:-1])} like src without "
+                             f"its last dim, got {tuple(weights.shape)}; squeeze or reshape them")
+        if bool((weights < 0).any()):
+            raise ValueError("umeyama: weights must be >= 0 (a negative weight gives an arbitrary scale); clamp them "
+                             "with weights.clamp_min(0)")
     w = torch.ones(src.shape[:-1], dtype=src.dtype, device=src.device) if weights is None else weights
     w = w / w.sum(-1, keepdim=True).clamp_min(1e-12)
     mu_s = (w[..., None] * src).sum(-2)

@@ -8,6 +8,8 @@ The quaternion is the only place in the package that uses xyzw; it never leaves 
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
@@ -20,9 +22,14 @@ POSE_ENCODING_DIM = 9
 # with its own decode (NetConfig.focal_decode, set by load_pretrained(kind="anysplat")).
 FOCAL_DECODES = ("vggt", "anysplat")
 ANYSPLAT_TAN_EPS = 1e-3
+# The decode clamps a predicted field of view to [FOV_MIN, FOV_MAX] radians: the camera head's FoV activation is a
+# ReLU, so 0 (an infinite focal length, -inf gradient) is reachable, and FoV >= pi gives a focal length <= 0, which
+# render() refuses. Values inside the range pass bit for bit (VGGT's cameras are unchanged).
+FOV_MIN, FOV_MAX = 1e-4, math.pi - 1e-3
 
 
 def _fov_to_focal(fov: Tensor, size: float, mode: str) -> Tensor:
+    fov = fov.clamp(FOV_MIN, FOV_MAX)
     if mode == "anysplat":
         return (size / 2) / (torch.tan(fov / 2) + ANYSPLAT_TAN_EPS)
     if mode != "vggt":
@@ -64,8 +71,9 @@ def pose_encoding_to_extri_intri(enc: Tensor, image_size_hw: tuple[int, int],
                                  focal_decode: str = "vggt") -> tuple[Tensor, Tensor]:
     """``[..., 9]`` encoding -> ``w2c [..., 4, 4]`` and ``K [..., 3, 3]`` in pixels of an ``(H, W)`` image.
 
-    The quaternion need not be unit norm (the camera head does not normalise it). ``focal_decode``: "vggt" or
-    "anysplat" (see ``FOCAL_DECODES``).
+    The quaternion need not be unit norm (the camera head does not normalise it). The fields of view are clamped
+    to ``[FOV_MIN, FOV_MAX]`` (1e-4 .. pi - 1e-3 radians; no gradient outside), so the focal lengths are finite
+    and positive. ``focal_decode``: "vggt" or "anysplat" (see ``FOCAL_DECODES``).
     """
     h, w = _check_hw(image_size_hw)
     if enc.shape[-1] != POSE_ENCODING_DIM:

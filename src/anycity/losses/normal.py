@@ -43,13 +43,16 @@ def normal_loss(
             (camera frame, facing the camera, not necessarily unit length).
         K: ``[B, V, 3, 3]`` intrinsics of the renders.
         image: ``[B, V, 3, H, W]`` guide image for the structure weight, or None (weight 1).
-        alpha: ``[B, V, 1, H, W]`` rendered opacity; pixels with alpha < 0.5 are ignored. None = all.
+        alpha: ``[B, V, 1, H, W]`` rendered opacity; pixels with alpha < 0.5 are ignored. None = all. Pixels
+            whose depth-derived normal is undefined (the border, a pixel with a 4-neighbour of depth <= 0) and
+            pixels whose Gaussian normal is zero are ignored too.
         scales: ``[B, N, 3]`` Gaussian scales for the flatness prior (mean smallest scale), or None.
         scales_valid: ``[B, N]`` bool, the Gaussians that exist (a voxel merge pads with invalid ones), or None (all).
     Returns:
         ``{"normal", "flat", "total"}``.
     """
-    n_surf = depth_to_normals(depth.float(), K.float())  # zero on the 1-pixel border
+    # zero on the 1-pixel border and where a pixel or a 4-neighbour has no depth (alpha 0): excluded below
+    n_surf = depth_to_normals(depth.float(), K.float())
     n_gs = F.normalize(normal.float(), dim=-3, eps=1e-8)
     cos = (n_surf * n_gs).sum(-3, keepdim=True)
     valid = (n_surf.abs().sum(-3, keepdim=True) > 0) & (normal.abs().sum(-3, keepdim=True) > 0) & (depth > 0)

@@ -29,7 +29,15 @@ from anycity.models.pose_prior import POSE_FEATURES
 
 
 def scale_layers(layers: tuple[int, ...], depth: int, ref_depth: int = 24) -> tuple[int, ...]:
-    """Map layer indices of a ``ref_depth`` network to a ``depth`` one (same relative position), unique, sorted."""
+    """Map layer indices of a ``ref_depth`` network to a ``depth`` one (same relative position), unique, sorted.
+
+    Layer ``l`` goes to ``round((l + 1) * depth / ref_depth) - 1``, clamped to ``0..depth-1``, with Python's
+    ``round`` (half to even: 2.5 -> 2). Indices that land on the same layer are merged, so a shallow network can get
+    fewer layers than it was given: the paper's injection layers (4, 7, 11, 23) become (0, 1, 3) at depth 4 (the
+    tiny preset has 3 injection stages, not 4), (1, 2, 3, 7) at depth 8 and (1, 3, 5, 11) at depth 12; VGGT's head
+    layers (4, 11, 17, 23) become (0, 1, 2, 3), (1, 3, 5, 7) and (1, 5, 8, 11). Kept as it is: trained
+    checkpoints (the quickstart's) depend on it; pass ``inject_layers`` / ``head_layers`` to choose others.
+    """
     return tuple(sorted({min(depth - 1, max(0, round((l + 1) * depth / ref_depth) - 1)) for l in layers}))
 
 

@@ -47,7 +47,8 @@ class NetConfig:
     # the pixel's footprint in its own view
     scale_mode: str = "absolute"
     # random init only: bias the camera head to an identity rotation and this field of view (radians); None keeps
-    # VGGT's init (whose ReLU FoV starts at 0: infinite focal length, no gradient). Pretrained weights override it.
+    # VGGT's init (whose ReLU FoV starts at 0, which the pose decode clamps to 1e-4 rad: a huge focal length, no
+    # gradient). Pretrained weights override it.
     camera_init_fov: float | None = None
     # focal length from the predicted FoV: "vggt" or "anysplat" (AnySplat's +1e-3; load_pretrained(kind="anysplat")
     # sets it, and it travels in the hyperparameters and the Stage I -> Stage II hand-over)
@@ -57,7 +58,9 @@ class NetConfig:
     completion_dim: int = 1024
     completion_tokens: int = 256
     completion_heads: int = 16
-    inject_layers: tuple[int, ...] | None = None  # None: the paper's (4, 7, 11, 23) scaled to depth
+    # None: the paper's (4, 7, 11, 23) scaled to depth by completion.scale_layers, which merges layers that land on
+    # the same one: tiny (depth 4) gets 3 injection stages (0, 1, 3), small (8) (1, 2, 3, 7), base (12) (1, 3, 5, 11)
+    inject_layers: tuple[int, ...] | None = None
     video_prior: str = "small"  # small | wan | wan-tiny | none
     prior_dim: int = 256
     prior_depth: int = 2

@@ -14,8 +14,10 @@ import math
 
 import numpy as np
 from numba import njit, prange
+from numba.core.dispatcher import Dispatcher
 
 from anycity.render._cpu_raster import QBASE, TX, TY
+from anycity.render._numba_cache import stamp_constants
 from anycity.render.projection import ALPHA_MIN, EPS2D, RADIUS_SIGMAS
 from anycity.render.sh import C0, C1, C2, C3, C4
 
@@ -139,7 +141,8 @@ def _project_fwd_chunk(chunk, step, total, means, quats, scales, opac, sh, valid
         y = cams[c, 3] * m0 + cams[c, 4] * m1 + cams[c, 5] * m2 + cams[c, 10]
         z = cams[c, 6] * m0 + cams[c, 7] * m1 + cams[c, 8] * m2 + cams[c, 11]
         o = opac[b, n]
-        if not (valid[b, n] and z > 0 and z >= near and z <= far and o >= ALPHA_MIN):
+        z32 = np.float32(z)  # cull on the float32 z against float32 planes, as the torch backend and gsplat do
+        if not (valid[b, n] and z > 0 and z32 >= near and z32 <= far and o >= ALPHA_MIN):
             continue
         fx, fy, cx, cy = cams[c, 12], cams[c, 13], cams[c, 14], cams[c, 15]
         _quat_rot(quats[b, n, 0], quats[b, n, 1], quats[b, n, 2], quats[b, n, 3], rot)
@@ -200,7 +203,7 @@ def project_fwd(means, quats, scales, opac, sh, valid, cams, V, width, height, n
     """Fill P ``[C*N, 6+D]`` (mx, my, conic a b c, opacity, rgb, z[, normal]), z_out, the tile box rect,
     ntiles (its area; 0 = culled) and ext_y, the footprint's y half-extent in px. Footprints use the
     opacity-aware extent min(3.33, sqrt(2 ln(255 o))) σ: outside it α < 1/255, so it culls exactly what
-    compositing would skip."""
+    compositing would skip. ``near``/``far``: the culling planes, float32 values (the float32 z is compared)."""
     B, N = means.shape[:2]
     total = B * V * N
     step = (total + N_CHUNKS - 1) // N_CHUNKS
@@ -405,3 +408,7 @@ def project_bwd(means, quats, scales, opac, sh, cams, V, pstart, G,
     for chunk in prange(N_CHUNKS):
         _project_bwd_chunk(np.int64(chunk), step, total, means, quats, scales, opac, sh, cams, V, pstart, G,
                            g_means, g_quats, g_scales, g_opac, g_sh, cam_grad, g_cam)
+
+
+# cached kernels go stale when a constant of this module (imported ones included) changes: see stamp_constants
+stamp_constants([v for v in list(globals().values()) if isinstance(v, Dispatcher)])

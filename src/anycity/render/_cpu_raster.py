@@ -18,8 +18,10 @@ import math
 import numpy as np
 from llvmlite import ir
 from numba import njit, prange, types
+from numba.core.dispatcher import Dispatcher
 from numba.extending import intrinsic
 
+from anycity.render._numba_cache import stamp_constants
 from anycity.render.projection import ALPHA_MAX, ALPHA_MIN, T_MIN
 
 TX, TY = 8, 16  # tile width (one 8-lane vector per pixel row) and height, in pixels
@@ -359,4 +361,9 @@ def make_raster_kernels(D: int):
                     G[row, 11] = s_f5
                     G[row, 12] = s_f6
 
+    stamp_constants((raster_fwd, raster_bwd))
     return raster_fwd, raster_bwd
+
+
+# cached kernels go stale when a constant of this module (imported ones included) changes: see stamp_constants
+stamp_constants([v for v in list(globals().values()) if isinstance(v, Dispatcher)])

@@ -20,6 +20,7 @@ from torch import Tensor
 from anycity.structures import Gaussians, RenderOutput
 
 Backend = Literal["auto", "torch", "gsplat", "cpu"]
+NEAR_MIN = 1e-6  # smallest near plane: the EWA Jacobian's 1/z and 1/z² stay finite (and so do the gradients)
 
 # name -> "module:function"; imported on first use so that optional dependencies stay optional.
 _BACKENDS = {
@@ -91,6 +92,42 @@ def _check_cameras(name: str, t: Tensor, shape: tuple, text: str, like: Tensor) 
         raise ValueError(f"{name}: contains NaN or infinite values")
 
 
+def _tolerance(dtype: torch.dtype, floor: float) -> float:
+    """``floor``, or 4 machine epsilons of ``dtype`` when larger (a bfloat16 rotation is exact to about 4e-3 only)."""
+    return max(floor, 4 * torch.finfo(dtype).eps) if dtype.is_floating_point else floor
+
+
+def _check_rotation(w2c: Tensor, dtype: torch.dtype) -> None:
+    """Refuse a ``w2c`` whose 3x3 block is not orthonormal: geometry would come out right (x/z, y/z are
+    scale-invariant), but the SH view directions would use the wrong camera centre ``-Rᵀ t``."""
+    R = w2c[..., :3, :3].detach().double()
+    err = (R @ R.mT - torch.eye(3, dtype=R.dtype, device=R.device)).abs().amax(dim=(-2, -1))
+    tol = _tolerance(dtype, 1e-3)
+    if bool((err > tol).any()):
+        raise ValueError(f"w2c: the rotation block w2c[..., :3, :3] is not orthonormal (max |R R^T - I| = "
+                         f"{err.max().item():.3g} > {tol:.3g}); pass rigid world-to-camera transforms: put a scale "
+                         "into the scene, not the camera, or orthonormalise R (U V^T of its SVD)")
+
+
+def _check_intrinsics(K: Tensor, dtype: torch.dtype) -> None:
+    """Refuse what the renderer would silently ignore: skew and a last row other than [0, 0, 1]."""
+    K = K.detach().double()
+    fx, fy = K[..., 0, 0], K[..., 1, 1]
+    skew = torch.maximum(K[..., 0, 1].abs(), K[..., 1, 0].abs())
+    row = (K[..., 2, :] - torch.tensor([0.0, 0.0, 1.0], dtype=K.dtype, device=K.device)).abs().amax(-1)
+    bad = torch.stack([((fx <= 0) | (fy <= 0)).any(),  # one host sync for the three checks
+                       (skew > torch.clamp(_tolerance(dtype, 0.0) * torch.maximum(fx, fy), min=1e-3)).any(),
+                       (row > _tolerance(dtype, 1e-6)).any()]).tolist()
+    if bad[0]:
+        raise ValueError("K: focal lengths K[...,0,0] and K[...,1,1] must be > 0 (intrinsics in pixels)")
+    if bad[1]:
+        raise ValueError(f"K: skew K[..., 0, 1] or K[..., 1, 0] up to {skew.max().item():.3g} px, but the renderer "
+                         "reads fx, fy, cx, cy only; pass pinhole intrinsics with zero skew (resample the image)")
+    if bad[2]:
+        raise ValueError(f"K: last row must be [0, 0, 1], got one off by {row.max().item():.3g}; pass pinhole "
+                         "intrinsics in pixels (divide a homogeneous K by K[2, 2])")
+
+
 def render(
     gaussians: Gaussians,
     w2c: Tensor,
@@ -125,11 +162,12 @@ def render(
 
     Args:
         gaussians: B scenes of N Gaussians (``anycity.structures.Gaussians``).
-        w2c: ``[B, V, 4, 4]`` world-to-camera (OpenCV: x right, y down, z forward).
-        K: ``[B, V, 3, 3]`` pinhole intrinsics in pixels of the rendered image.
+        w2c: ``[B, V, 4, 4]`` world-to-camera (OpenCV: x right, y down, z forward), rigid: the 3x3 block
+            orthonormal to 1e-3 (4 epsilons of a bfloat16/float16 dtype).
+        K: ``[B, V, 3, 3]`` pinhole intrinsics in pixels of the rendered image: zero skew, last row [0, 0, 1].
         width, height: image size in pixels.
         background: ``[3]``, ``[B, V, 3]`` or None (black).
-        near, far: culling planes on camera z.
+        near, far: culling planes on camera z (``1e-6 <= near < far``); a Gaussian at z == near or far is kept.
         render_normals: also return ``normal``.
         backend: "torch" (tiled pure PyTorch, CPU and CUDA, float32/float64), "gsplat" (CUDA float32, needs the
             ``gsplat`` extra; gsplat gives ``K`` no gradient, so a ``K`` that requires grad is refused rather than
@@ -181,14 +219,12 @@ def _render(gaussians, w2c, K, width, height, background, near, far, render_norm
     _check_cameras("K", K, (B, V, 3, 3), "[B, V, 3, 3]", means)
     if K.shape[1] != V:
         raise ValueError(f"K: expected V={V} cameras like w2c, got shape {tuple(K.shape)}")
+    _check_rotation(w2c, w2c.dtype)  # tolerances from the dtypes given, before the cast below
+    _check_intrinsics(K, K.dtype)
     w2c, K = w2c.to(means.dtype), K.to(means.dtype)
-    det = torch.linalg.det(w2c[..., :3, :3].double())
-    if not bool((det.abs() > 1e-9).all()):
-        raise ValueError("w2c: rotation block is singular (not an invertible camera); pass world-to-camera matrices")
-    if not bool(((K[..., 0, 0] > 0) & (K[..., 1, 1] > 0)).all()):
-        raise ValueError("K: focal lengths K[...,0,0] and K[...,1,1] must be > 0 (intrinsics in pixels)")
-    if not (0 <= near < far):
-        raise ValueError(f"near/far: expected 0 <= near < far, got near={near}, far={far}")
+    if not (NEAR_MIN <= near < far):
+        raise ValueError(f"near/far: expected {NEAR_MIN:g} <= near < far, got near={near}, far={far}; a near plane "
+                         "at or too close to 0 makes the projection's 1/z overflow (pass e.g. near=0.01)")
     dtype = means.dtype
     if background is None:
         bg = torch.zeros(B, V, 3, dtype=dtype, device=means.device)

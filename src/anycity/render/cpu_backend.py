@@ -15,8 +15,12 @@ gradients are summed over fixed work chunks, so they too are bitwise identical f
 ordinary tensors (in-place ops on them work) and backward keeps its own copies, so editing them cannot change
 gradients.
 Kernels compile on first use (a few seconds, announced once on stderr) and are cached next to this file's
-``__pycache__`` or in ``NUMBA_CACHE_DIR``. Threads follow ``torch.get_num_threads()``. numba's OpenMP pool is
-not fork-safe, so calling this in a child forked after the kernels ran (e.g. ``DataLoader(num_workers>0)``
+``__pycache__`` or in ``NUMBA_CACHE_DIR``; a cache compiled with other values of the constants the kernels read
+(``projection.ALPHA_MAX``, ``sh.C1``, ...) counts as stale (``_numba_cache.stamp_constants``). Threads follow
+``torch.get_num_threads()``. Kernel launches are serialised across Python threads (a module lock): numba's
+"workqueue" threading layer, the one left where neither OpenMP nor TBB is installed, aborts the process when two
+threads launch at once, and on the others two launches would only fight over the same cores. numba's OpenMP pool
+is not fork-safe, so calling this in a child forked after the kernels ran (e.g. ``DataLoader(num_workers>0)``
 workers) raises instead of hanging.
 """
 
@@ -46,6 +50,7 @@ _BIN_CHUNKS = 8  # fixed split of the binning work: results do not depend on the
 _kernels: dict[int, tuple] = {}
 _lock = threading.Lock()
 _first_use_lock = threading.Lock()
+_launch_lock = threading.Lock()  # one thread in the kernels at a time (see the module docstring)
 _state = {"pid": None, "announced": False, "checked": set()}
 
 
@@ -89,9 +94,9 @@ def _announce_compile(D: int) -> None:
     for disp in _dispatchers(D):
         if disp.signatures:
             continue
-        try:
-            cached = os.path.exists(disp._cache._cache_file._index_path)
-        except AttributeError:  # numba internals moved: say nothing rather than guess
+        try:  # an index of another source or constants stamp reads as empty: numba compiles
+            cached = bool(disp._cache._cache_file._load_index())
+        except Exception:  # noqa: BLE001 (numba internals moved, or a damaged index): say nothing rather than guess
             cached = True
         if not cached:
             cold.append(disp.__name__)
@@ -155,11 +160,6 @@ class _FusedRender(torch.autograd.Function):
         rect = np.empty((C * N, 4), np.int32)
         ntiles = np.empty(C * N, np.int64)
         ext_y = np.empty(C * N, np.float32)
-        _proj.project_fwd(*arrays, _np(valid), cams, V, width, height, near, far, tiles_x, tiles_y,
-                          P, z, rect, ntiles, ext_y)
-        order = _rast.depth_order(z, ntiles)
-        Q, tile_off, slot, pstart = _rast.bin_pairs(order, rect, ntiles, P, ext_y, C, max(N, 1), tiles_x, tiles_y,
-                                                    _BIN_CHUNKS)
         # torch-owned [B, V, ...] outputs (not views: in-place ops on them work as with the torch backend); the
         # kernels write through [C, ...] numpy views of the same memory
         img3, img1 = (3, height, width), (1, height, width)
@@ -169,7 +169,15 @@ class _FusedRender(torch.autograd.Function):
         last = np.empty((C, height, width), np.float32)
         bg = _np(background.reshape(C, 3)).copy()  # backward reads it too: never share the caller's memory
         fwd, _ = raster_kernels(D)
-        fwd(Q, tile_off, tiles_x, tiles_y, width, height, bg, rgb, depth, alpha, normal, t_final, last)
+        with np.errstate(over="ignore"):  # the torch backend compares in float32 too; far > 3.4e38: inf
+            near32, far32 = float(np.float32(near)), float(np.float32(far))
+        with _launch_lock:
+            _proj.project_fwd(*arrays, _np(valid), cams, V, width, height, near32, far32, tiles_x, tiles_y,
+                              P, z, rect, ntiles, ext_y)
+            order = _rast.depth_order(z, ntiles)
+            Q, tile_off, slot, pstart = _rast.bin_pairs(order, rect, ntiles, P, ext_y, C, max(N, 1), tiles_x,
+                                                        tiles_y, _BIN_CHUNKS)
+            fwd(Q, tile_off, tiles_x, tiles_y, width, height, bg, rgb, depth, alpha, normal, t_final, last)
 
         ctx.save_for_backward(means, quats, scales, opacities, sh)
         # backward reads depth: keep a private copy, so that edits of the returned depth (or a detached view of it)
@@ -194,14 +202,15 @@ class _FusedRender(torch.autograd.Function):
         G = np.empty((Q.shape[0], _rast.QBASE + D), np.float32)
         _, bwd = raster_kernels(D)
         _set_threads()
-        bwd(Q, tile_off, slot, tiles_x, tiles_y, width, height, bg, t_final, last, depth,
-            grad(g_rgb, img3), grad(g_depth, img1), grad(g_alpha, img1),
-            grad(g_normal, img3) if D == 7 else grad(None, (1, 3, 1, 1)), G)
+        pixel_grads = (grad(g_rgb, img3), grad(g_depth, img1), grad(g_alpha, img1),
+                       grad(g_normal, img3) if D == 7 else grad(None, (1, 3, 1, 1)))
         outs = [torch.empty_like(t) for t in (means, quats, scales, opacities, sh)]
         want_w2c, want_K, want_bg = (ctx.needs_input_grad[i] for i in (6, 7, 10))
         g_cam = np.empty((_proj.N_CHUNKS, C, 16) if want_w2c or want_K else (_proj.N_CHUNKS, 1, 16))
-        _proj.project_bwd(*[_np(t) for t in (means, quats, scales, opacities, sh)], cams, V, pstart, G,
-                          *[o.numpy() for o in outs], want_w2c or want_K, g_cam)
+        with _launch_lock:
+            bwd(Q, tile_off, slot, tiles_x, tiles_y, width, height, bg, t_final, last, depth, *pixel_grads, G)
+            _proj.project_bwd(*[_np(t) for t in (means, quats, scales, opacities, sh)], cams, V, pstart, G,
+                              *[o.numpy() for o in outs], want_w2c or want_K, g_cam)
         g_w2c = g_K = g_bg = None
         if want_w2c or want_K:
             g_cam = torch.from_numpy(g_cam.sum(0)).float()  # [C, 16]: R (9), t (3), fx, fy, cx, cy

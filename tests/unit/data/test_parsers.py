@@ -421,3 +421,24 @@ def test_llff_and_bungeenerf(tmp_path):
             assert np.allclose(v["w2c"], g, atol=1e-6) and np.allclose(v["K"], Kf)
     with pytest.raises(FileNotFoundError, match="poses_bounds.npy"):
         convert("llff", tmp_path / "bungeenerf", tmp_path / "o")
+
+
+@pytest.mark.parametrize("depth_hw,max_side", [((24, 32), 12), ((18, 24), None)])
+def test_converted_depth_is_resampled_under_the_pixel_centres_of_the_stored_image(tmp_path, depth_hw, max_side):
+    """Depth given at another size, or downscaled with ``max_side``, takes the source pixel under each stored pixel's
+    centre (cv2.INTER_NEAREST_EXACT), as K is rescaled; plain INTER_NEAREST takes pixel floor(x * scale)."""
+    from anycity.data.parsers.base import ParsedView, _load_view
+
+    cv2.imwrite(str(tmp_path / "a.png"), np.zeros((H, W, 3), np.uint8))
+    dh, dw = depth_hw
+    v, u = np.mgrid[0:dh, 0:dw]
+    ramp = (100 * v + u + 1).astype(np.float32)  # encodes the depth pixel
+    rec = _load_view(ParsedView("a", tmp_path / "a.png", np.eye(4), K, W, H, depth=lambda: ramp), max_side)
+    oh, ow = rec.depth.shape
+    assert (ow, oh) == (rec.width, rec.height) and (max_side is None or max(oh, ow) == max_side)
+    # depth pixel coordinates under each stored pixel centre: stored K -> source K -> depth-map pixels
+    us = ((np.arange(ow) + 0.5) - rec.K[0, 2]) / rec.K[0, 0] * K[0, 0] + K[0, 2]
+    vs = ((np.arange(oh) + 0.5) - rec.K[1, 2]) / rec.K[1, 1] * K[1, 1] + K[1, 2]
+    err_u = (rec.depth - 1) % 100 + 0.5 - us[None] * dw / W
+    err_v = (rec.depth - 1) // 100 + 0.5 - vs[:, None] * dh / H
+    assert np.abs(err_u).max() <= 0.5 + 1e-6 and np.abs(err_v).max() <= 0.5 + 1e-6

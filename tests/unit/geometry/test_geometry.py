@@ -116,6 +116,31 @@ def test_depth_to_normals_of_a_plane():
     assert torch.all(n[:, 0] == 0)  # zero border
 
 
+def test_depth_to_normals_masks_pixels_next_to_missing_depth():
+    # A slanted plane with a hole of no depth (rendered depth is 0 where alpha is 0) and one NaN and one inf pixel:
+    # every pixel is the plane's normal or zero, and zero exactly where it or a 4-neighbour has no depth.
+    K = make_intrinsics(30.0, 30.0, 16.0, 12.0).double()
+    H, W = 24, 32
+    v, u = torch.meshgrid(torch.arange(H) + 0.5, torch.arange(W) + 0.5, indexing="ij")
+    depth = (3 / (1 - 0.5 * (u.double() - 16) / 30))[None]
+    full = depth_to_normals(depth, K)
+    depth[:, 8:14, 10:18] = 0.0
+    depth[:, 4, 25], depth[:, 18, 5] = float("nan"), float("inf")
+    depth.requires_grad_(True)
+    n = depth_to_normals(depth, K)
+    missing = ~((depth[0] > 0) & depth[0].isfinite())
+    near = missing.clone()
+    near[1:] |= missing[:-1]
+    near[:-1] |= missing[1:]
+    near[:, 1:] |= missing[:, :-1]
+    near[:, :-1] |= missing[:, 1:]
+    near[0], near[-1], near[:, 0], near[:, -1] = True, True, True, True
+    assert torch.all(n[:, near] == 0)
+    assert torch.equal(n[:, ~near], full[:, ~near])  # elsewhere exactly the normals without the hole
+    n.sum().backward()
+    assert torch.isfinite(depth.grad).all() and torch.all(depth.grad[0, missing] == 0)
+
+
 def test_umeyama_recovers_a_similarity():
     g = torch.Generator().manual_seed(0)
     src = torch.randn(50, 3, generator=g, dtype=F64)
@@ -130,3 +155,18 @@ def test_umeyama_recovers_a_similarity():
     torch.testing.assert_close(src @ T[:3, :3].T + T[:3, 3], dst)
     with pytest.raises(ValueError, match="umeyama"):
         umeyama(src, dst[:10])
+
+
+def test_umeyama_refuses_weights_of_another_shape_or_sign():
+    g = torch.Generator().manual_seed(0)
+    src = torch.randn(6, 3, generator=g, dtype=F64)
+    dst = 2 * src + 1
+    for bad in (torch.ones(6, 1, dtype=F64), torch.ones(5, dtype=F64), torch.ones(2, 6, dtype=F64)):
+        with pytest.raises(ValueError, match=r"umeyama: weights must have shape \[\.\.\., N\] = \(6,\)"):
+            umeyama(src, dst, bad)  # [N, 1] used to broadcast silently into a batch of 6 alignments
+    w = torch.ones(6, dtype=F64)
+    w[2] = -0.5
+    with pytest.raises(ValueError, match="umeyama: weights must be >= 0"):
+        umeyama(src, dst, w)
+    s, _, t = umeyama(src, dst, w.clamp_min(0))
+    torch.testing.assert_close(s, torch.tensor(2.0, dtype=F64))

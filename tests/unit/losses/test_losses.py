@@ -120,6 +120,17 @@ def test_normal_loss_zero_for_matching_plane_normals():
     assert flipped["normal"].item() == pytest.approx(0.1 * 1.95, rel=1e-4)
 
 
+def test_normal_loss_is_zero_around_a_hole_in_the_render():
+    # Rendered depth is 0 where alpha is 0 (sky beyond a roof edge): the pixels around the hole must not take a
+    # difference against it; with perfect Gaussian normals the loss stays exactly zero.
+    K = make_intrinsics(30.0, 30.0, 16.0, 16.0)[None, None]
+    depth, alpha = torch.full((1, 1, 1, 32, 32), 3.0), torch.ones(1, 1, 1, 32, 32)
+    depth[..., 10:20, 10:20], alpha[..., 10:20, 10:20] = 0.0, 0.0
+    n = torch.tensor([0.0, 0.0, -1.0]).view(1, 1, 3, 1, 1).expand(1, 1, 3, 32, 32)
+    assert normal_loss(depth, n, K, alpha=alpha)["normal"].item() == 0.0
+    assert normal_loss(depth, n, K)["normal"].item() == 0.0
+
+
 def test_normal_flat_term_uses_min_scale():
     depth, K = _plane_render()
     n = torch.tensor([0.0, 0.0, -1.0]).view(1, 1, 3, 1, 1).expand(1, 1, 3, 12, 12)

@@ -10,7 +10,7 @@ from anycity.geometry.pose_encoding import (
     pose_encoding_to_extri_intri,
 )
 from anycity.geometry.rotations import quat_to_rotmat
-from anycity.models.layers import DinoViT, RoPE2D, patch_positions
+from anycity.models.layers import Block, DinoViT, RoPE2D, patch_positions
 
 
 def test_rope_scores_depend_only_on_relative_position():
@@ -37,6 +37,40 @@ def test_rope_is_a_rotation_and_identity_at_origin():
     # y rotates the first half only, x the second half only
     moved = rope(x, torch.stack([pos[..., 0], torch.zeros_like(pos[..., 1])], -1))
     assert torch.allclose(moved[..., 16:], x[..., 16:])
+
+
+def _rope_before(x, pos, base=100.0):
+    """RoPE2D as it was: angles cast to x's dtype before cos/sin."""
+    def rot(x, p):
+        d = x.shape[-1]
+        inv_freq = 1.0 / base ** (torch.arange(0, d, 2).float() / d)
+        a = (p.float()[..., None] * inv_freq).to(x.dtype)
+        a = torch.cat([a, a], dim=-1)[:, None]
+        x1, x2 = x.chunk(2, dim=-1)
+        return x * a.cos() + torch.cat([-x2, x1], dim=-1) * a.sin()
+    y, z = x.chunk(2, dim=-1)
+    return torch.cat([rot(y, pos[..., 0]), rot(z, pos[..., 1])], dim=-1)
+
+
+def test_rope_computes_cos_sin_in_float32_for_low_precision_and_keeps_float32_exact():
+    torch.manual_seed(0)
+    x = torch.randn(1, 4, 1 + 32 * 32, 64)
+    pos = patch_positions(1, 32, 32, num_special=1)  # a 448 image: angles up to 32 rad
+    rope = RoPE2D(100.0)
+    assert torch.equal(rope(x, pos), _rope_before(x, pos))  # float32 and float64 bit for bit as before
+    assert torch.equal(rope(x.double(), pos), _rope_before(x.double(), pos))
+    ref = rope(x.double(), pos)
+    xb = x.bfloat16()
+    err = (rope(xb, pos).double() - ref).abs().max().item()
+    err_before = (_rope_before(xb, pos).double() - ref).abs().max().item()
+    assert rope(xb, pos).dtype == torch.bfloat16
+    assert err < 0.08 and err < err_before / 3  # bf16 angles of ~32 rad were off by up to 0.125 rad
+
+
+def test_block_norm_eps_reaches_the_qk_norm():
+    b = Block(64, 4, qk_norm=True, norm_eps=1e-6)
+    assert (b.norm1.eps, b.norm2.eps, b.attn.q_norm.eps, b.attn.k_norm.eps) == (1e-6,) * 4
+    assert Block(64, 4, qk_norm=True).attn.k_norm.eps == 1e-5
 
 
 def test_patch_positions_layout():
@@ -74,6 +108,28 @@ def test_pose_encoding_round_trip():
     with pytest.raises(ValueError, match="last dim 9"):
         pose_encoding_to_extri_intri(enc[..., :8], (96, 128))
     assert math.isclose(float(K2[0, 0, 0, 2]), 64.0)
+
+
+@pytest.mark.parametrize("mode", ["vggt", "anysplat"])
+def test_pose_decoding_clamps_the_field_of_view_and_leaves_ordinary_ones_bit_identical(mode):
+    # The camera head's FoV is a ReLU: 0 is reachable (infinite focal, -inf gradient) and FoV >= pi gives a focal
+    # length <= 0 that render() refuses. Both must decode to finite, positive focal lengths with finite gradients.
+    enc = torch.zeros(5, 9)
+    enc[:, 6] = 1.0
+    enc[:, 7] = enc[:, 8] = torch.tensor([0.0, 1e-8, math.pi, 3.3, -0.5])
+    enc.requires_grad_(True)
+    _, K = pose_encoding_to_extri_intri(enc, (64, 96), focal_decode=mode)
+    fx, fy = K[:, 0, 0], K[:, 1, 1]
+    assert torch.isfinite(fx).all() and (fx > 0).all() and torch.isfinite(fy).all() and (fy > 0).all()
+    (fx.sum() + fy.sum()).backward()
+    assert torch.isfinite(enc.grad).all()
+    # ordinary fields of view decode exactly as the unclamped formula (VGGT's cameras are unchanged)
+    fov = torch.linspace(0.05, 3.1, 97)
+    enc = torch.zeros(97, 9)
+    enc[:, 6], enc[:, 7], enc[:, 8] = 1.0, fov, fov
+    _, K = pose_encoding_to_extri_intri(enc, (64, 96), focal_decode=mode)
+    ref = 96 / (2 * torch.tan(fov / 2)) if mode == "vggt" else 48 / (torch.tan(fov / 2) + 1e-3)
+    assert torch.equal(K[:, 0, 0], ref)
 
 
 def test_blend_pose_encoding_moves_translation_and_rotation_towards_a_pose():

@@ -5,6 +5,7 @@ import torch
 
 from anycity.models import build_network
 from anycity.models.completion import scale_layers
+from anycity.models.presets import PAPER_INJECT_LAYERS, VGGT_HEAD_LAYERS, preset_config
 from anycity.structures import Gaussians
 
 
@@ -117,6 +118,19 @@ def test_layer_scaling():
     assert scale_layers((4, 11, 17, 23), 24) == (4, 11, 17, 23)
     assert scale_layers((4, 11, 17, 23), 4) == (0, 1, 2, 3)
     assert scale_layers((4, 7, 11, 23), 8) == (1, 2, 3, 7)
+
+
+@pytest.mark.parametrize("depth, inject, heads", [
+    (4, (0, 1, 3), (0, 1, 2, 3)),  # tiny: two paper layers land on layer 0, so 3 injection stages
+    (12, (1, 3, 5, 11), (1, 5, 8, 11)),  # base: round half to even (layer 4: 2.5 -> 2, so 1)
+    (24, (4, 7, 11, 23), (4, 11, 17, 23)),
+])
+def test_scaled_layers_are_pinned(depth, inject, heads):
+    # trained checkpoints (the quickstart's) depend on this mapping: change it only with them
+    cfg = preset_config("tiny", depth=depth)
+    assert cfg.resolved_inject_layers() == scale_layers(PAPER_INJECT_LAYERS, depth) == inject
+    assert cfg.resolved_head_layers() == scale_layers(VGGT_HEAD_LAYERS, depth) == heads
+    assert preset_config("tiny").resolved_inject_layers() == (0, 1, 3)
 
 
 def test_gradient_checkpointing_gives_the_same_outputs():

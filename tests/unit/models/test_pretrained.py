@@ -57,6 +57,15 @@ def test_vggt_1b_exact_sizes(meta_1b):
     assert meta_1b.head_layers == (4, 11, 17, 23)
 
 
+def test_vggt_1b_layer_norm_eps_match_vggt(meta_1b):
+    # VGGT's aggregator blocks (qk-norm included) use nn.LayerNorm's 1e-5, its DINOv2 patch embed 1e-6
+    agg = meta_1b.aggregator
+    blocks = [*agg.frame_blocks, *agg.global_blocks]
+    assert {m.eps for b in blocks for m in b.modules() if isinstance(m, torch.nn.LayerNorm)} == {1e-5}
+    assert all(isinstance(b.attn.q_norm, torch.nn.LayerNorm) for b in blocks)
+    assert {m.eps for m in agg.patch_embed.modules() if isinstance(m, torch.nn.LayerNorm)} == {1e-6}
+
+
 def test_load_vggt_state_dict_reports_and_copies(tmp_path):
     torch.manual_seed(0)
     src, dst = build_network("tiny", completion=False), build_network("tiny")

@@ -119,3 +119,18 @@ def test_auto_on_cuda_picks_gsplat_only_for_float32(monkeypatch):
     assert resolve_backend("auto", cuda, F32) == "gsplat"
     for dtype in (torch.float64, torch.float16, torch.bfloat16):
         assert resolve_backend("auto", cuda, dtype) == "torch"
+
+
+@needs_numba
+def test_a_gaussian_exactly_on_the_near_or_far_plane_is_kept_by_every_backend():
+    """z == near (or far) in float32 is kept, as the torch backend and gsplat compare: the fused kernels compared
+    the float64 z of the float32 mean with the float64 plane and culled it (0.01 is not a float32)."""
+    for near, far, z in ((0.01, 1e10, 0.01), (1e-3, 0.3, 0.3)):
+        g = Gaussians(means=torch.tensor([[[0.0, 0.0, z]]]), quats=torch.tensor([[[1.0, 0, 0, 0]]]),
+                      scales=torch.full((1, 1, 3), 1e-4 * z / 0.01), opacities=torch.full((1, 1), 0.9),
+                      sh=torch.ones(1, 1, 1, 3))
+        K = make_intrinsics(21.6, 21.6, 12.0, 8.0)[None, None]
+        alpha = {b: render(g, torch.eye(4)[None, None], K, 24, 16, near=near, far=far, backend=b).alpha
+                 for b in ("torch", "cpu")}
+        assert alpha["torch"].max() > 0.4, (near, far)
+        torch.testing.assert_close(alpha["cpu"], alpha["torch"], rtol=0, atol=1e-6)

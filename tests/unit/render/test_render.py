@@ -203,6 +203,14 @@ def test_auto_backend_resolution():
         (lambda a: a["K"].__setitem__((0, 0, 0, 0), 0.0), "K"),
         (lambda a: a.update(background=torch.zeros(4, dtype=F64)), "background"),
         (lambda a: a.update(near=2.0, far=1.0), "near"),
+        (lambda a: a.update(near=0.0), r"near/far: expected 1e-06 <= near"),  # 1/z overflows: NaN gradients
+        (lambda a: a.update(near=1e-7), "near/far"),
+        (lambda a: a["w2c"][..., :3, :].mul_(2.0), r"w2c: the rotation block .* not orthonormal"),  # wrong SH centre
+        (lambda a: a["w2c"][..., 0, :3].mul_(1.01), "w2c: the rotation block"),
+        (lambda a: a["K"].__setitem__((0, 0, 0, 1), 5.0), r"K: skew .* 5 px"),  # ignored by the renderer
+        (lambda a: a["K"].__setitem__((0, 0, 1, 0), -0.01), "K: skew"),
+        (lambda a: a["K"].__setitem__((0, 0, 2, 2), 2.0), r"K: last row must be \[0, 0, 1\]"),
+        (lambda a: a["K"].__setitem__((0, 0, 2, 0), 1e-3), "K: last row"),
         (lambda a: a.update(gaussians=Gaussians(**{**vars(a["gaussians"]), "means": a["gaussians"].means[..., :2]})),
          "means"),
         (lambda a: a["gaussians"].opacities.__setitem__((0, 0), float("inf")), "opacities"),
@@ -217,3 +225,22 @@ def test_bad_input_raises_value_error_naming_the_argument(mutate, match):
     mutate(args)
     with pytest.raises(ValueError, match=match):
         render(args.pop("gaussians"), args.pop("w2c"), args.pop("K"), args.pop("width"), args.pop("height"), **args)
+
+
+def test_rigid_cameras_and_pinhole_intrinsics_pass_in_every_dtype():
+    """The rigidity and pinhole checks leave room for rounding: a float32 or bfloat16 rotation, skew and last-row
+    entries of float noise; a 1 % scale of the rotation block and a 0.01 px skew are refused."""
+    w2c, K = make_cameras(1, 3, 16, 16)
+    g = make_gaussians(N=10)
+    K[..., 0, 1] = 1e-6
+    K[..., 2, :2] = 1e-9
+    for dtype in (torch.float32, torch.bfloat16, torch.float16):
+        render(g, w2c.to(dtype), K.to(dtype), 16, 16, backend="torch")
+    render(g, w2c, K, 16, 16, near=1e-6, backend="torch")
+    w2c[0, 1, :3, :3] *= 1.01
+    with pytest.raises(ValueError, match="w2c: the rotation block"):
+        render(g, w2c.float(), K, 16, 16, backend="torch")
+    w2c[0, 1, :3, :3] /= 1.01
+    K[0, 2, 0, 1] = 0.01
+    with pytest.raises(ValueError, match="K: skew"):
+        render(g, w2c, K.float(), 16, 16, backend="torch")

@@ -85,7 +85,7 @@ def undistort(img: np.ndarray, depth: np.ndarray | None, K: np.ndarray,
     new_cv, _ = cv2.getOptimalNewCameraMatrix(K_cv, dist, (w, h), 0, (w, h))
     mx, my = cv2.initUndistortRectifyMap(K_cv, dist, None, new_cv, (w, h), cv2.CV_32FC1)
     img = cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    if depth is not None:
+    if depth is not None:  # nearest rounds each map coordinate to the closest pixel (integer centres, as mx, my)
         depth = cv2.remap(depth.astype(np.float32), mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
                           borderValue=0)
     return img, depth, np.linalg.inv(_HALF) @ new_cv
@@ -109,7 +109,7 @@ def _load_view(v: ParsedView, max_side: int | None) -> ViewRecord:
     distorted = v.dist is not None and bool(np.any(np.asarray(v.dist) != 0))
     if distorted:
         if depth is not None and depth.shape[:2] != (h, w):
-            depth = cv2.resize(depth.astype(np.float32), (w, h), interpolation=cv2.INTER_NEAREST)
+            depth = cv2.resize(depth.astype(np.float32), (w, h), interpolation=cv2.INTER_NEAREST_EXACT)
         img, depth, K = undistort(img, depth, K, np.asarray(v.dist, np.float64))
     ext = v.image_path.suffix.lower().lstrip(".")
     ext = "jpg" if ext in ("jpg", "jpeg") else "png"
@@ -120,14 +120,14 @@ def _load_view(v: ParsedView, max_side: int | None) -> ViewRecord:
         K[0] *= nw / w
         K[1] *= nh / h
         if depth is not None:
-            depth = cv2.resize(depth, (nw, nh), interpolation=cv2.INTER_NEAREST)
+            depth = cv2.resize(depth, (nw, nh), interpolation=cv2.INTER_NEAREST_EXACT)
         w, h = nw, nh
         image: np.ndarray | bytes = img[..., ::-1]
     else:
         stored = not distorted and v.image_path.suffix.lower() in (".jpg", ".jpeg", ".png")
         image = raw if stored else img[..., ::-1]  # the file's own bytes when its pixels are kept as they are
     if depth is not None and depth.shape[:2] != (h, w):
-        depth = cv2.resize(depth.astype(np.float32), (w, h), interpolation=cv2.INTER_NEAREST)
+        depth = cv2.resize(depth.astype(np.float32), (w, h), interpolation=cv2.INTER_NEAREST_EXACT)
     mask = None if depth is None else (depth > 0) & np.isfinite(depth)
     if depth is not None:
         depth = np.where(mask, depth, 0).astype(np.float32)

@@ -29,10 +29,14 @@ class RoPE2D(nn.Module):
     def _rotate_1d(self, x: Tensor, pos: Tensor) -> Tensor:
         d = x.shape[-1]
         inv_freq = 1.0 / self.base ** (torch.arange(0, d, 2, device=x.device).float() / d)
-        angles = (pos.to(inv_freq.dtype)[..., None] * inv_freq).to(x.dtype)  # [B, N, d/2]
+        # angles (up to ~grid size radians) and their cos/sin in float32 at least, cast to x's dtype afterwards: a
+        # bfloat16 angle of 30 rad is off by up to 0.06 rad. float32 and float64 inputs compute as before.
+        angles = pos.to(inv_freq.dtype)[..., None] * inv_freq  # [B, N, d/2]
+        angles = angles.to(torch.promote_types(angles.dtype, x.dtype))
         angles = torch.cat([angles, angles], dim=-1)[:, None]  # [B, 1, N, d]
+        cos, sin = angles.cos().to(x.dtype), angles.sin().to(x.dtype)
         x1, x2 = x.chunk(2, dim=-1)
-        return x * angles.cos() + torch.cat([-x2, x1], dim=-1) * angles.sin()
+        return x * cos + torch.cat([-x2, x1], dim=-1) * sin
 
     def forward(self, x: Tensor, pos: Tensor) -> Tensor:
         if x.shape[-1] % 4:
