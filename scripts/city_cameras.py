@@ -45,6 +45,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--colmap", type=Path, help="COLMAP scene folder of the reference cameras")
     ap.add_argument("--cameras", type=Path, help="reference cameras.json")
     a = ap.parse_args(argv)
+    if not (a.pred / "cameras.json").is_file():
+        ap.error(f"{a.pred}: no cameras.json; pass the scene folder anycity predict wrote (<out_dir>/<scene>)")
+    if not (a.colmap or a.cameras):
+        ap.error("pass the reference cameras: --colmap SCENE or --cameras cameras.json")
     ref = load_colmap(a.colmap) if a.colmap else load_cameras_json(a.cameras)
     print(json.dumps(compare(load_cameras_json(a.pred / "cameras.json"), ref)))
     return 0
