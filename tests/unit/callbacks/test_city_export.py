@@ -6,6 +6,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch
+from helpers.city import oracle_chunk_prediction
 from PIL import Image
 
 from anycity.callbacks import PredictionExport
@@ -172,14 +173,7 @@ def test_a_chunk_that_fails_leaves_no_spill_files(tmp_path):
 
     class Oracle(pl.LightningModule):
         def predict_step(self, batch, batch_idx):
-            gt, _ = orbit_scene(12)
-            views = batch["chunk"]["views"]
-            Ks = torch.tensor([[2.0, 0, 1], [0, 2, 1], [0, 0, 1]]).expand(1, 6, 3, 3)
-            means = unproject_depth(torch.full((1, 6, 1, h, w), 5.0), Ks, gt[views][None].float())
-            m = 6 * h * w
-            g = Gaussians(means.reshape(1, m, 3), torch.tensor([1.0, 0, 0, 0]).expand(1, m, 4),
-                          torch.full((1, m, 3), 0.01), torch.full((1, m), 0.5), torch.zeros(1, m, 1, 3))
-            return {"gaussians": g, "w2c": gt[views].float()[None], "K": Ks, "images": batch["images"]}
+            return oracle_chunk_prediction(batch, h, w)
 
     cb = PredictionExport(out_dir=str(tmp_path / "out"), save_renders=False, smooth_3d=0)
     trainer = pl.Trainer(callbacks=[cb], logger=False, enable_progress_bar=False, accelerator="cpu",

@@ -8,12 +8,11 @@ from types import SimpleNamespace
 import lightning.pytorch as pl
 import pytest
 import torch
+from helpers.city import oracle_chunk_prediction
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 
 from anycity.callbacks import PredictionExport
 from anycity.city import plan_chunks
-from anycity.city.oracle import orbit_scene
-from anycity.geometry.projection import unproject_depth
 from anycity.structures import Gaussians
 
 H = W = 2
@@ -48,15 +47,7 @@ class _Oracle(pl.LightningModule):
     def predict_step(self, batch, batch_idx):
         if batch_idx == self.sigterm_at:
             self.trainer._signal_connector.received_sigterm = True  # what Lightning's SIGTERM handler sets
-        gt, _ = orbit_scene(12)
-        views = batch["chunk"]["views"]
-        Ks = torch.tensor([[2.0, 0, 1], [0, 2, 1], [0, 0, 1]]).expand(1, 6, 3, 3)
-        means = unproject_depth(torch.full((1, 6, 1, H, W), 5.0), Ks, gt[views][None].float())
-        m = 6 * H * W
-        g = Gaussians(means.reshape(1, m, 3), torch.tensor([1.0, 0, 0, 0]).expand(1, m, 4),
-                      torch.full((1, m, 3), 0.01), torch.full((1, m), 0.5), torch.zeros(1, m, 1, 3))
-        return {"gaussians": g, "w2c": gt[views].float()[None], "K": Ks, "images": batch["images"],
-                "renders": SimpleNamespace(rgb=batch["images"].clone())}
+        return {**oracle_chunk_prediction(batch, H, W), "renders": SimpleNamespace(rgb=batch["images"].clone())}
 
 
 def _predict(tmp_path, model, data, **trainer_kw):
