@@ -1,5 +1,6 @@
 """Cheap checks of an image file before decoding it: refuse decompression bombs and truncated JPEGs; its size as
-stored or as shown (:func:`image_size`).
+stored or as shown (:func:`image_size`). The converters, which decode with OpenCV, check JPEGs for truncation only
+(:func:`check_jpeg_complete`).
 
 The header is read without decoding pixels (PIL opens lazily), so a 30000 x 30000 header costs nothing.
 """
@@ -29,7 +30,18 @@ def check_image_file(path: str | Path, max_pixels: int = MAX_PIXELS) -> None:
     if w < 0 or w * h > max_pixels:
         raise ValueError(f"{path}: header declares {w}x{h} pixels, over the {max_pixels // 10**6} MP limit "
                          "(a decompression bomb or a corrupt header); downscale it or remove it")
-    if fmt in ("JPEG", "MPO") and not _jpeg_complete(path):  # MPO: a drone's JPEG with an embedded preview
+    if fmt in ("JPEG", "MPO"):  # MPO: a drone's JPEG with an embedded preview
+        check_jpeg_complete(path)
+
+
+def check_jpeg_complete(path: str | Path) -> None:
+    """Raise a one-line ``ValueError`` naming ``path`` if it is a JPEG (by its start-of-image bytes) cut short.
+    Any other file passes: decoders stop with a libjpeg warning and fill the rest grey (OpenCV 4.x), so a cut
+    copy would otherwise be decoded without a word."""
+    path = Path(path)
+    with open(path, "rb") as f:
+        is_jpeg = f.read(3) == b"\xff\xd8\xff"
+    if is_jpeg and not _jpeg_complete(path):
         raise ValueError(f"{path}: truncated JPEG (no end-of-image marker); re-copy or re-save it, or remove it")
 
 

@@ -109,6 +109,7 @@ class ShardSetWriter:
         self._writers: dict[str, wds.ShardWriter] = {}
         self._scenes: dict[str, dict] = {}
         self._samples: list[dict] = []
+        self._keys: set[str] = set()
 
     def write(self, rec: SceneRecord, split: str = "train") -> None:
         """Write one scene (or a part of one: ``rec.scene`` / ``rec.first_index`` say where it lies)."""
@@ -124,6 +125,7 @@ class ShardSetWriter:
                                                    mtime=SHARD_MTIME, post=_publish)
         w = self._writers[split]
         parts = split_windows(rec, self.window, self.stride) if split in self.window_splits else [rec]
+        self._claim_keys([part.key for part in parts])
         for part in parts:
             sample = encode_scene(part, split, self.depth_dtype)
             try:
@@ -140,6 +142,15 @@ class ShardSetWriter:
                                            "source": rec.source})
         sc["num_views"] = max(sc["num_views"], rec.scene_views or rec.first_index + len(rec.views))
         sc["num_samples"] += len(parts)
+
+    def _claim_keys(self, keys: list[str]) -> None:
+        """Refuse, before anything of them is written, sample keys this set already holds: a reader groups tar
+        members by key, so a second sample under one key would be merged into or replace the first."""
+        for k in keys:
+            if k in self._keys:
+                raise ValueError(f"sample key {k!r}: already written to {self.out} (two scenes with one key); give "
+                                 "each scene or window a distinct key")
+        self._keys.update(keys)
 
     def close(self) -> dict:
         """Finish all shards and write ``index.json`` (idempotent); returns the index.

@@ -1,6 +1,8 @@
 """Each converter on a tiny fixture written here: cameras come back as the OpenCV ground truth."""
 
+import io
 import json
+import shutil
 import struct
 
 import cv2
@@ -131,13 +133,16 @@ def _centroids(img, near, r=4):
     return np.array(out)
 
 
-@pytest.mark.parametrize("fmt", ["colmap", "nerfstudio"])
-def test_a_distorted_camera_is_stored_undistorted_with_its_pinhole_k(tmp_path, fmt):
-    """Each point of the scene is where the stored pinhole K puts it: COLMAP's OPENCV model, and DL3DV's layout (a
-    json for the full resolution with k1 k2 p1 p2, the images in ``images_4``)."""
+@pytest.mark.parametrize("fmt,model", [("colmap", "OPENCV"), ("colmap", "FULL_OPENCV"), ("nerfstudio", "OPENCV")])
+def test_a_distorted_camera_is_stored_undistorted_with_its_pinhole_k(tmp_path, fmt, model):
+    """Each point of the scene is where the stored pinhole K puts it: COLMAP's OPENCV and FULL_OPENCV (OpenCV's
+    rational model: k1 k2 p1 p2 k3 k4 k5 k6, once refused as "a fisheye or thin-prism lens") models, and DL3DV's
+    layout (a json for the full resolution with k1 k2 p1 p2, the images in ``images_4``)."""
     gt, w, h = _gt(), 64, 48
     K_img = np.array([[40.0, 0, 32.0], [0, 41.0, 24.0], [0, 0, 1]])  # at the images' 64x48
     dist = np.array([-0.25, 0.05, 0.002, -0.001])  # k1 k2 p1 p2: a wide drone lens
+    if model == "FULL_OPENCV":
+        dist = np.r_[dist, 0.01, 0.15, -0.02, 0.01]  # k3, and the rational denominator's k4 k5 k6
     pts = np.array([[0.0, 0.0], [0.35, 0.25], [-0.4, -0.3], [0.45, -0.2]])
     img, seen = _blobs(K_img, dist, pts, h, w)
     src = tmp_path / "scene"
@@ -146,7 +151,8 @@ def test_a_distorted_camera_is_stored_undistorted_with_its_pinhole_k(tmp_path, f
     for i in range(N):
         cv2.imwrite(str(folder / f"v{i}.png"), img)
     if fmt == "colmap":  # its camera is for 32x24: rescaled to the images first
-        _write_colmap_bin(src / "sparse" / "0", gt, model_id=4, params=(20.0, 20.5, 16.0, 12.0, *dist))
+        _write_colmap_bin(src / "sparse" / "0", gt, model_id={"OPENCV": 4, "FULL_OPENCV": 6}[model],
+                          params=(20.0, 20.5, 16.0, 12.0, *dist))
     else:
         frames = [{"file_path": f"images/v{i}.png", "transform_matrix": (np.linalg.inv(g) @ GL_TO_CV).tolist()}
                   for i, g in enumerate(gt)]
@@ -183,6 +189,11 @@ def test_colmap_distorted_and_missing(tmp_path):
     _write_colmap_bin(src / "sparse" / "0", _gt(), model_id=5, params=(30, 31, 16, 12, 0.1, 0, 0, 0))
     with pytest.raises(ValueError, match="OPENCV_FISHEYE .*; undistort first"):
         convert("colmap", src, tmp_path / "o")
+    # a refused model is named for what it is (FOV was called "a fisheye or thin-prism lens")
+    _write_colmap_bin(tmp_path / "fov" / "sparse" / "0", _gt(), model_id=7, params=(30, 31, 16, 12, 0.9))
+    with pytest.raises(ValueError, match=r"camera model FOV \(the FOV \(arctan\) lens model\) is not read here; "
+                                         "undistort first"):
+        convert("colmap", tmp_path / "fov", tmp_path / "o_fov")
     with pytest.raises(FileNotFoundError, match="COLMAP"):
         convert("colmap", tmp_path / "scene" / "images", tmp_path / "o2")
     with pytest.raises(FileNotFoundError):
@@ -442,3 +453,184 @@ def test_converted_depth_is_resampled_under_the_pixel_centres_of_the_stored_imag
     err_u = (rec.depth - 1) % 100 + 0.5 - us[None] * dw / W
     err_v = (rec.depth - 1) // 100 + 0.5 - vs[:, None] * dh / H
     assert np.abs(err_u).max() <= 0.5 + 1e-6 and np.abs(err_v).max() <= 0.5 + 1e-6
+
+
+def _colmap_scene(src, names):
+    """A COLMAP text scene at ``src`` whose images ``names`` (N of them, ``_gt()`` poses) are written here."""
+    (src / "images").mkdir(parents=True)
+    for i, n in enumerate(names):
+        cv2.imwrite(str(src / "images" / n), np.full((H, W, 3), 40 * i + 20, np.uint8))
+    (src / "sparse").mkdir()
+    (src / "sparse" / "cameras.txt").write_text(f"1 PINHOLE {W} {H} 30 31 16 12\n")
+    lines = []
+    for i, (g, n) in enumerate(zip(_gt(), names)):
+        q = rotmat_to_quat(torch.tensor(g[:3, :3])).tolist()
+        lines += [" ".join(map(str, [i + 1, *q, *g[:3, 3], 1, n])), ""]
+    (src / "sparse" / "images.txt").write_text("\n".join(lines) + "\n")
+
+
+def test_a_truncated_jpeg_is_refused_in_one_line(tmp_path):
+    """A half-copied JPEG: OpenCV 4.x decodes it with the missing rows grey, and it was stored so; OpenCV 5 refused
+    it only as "not a readable image"."""
+    src = tmp_path / "scene"
+    _colmap_scene(src, [f"v{i}.jpg" for i in range(N)])
+    yy, xx = np.mgrid[0 : 8 * H, 0 : 8 * W]  # big enough that OpenCV 4.8 decodes its first half and fills the rest
+    cv2.imwrite(str(src / "images" / "v1.jpg"), np.dstack([xx, yy, (xx // 16 + yy // 16) % 2 * 255]).astype(np.uint8))
+    raw = (src / "images" / "v1.jpg").read_bytes()
+    (src / "images" / "v1.jpg").write_bytes(raw[: len(raw) // 2])
+    with pytest.raises(ValueError, match=r"v1\.jpg: truncated JPEG \(no end-of-image marker\); re-copy or re-save "
+                                         r"it, or remove it$"):
+        convert("colmap", src, tmp_path / "out")
+    assert not (tmp_path / "out" / "index.json").exists()
+
+
+def test_scenes_whose_names_sanitise_alike_keep_their_own_keys(tmp_path):
+    """'東京' and '大阪' both sanitised to 'colmap_', 'block 1' to 'block-1': one scene was lost."""
+    names = ["東京", "大阪", "block 1", "block-1"]
+    for name in names:
+        _colmap_scene(tmp_path / "src" / name, [f"v{j}.png" for j in range(N)])
+    convert("colmap", tmp_path / "src", tmp_path / "out", split="train")
+    index = json.loads((tmp_path / "out" / "index.json").read_text())
+    keys = [s["key"] for s in index["samples"]]
+    assert len(set(keys)) == len(names) and len({s["key"] for s in index["scenes"]}) == len(names)
+    assert "colmap_block-1" in keys  # a name sanitising leaves alone keeps its plain key
+    metas = _read(tmp_path / "out")
+    assert sorted(m["extra"]["scene"] for m in metas) == sorted(names)
+    assert all(len(m["views"]) == N for m in metas)
+
+
+def _raw_block(folder, n=N, pose_file="transforms.json"):
+    """A raw MatrixCity block (``rot_mat`` scaled by 0.01, images NNNN.png) of the first ``n`` of ``_gt()``."""
+    _images(folder, [f"{i:04d}.png" for i in range(n)])
+    frames = []
+    for i, g in enumerate((_gt() * 2)[:n]):
+        c2w = np.linalg.inv(g) @ GL_TO_CV
+        c2w[:3, :3] *= 0.01
+        frames.append({"frame_index": i, "rot_mat": c2w.tolist()})
+    (folder / pose_file).write_text(json.dumps({"camera_angle_x": 2 * np.arctan(0.5 * W / 30.0), "frames": frames}))
+
+
+def test_a_raw_matrixcity_block_reads_its_curated_poses_not_the_pre_culling_ones(tmp_path):
+    """As released, a block holds transforms.json beside transforms_origin.json (every pose collected, views off
+    the map included); the glob ``transforms_*.json`` picked the latter."""
+    block = tmp_path / "aerial" / "block_1"
+    _raw_block(block, n=5, pose_file="transforms_origin.json")
+    _raw_block(block, n=N)
+    convert("matrixcity", block, tmp_path / "out")
+    meta = _read(tmp_path / "out")[0]
+    assert meta["extra"]["pose_file"] == "transforms.json" and len(meta["views"]) == N
+    np.testing.assert_allclose([v["w2c"] for v in meta["views"]], _gt(), atol=1e-6)
+    (block / "transforms.json").unlink()
+    with pytest.raises(FileNotFoundError, match=r"no MatrixCity transforms\.json .* \(transforms_origin\.json, the "
+                                                r"poses before culling, is not read\)"):
+        convert("matrixcity", block, tmp_path / "out2")
+
+
+@pytest.mark.parametrize("folder,split", [("aerial/test/block_1_test", "test"), ("block_2_test", "test"),
+                                          ("street/test/small_city_road_down", "test"),
+                                          ("aerial/train/block_1", "train")])
+def test_a_matrixcity_test_block_goes_to_the_test_split(tmp_path, folder, split):
+    _raw_block(tmp_path / folder)
+    convert("matrixcity", tmp_path / folder, tmp_path / "out")
+    assert [p.name.split("-")[0] for p in (tmp_path / "out").glob("*.tar")] == [split]
+
+
+def test_matrixcity_depth_is_found_in_the_released_tree_and_its_absence_named(tmp_path):
+    """small_city/aerial/train/block_1 and its depth archive extracted where it lies,
+    small_city_depth*/aerial/train/block_1_depth (the float32 release preferred); none found: one warning naming
+    the folders searched (the depth was dropped without a word)."""
+    block = tmp_path / "small_city" / "aerial" / "train" / "block_1"
+    _raw_block(block)
+    for tree, cm in (("small_city_depth", 1000.0), ("small_city_depth_float32", 1234.0)):
+        (tmp_path / tree / "aerial" / "train" / "block_1_depth").mkdir(parents=True)
+        for i in range(N):
+            np.save(tmp_path / tree / "aerial" / "train" / "block_1_depth" / f"{i:04d}.npy",
+                    np.full((H, W), cm, np.float32))
+    convert("matrixcity", block, tmp_path / "out")
+    sample = next(iter(wds.WebDataset(str(next((tmp_path / "out").glob("*.tar"))), shardshuffle=False)))
+    assert np.allclose(np.load(io.BytesIO(sample["002.depth.npy"])), 12.34)
+    for tree in ("small_city_depth", "small_city_depth_float32"):
+        shutil.rmtree(tmp_path / tree)
+    with pytest.warns(UserWarning, match=rf"no depth for {N} of {N} views .*searched {block / 'depth'}, "
+                                         rf"{block}_depth, .*small_city_depth\*/aerial/train/block_1_depth"):
+        convert("matrixcity", block, tmp_path / "out2")
+
+
+def _exr_block(tmp_path):
+    block = tmp_path / "aerial" / "train" / "block_1"
+    _raw_block(block)
+    (block.parent / "block_1_depth").mkdir()
+    return block, [block.parent / "block_1_depth" / f"{i:04d}.exr" for i in range(N)]
+
+
+@pytest.mark.parametrize("reader", ["OpenEXR", "opencv"])
+def test_matrixcity_exr_depth_is_read_with_or_without_opencv_s_exr_codec(tmp_path, monkeypatch, reader):
+    """OpenCV wheels without the OpenEXR codec (5.0's) gave None, and the error told the user to set an
+    environment variable that changes nothing there; the OpenEXR package reads it instead."""
+    import OpenEXR
+
+    block, exrs = _exr_block(tmp_path)
+    cm = np.array([[1234.0, 65504.0, 80000.0, 250.5]], np.float32).repeat(H, 0).repeat(W // 4, 1)  # [H, W]
+    for p in exrs:
+        OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage},
+                     {"R": cm, "G": cm, "B": cm}).write(str(p))
+    if reader == "opencv":
+        monkeypatch.setenv("OPENCV_IO_ENABLE_OPENEXR", "1")  # before OpenCV 4.x first looks (it reads it once)
+        try:
+            read = cv2.haveImageReader(str(exrs[0]))
+        except cv2.error:
+            read = False
+        if not read:
+            pytest.skip("this OpenCV build has no OpenEXR codec")
+    else:
+        monkeypatch.setattr(cv2, "haveImageReader", lambda *a: False)
+        monkeypatch.setattr(cv2, "imread", lambda *a: None)
+    convert("matrixcity", block, tmp_path / "out")
+    sample = next(iter(wds.WebDataset(str(next((tmp_path / "out").glob("*.tar"))), shardshuffle=False)))
+    want = np.array([[12.34, 0, 800.0, 2.505]], np.float32).repeat(H, 0).repeat(W // 4, 1)
+    np.testing.assert_allclose(np.load(io.BytesIO(sample["001.depth.npy"])), want, rtol=1e-6)
+
+
+def test_exr_depth_without_a_reader_is_refused_naming_what_to_install(tmp_path, monkeypatch):
+    import sys
+
+    block, exrs = _exr_block(tmp_path)
+    for p in exrs:
+        p.write_bytes(b"v/1\x01" + bytes(60))
+    monkeypatch.setattr(cv2, "haveImageReader", lambda *a: False)
+    monkeypatch.setitem(sys.modules, "OpenEXR", None)  # not installed
+    with pytest.raises(ValueError, match=r"0000\.exr: cannot read EXR depth: this OpenCV build has no OpenEXR codec "
+                                         r"and the OpenEXR package is not installed; pip install 'anycity\[exr\]' "
+                                         r"\(or OpenEXR\)$"):
+        convert("matrixcity", block, tmp_path / "out")
+
+
+@pytest.mark.parametrize("max_side", [-5, 0, 7])
+def test_max_side_below_8_is_refused_in_one_line(tmp_path, max_side):
+    """-5 crashed in OpenCV's resize, 0 meant no resize without a word."""
+    _colmap_scene(tmp_path / "scene", [f"v{i}.png" for i in range(N)])
+    with pytest.raises(ValueError, match=rf"^max_side: expected the longer stored side in pixels, >= 8, got "
+                                         rf"{max_side}; leave it out to keep the images' size$"):
+        convert("colmap", tmp_path / "scene", tmp_path / "out", max_side=max_side)
+
+
+@pytest.mark.parametrize("ext,dist,max_side", [(".png", (-0.2, 0.05, 0.0, 0.0), None),
+                                               (".jpg", (-0.2, 0.05, 0.001, 0.0), None),
+                                               (".jpg", None, 20), (".bmp", None, None)])
+def test_a_view_comes_back_encoded_as_the_shard_stores_it(tmp_path, ext, dist, max_side):
+    """Undistorted (or resized, or re-coded) views were held as decoded arrays for a whole sample (48 MB per 12 MP
+    view); they come back as the bytes the shard stores, the same bytes as encoding the array there gave."""
+    from anycity.data.parsers.base import ParsedView, _load_view, undistort
+    from anycity.data.schema import encode_image
+
+    rng = np.random.default_rng(0)
+    cv2.imwrite(str(tmp_path / f"a{ext}"), rng.integers(0, 255, (H, W, 3), dtype=np.uint8))
+    view = ParsedView("a", tmp_path / f"a{ext}", np.eye(4), K, W, H, dist=None if dist is None else np.array(dist))
+    rec = _load_view(view, max_side)
+    assert isinstance(rec.image, bytes)
+    img = cv2.imread(str(tmp_path / f"a{ext}"))
+    if dist is not None:
+        img = undistort(img, None, K, np.array(dist))[0]
+    if max_side:
+        img = cv2.resize(img, (rec.width, rec.height), interpolation=cv2.INTER_AREA)
+    assert rec.image == encode_image(img[..., ::-1], rec.ext)

@@ -6,6 +6,7 @@ similarity it applied to the source world (``world_from_source``, scale included
 
 from __future__ import annotations
 
+import hashlib
 import re
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -15,7 +16,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from anycity.data.schema import SceneRecord, ViewRecord
+from anycity.data.imagecheck import check_jpeg_complete
+from anycity.data.schema import SceneRecord, ViewRecord, encode_image
 from anycity.data.writer import SPLITS, ShardSetWriter, split_scenes
 
 GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])  # c2w_cv = c2w_gl @ GL_TO_CV
@@ -32,7 +34,7 @@ class ParsedView:
     width: int
     height: int
     depth: Callable[[], np.ndarray] | None = None  # -> [H, W] z-depth in the scene's output units, 0 invalid
-    dist: np.ndarray | None = None  # OpenCV lens distortion (k1, k2, p1, p2[, k3]) of K; undistorted when loaded
+    dist: np.ndarray | None = None  # OpenCV distortion of K, (k1, k2, p1, p2[, k3[, k4, k5, k6]]); undone on load
 
 
 @dataclass
@@ -91,63 +93,103 @@ def undistort(img: np.ndarray, depth: np.ndarray | None, K: np.ndarray,
     return img, depth, np.linalg.inv(_HALF) @ new_cv
 
 
-def _load_view(v: ParsedView, max_side: int | None) -> ViewRecord:
-    raw = require(v.image_path, f"the image of view {v.name}").read_bytes()
+def _decode(v: ParsedView) -> tuple[bytes, np.ndarray]:
+    """The file's bytes and its stored pixels ``[H, W, 3]`` uint8 BGR, or one line naming the file."""
+    path = require(v.image_path, f"the image of view {v.name}")
+    check_jpeg_complete(path)  # OpenCV 4.x decodes a cut JPEG without a word, the missing rows grey
+    raw = path.read_bytes()
     # The stored pixels, which the cameras describe (COLMAP ignores the EXIF orientation); the shards are decoded so.
     img = cv2.imdecode(np.frombuffer(raw, np.uint8), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
     if img is None:
         raise ValueError(f"{v.image_path}: not a readable image; replace or remove the file")
-    h, w = img.shape[:2]
+    return raw, img
+
+
+def _camera_for(v: ParsedView, w: int, h: int) -> np.ndarray:
+    """``K [3, 3]`` of ``v`` for its image as stored, ``w`` x ``h`` pixels (a camera given for another resolution
+    of the same image is rescaled; another aspect ratio is refused)."""
     K = np.asarray(v.K, np.float64).copy()
-    if (w, h) != (v.width, v.height):  # camera given for another resolution of the same image
+    if (w, h) != (v.width, v.height):
         if abs(w * v.height - h * v.width) > v.width + v.height:  # more than a pixel of rounding on either axis
             raise ValueError(f"{v.image_path}: the image is {w}x{h} but its camera is for {v.width}x{v.height}, "
                              "another aspect ratio (rotated or cropped since?); give the image the camera describes")
         K[0] *= w / v.width
         K[1] *= h / v.height
+    return K
+
+
+def _resize_depth(depth: np.ndarray, w: int, h: int) -> np.ndarray:
+    """``depth [h', w']`` -> ``[h, w]``: the source pixel under each target pixel's centre."""
+    if depth.shape[:2] == (h, w):
+        return depth
+    return cv2.resize(depth.astype(np.float32), (w, h), interpolation=cv2.INTER_NEAREST_EXACT)
+
+
+def _load_view(v: ParsedView, max_side: int | None) -> ViewRecord:
+    """Read, undistort and downscale one view. The image comes back encoded (jpg/png bytes: the file's own when
+    its pixels are kept as they are), so a sample of 64 views of 12 MP holds a few MB per view, not 36-48 MB."""
+    raw, img = _decode(v)
+    h, w = img.shape[:2]
+    K = _camera_for(v, w, h)
     depth = v.depth() if v.depth is not None else None
     distorted = v.dist is not None and bool(np.any(np.asarray(v.dist) != 0))
     if distorted:
-        if depth is not None and depth.shape[:2] != (h, w):
-            depth = cv2.resize(depth.astype(np.float32), (w, h), interpolation=cv2.INTER_NEAREST_EXACT)
+        if depth is not None:
+            depth = _resize_depth(depth, w, h)
         img, depth, K = undistort(img, depth, K, np.asarray(v.dist, np.float64))
-    ext = v.image_path.suffix.lower().lstrip(".")
-    ext = "jpg" if ext in ("jpg", "jpeg") else "png"
+    ext = "jpg" if v.image_path.suffix.lower() in (".jpg", ".jpeg") else "png"
     s = min(1.0, max_side / max(h, w)) if max_side else 1.0
-    if s < 1.0:
-        nw, nh = round(w * s), round(h * s)
+    resized = s < 1.0
+    if resized:
+        nw, nh = max(1, round(w * s)), max(1, round(h * s))
         img = cv2.resize(img, (nw, nh), interpolation=cv2.INTER_AREA)
         K[0] *= nw / w
         K[1] *= nh / h
-        if depth is not None:
-            depth = cv2.resize(depth, (nw, nh), interpolation=cv2.INTER_NEAREST_EXACT)
         w, h = nw, nh
-        image: np.ndarray | bytes = img[..., ::-1]
-    else:
-        stored = not distorted and v.image_path.suffix.lower() in (".jpg", ".jpeg", ".png")
-        image = raw if stored else img[..., ::-1]  # the file's own bytes when its pixels are kept as they are
-    if depth is not None and depth.shape[:2] != (h, w):
-        depth = cv2.resize(depth.astype(np.float32), (w, h), interpolation=cv2.INTER_NEAREST_EXACT)
-    mask = None if depth is None else (depth > 0) & np.isfinite(depth)
+    kept = not distorted and not resized and v.image_path.suffix.lower() in (".jpg", ".jpeg", ".png")
+    image = raw if kept else encode_image(img[..., ::-1], ext)
+    mask = None
     if depth is not None:
+        depth = _resize_depth(depth, w, h)
+        mask = (depth > 0) & np.isfinite(depth)
         depth = np.where(mask, depth, 0).astype(np.float32)
     return ViewRecord(name=v.name, image=image, w2c=v.w2c, K=K, width=w, height=h, depth=depth, mask=mask, ext=ext)
 
 
-def to_records(scene: ParsedScene, max_views: int = 64, max_side: int | None = None) -> Iterator[SceneRecord]:
-    """Cut a scene into samples of at most ``max_views`` consecutive views and load their images."""
+def to_records(scene: ParsedScene, max_views: int = 64, max_side: int | None = None,
+               key: str | None = None) -> Iterator[SceneRecord]:
+    """Cut a scene into samples of at most ``max_views`` consecutive views and load their images. ``key``: the
+    scene's sample-key stem (default ``safe_key(source, name)``; :func:`write_scenes` gives each scene its own)."""
     n = len(scene.views)
     if n == 0:
         raise ValueError(f"scene {scene.name}: no views found; check the source layout")
+    key = key or safe_key(scene.source, scene.name)
     chunks = max(1, -(-n // max_views))
     for c in range(chunks):
         a, b = c * n // chunks, (c + 1) * n // chunks
-        key = safe_key(scene.source, scene.name) + (f"_w{c:03d}" if chunks > 1 else "")
-        yield SceneRecord(key=key, views=[_load_view(v, max_side) for v in scene.views[a:b]], source=scene.source,
+        yield SceneRecord(key=key + (f"_w{c:03d}" if chunks > 1 else ""),
+                          views=[_load_view(v, max_side) for v in scene.views[a:b]], source=scene.source,
                           units=scene.units, metres_per_unit=scene.metres_per_unit,
                           world_from_source=scene.world_from_source,
                           extra={**scene.extra, "scene": scene.name, "window": [a, b]},
-                          scene=safe_key(scene.source, scene.name), first_index=a, scene_views=n)
+                          scene=key, first_index=a, scene_views=n)
+
+
+def scene_keys(scenes: list[ParsedScene]) -> list[str]:
+    """One distinct sample-key stem per scene: ``safe_key(source, name)``, plus 8 hex digits of the name's SHA-1
+    where sanitising changed it ('東京' and '大阪' both sanitise to 'colmap_'; 'block 1' to 'block-1'), plus ``-2``,
+    ``-3``, ... for a name that occurs again."""
+    keys: list[str] = []
+    for sc in scenes:
+        key = safe_key(sc.source, sc.name)
+        if key != f"{sc.source}_{sc.name}":
+            key += "-" + hashlib.sha1(sc.name.encode("utf-8", "surrogatepass")).hexdigest()[:8]
+        stem, n, taken = key, 1, set(keys)
+        while key in taken:
+            n += 1
+            key = f"{stem}-{n}"
+        keys.append(key)
+    return keys
 
 
 def write_scenes(scenes: list[ParsedScene], out: str | Path, split: str = "auto", max_views: int = 64,
@@ -158,8 +200,8 @@ def write_scenes(scenes: list[ParsedScene], out: str | Path, split: str = "auto"
         raise ValueError(f"split: expected auto, train, val or test, got {split!r}")
     auto = split_scenes(len(scenes), seed)
     with ShardSetWriter(out, maxcount=maxcount, depth_dtype="float32", overwrite=overwrite) as w:
-        for i, sc in enumerate(scenes):
+        for i, (sc, key) in enumerate(zip(scenes, scene_keys(scenes))):
             sp = split if split != "auto" else (sc.split or auto[i])
-            for rec in to_records(sc, max_views, max_side):
+            for rec in to_records(sc, max_views, max_side, key):
                 w.write(rec, sp)
     return w.close()

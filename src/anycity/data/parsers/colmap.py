@@ -1,6 +1,7 @@
 """COLMAP sparse models (text and binary). PINHOLE and SIMPLE_PINHOLE cameras are kept; SIMPLE_RADIAL (COLMAP's
-default), RADIAL and OPENCV images are undistorted to a pinhole camera while converting (``base.undistort``);
-fisheye and thin-prism models are refused (undistort them with COLMAP first). Photos in ``images/`` the model did
+default), RADIAL, OPENCV and FULL_OPENCV images are undistorted to a pinhole camera while converting
+(``base.undistort``); fisheye, thin-prism and FOV models are refused, naming the model (undistort them with COLMAP
+first). Photos in ``images/`` the model did
 not register are named in a warning and left out.
 
 Layout: ``SCENE/images/*`` and ``SCENE/sparse/0/{cameras,images,points3D}.{bin,txt}`` (or ``SCENE/sparse/``);
@@ -119,23 +120,31 @@ def read_model(scene: str | Path) -> ColmapModel:
     return _read_txt(d)
 
 
+_NOT_READ = {"OPENCV_FISHEYE": "a fisheye lens", "SIMPLE_RADIAL_FISHEYE": "a fisheye lens",
+             "RADIAL_FISHEYE": "a fisheye lens", "FOV": "the FOV (arctan) lens model",
+             "THIN_PRISM_FISHEYE": "a thin-prism fisheye lens",
+             "RAD_TAN_THIN_PRISM_FISHEYE": "a thin-prism fisheye lens"}  # model -> why it is refused
+
+
 def intrinsics(model: str, params: np.ndarray, where: str) -> tuple[np.ndarray, np.ndarray | None]:
-    """``K [3, 3]`` and OpenCV distortion ``(k1, k2, p1, p2)`` (None for a pinhole model) of a COLMAP camera."""
+    """``K [3, 3]`` and OpenCV distortion of a COLMAP camera: ``(k1, k2, p1, p2)``, or FULL_OPENCV's rational
+    ``(k1, k2, p1, p2, k3, k4, k5, k6)`` (OpenCV's order too); None for a pinhole model."""
     p = np.asarray(params, float)
-    if model in ("PINHOLE", "OPENCV"):
+    if model in ("PINHOLE", "OPENCV", "FULL_OPENCV"):
         fx, fy, cx, cy = p[:4]
     elif model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL"):
         fx = fy = p[0]
         cx, cy = p[1:3]
     else:
-        raise ValueError(f"{where}: camera model {model} (a fisheye or thin-prism lens) is not read here; undistort "
-                         "first (colmap image_undistorter or pycolmap.undistort_images) so the model is PINHOLE")
+        kind = _NOT_READ.get(model, "not a COLMAP model this reader knows")
+        raise ValueError(f"{where}: camera model {model} ({kind}) is not read here; undistort first (colmap "
+                         "image_undistorter or pycolmap.undistort_images) so the model is PINHOLE")
     K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], float)
     if model == "SIMPLE_RADIAL":
         return K, np.array([p[3], 0, 0, 0])
     if model == "RADIAL":
         return K, np.array([p[3], p[4], 0, 0])
-    return K, p[4:8] if model == "OPENCV" else None
+    return K, {"OPENCV": p[4:8], "FULL_OPENCV": p[4:12]}.get(model)
 
 
 def w2c_of(image: dict) -> np.ndarray:
