@@ -1,4 +1,5 @@
-"""Aligning chunk reconstructions into one frame: robust pairwise Sim(3) on shared views, then a pose graph.
+"""Aligning chunk reconstructions into one frame: robust pairwise Sim(3) on shared views (the pose graph over them
+is :mod:`anycity.city.posegraph`).
 
 A Sim(3) is a ``[4, 4]`` matrix ``[[s R, t], [0, 1]]`` mapping points ``p -> s R p + t``. Chunk ``i`` has the
 transform ``S_i`` (chunk frame -> world); an edge ``(a, b)`` holds ``T_ab`` with ``p_a = T_ab p_b`` for the same
@@ -147,6 +148,7 @@ class Edge:
     fit: Sim3Fit
     src: Tensor = field(repr=False)  # inlier points in b's frame [M, 3]
     dst: Tensor = field(repr=False)  # the same points in a's frame [M, 3]
+    graph_rms: float = math.nan  # rms of |dst - S_a^-1 S_b src| under the final transforms, in a's frame
 
 
 def correspondences(ca: ChunkGeometry, cb: ChunkGeometry, shared: list[int]) -> tuple[Tensor, Tensor]:
@@ -213,100 +215,3 @@ def _exp_so3(w: Tensor) -> Tensor:
     b = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(theta)) / theta2.clamp_min(1e-24))
     eye = torch.eye(3, dtype=w.dtype, device=w.device)
     return eye + a * W + b * (W @ W)
-
-
-def _deltas(x: Tensor) -> Tensor:
-    """``[7 (C-1)]`` (log scale, axis-angle, translation) per chunk 1.. -> ``[C, 4, 4]`` (chunk 0: identity)."""
-    p = x.reshape(-1, 7)
-    top = torch.cat([_exp_so3(p[:, 1:4]) * torch.exp(p[:, :1])[..., None], p[:, 4:, None]], -1)
-    bottom = torch.tensor([0.0, 0, 0, 1], dtype=x.dtype).expand(p.shape[0], 1, 4)
-    return torch.cat([torch.eye(4, dtype=x.dtype)[None], torch.cat([top, bottom], -2)])
-
-
-def chain_init(num_chunks: int, edges: list[Edge]) -> Tensor:
-    """``[C, 4, 4]`` chunk-to-world transforms by walking the edges from chunk 0 (breadth first)."""
-    S: list[Tensor | None] = [None] * num_chunks
-    S[0] = torch.eye(4, dtype=torch.float64)
-    frontier = [0]
-    while frontier:
-        nxt = []
-        for i in frontier:
-            for e in edges:
-                if e.a == i and S[e.b] is None:
-                    S[e.b] = S[i] @ e.fit.T
-                    nxt.append(e.b)
-                elif e.b == i and S[e.a] is None:
-                    S[e.a] = S[i] @ sim3_inverse(e.fit.T)
-                    nxt.append(e.a)
-        frontier = nxt
-    missing = [i for i, s in enumerate(S) if s is None]
-    if missing:
-        raise ValueError(f"city alignment: chunks {missing} are not connected to chunk 0 by shared photos; raise "
-                         "--data.predict_chunk_overlap")
-    return torch.stack(S)
-
-
-def pose_graph(num_chunks: int, edges: list[Edge], iters: int = 50) -> tuple[Tensor, dict]:
-    """Global least squares over chunk transforms (chunk 0 fixed as the world frame).
-
-    Minimises, over every edge, the mean squared distance between its inlier points and the same points carried
-    over from chunk b by the current relative transform, ``|dst - S_a^-1 S_b src|^2`` (in chunk a's frame, in units
-    of the edge's point spread), so a loop or a view shared by three chunks spreads the error instead of piling it
-    up along the chain; on a chain (a tree) it keeps the pairwise fits as they are. Starts from
-    :func:`chain_init` and runs Gauss-Newton (Levenberg damped) on a left perturbation ``exp(sigma), exp(omega),
-    tau`` of every other chunk.
-
-    Returns:
-        ``S [C, 4, 4]`` chunk-to-world Sim(3)s and a report ``{"initial_rms", "final_rms"}`` (the normalised
-        residual above times the scene spread in chunk 0's frame).
-    """
-    S0 = chain_init(num_chunks, edges)
-    if num_chunks == 1 or not edges:
-        return S0, {"initial_rms": 0.0, "final_rms": 0.0}
-    # Residuals in each edge's own frame (a), in units of its points' spread: measured in the world instead,
-    # shrinking the chunks far from chunk 0 would lower them (the scale drift of point-based pose graphs).
-    units = [max(_spread(e.dst), 1e-12) for e in edges]
-    unit = max(_spread(torch.cat([apply_sim3(S0[e.a], e.dst) for e in edges])), 1e-12)
-
-    def residuals(x: Tensor) -> Tensor:
-        S = _deltas(x) @ S0
-        out = [(e.dst - apply_sim3(sim3_inverse(S[e.a]) @ S[e.b], e.src)).flatten() / (u * len(e.dst) ** 0.5)
-               for e, u in zip(edges, units)]
-        return torch.cat(out)
-
-    x = torch.zeros(7 * (num_chunks - 1), dtype=torch.float64)
-    r = residuals(x)
-    initial = float(r.pow(2).sum())
-    lam, J = 1e-6, None
-    for _ in range(iters):
-        if float(r.pow(2).sum()) < 1e-24:  # already exact (an oracle)
-            break
-        if J is None:  # few unknowns, many residuals: forward mode, one vectorised pass per unknown
-            J = torch.autograd.functional.jacobian(residuals, x, vectorize=True, strategy="forward-mode")
-            H, g = J.T @ J, J.T @ r
-        step = torch.linalg.solve(H + lam * torch.diag(H.diagonal().clamp_min(1e-12)), -g)
-        r_new = residuals(x + step)
-        old, new = float(r.pow(2).sum()), float(r_new.pow(2).sum())
-        if new < old:
-            x, r, lam, J = x + step, r_new, lam * 0.3, None
-            if old - new <= 1e-12 * old:
-                break
-        else:
-            lam *= 10
-            if lam > 1e4:
-                break
-    D = _deltas(x)
-    npts = len(edges)
-    rms = lambda v: unit * (v / npts) ** 0.5  # noqa: E731  (each edge's term is a mean over its points)
-    return D @ S0, {"initial_rms": rms(initial), "final_rms": rms(float(r.pow(2).sum()))}
-
-
-def align_chunks(chunks: list[ChunkGeometry], names: list[str] | None = None, global_pass: bool = True,
-                 **fit_kw) -> tuple[Tensor, list[Edge], dict]:
-    """Pairwise robust fits on shared views, then the pose graph: ``(S [C, 4, 4], edges, report)``."""
-    edges = pairwise_edges(chunks, names, **fit_kw)
-    if global_pass:
-        S, rep = pose_graph(len(chunks), edges)
-    else:
-        S, rep = chain_init(len(chunks), edges), {}
-    return S, edges, rep

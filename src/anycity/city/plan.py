@@ -103,9 +103,10 @@ def plan_chunks(num: int, size: int, overlap: int, loop: bool = False) -> list[l
     """Cut positions ``0..num-1`` into chunks of ``size`` consecutive positions, each sharing ``overlap`` with the
     next; the last chunk is shifted back to stay full (it then shares more). One chunk when ``num <= size``.
 
-    ``loop=True`` (the last photos see the first ones again, e.g. a closed orbit) appends a loop-closure chunk of
-    the last ``size // 2`` and the first ``size - size // 2`` positions: it shares photos with the first and the
-    last chunk, so the pose graph gets a cycle and spreads the drift around it."""
+    ``loop=True`` (the last photos see the first ones again, e.g. a closed orbit) appends, whenever there is more
+    than one chunk, a loop-closure chunk of the last ``size // 2`` and the first ``size - size // 2`` positions: it
+    shares photos with the first and the last chunk, so the pose graph gets a cycle and spreads the drift around it
+    (:func:`anycity.city.posegraph.align_chunks` drops it with a warning where it disagrees with the chain)."""
     if size < 2:
         raise ValueError(f"predict_chunk_size: expected >= 2 photos per chunk, got {size}")
     if not 0 <= overlap < size:
@@ -118,7 +119,7 @@ def plan_chunks(num: int, size: int, overlap: int, loop: bool = False) -> list[l
     step = size - overlap
     starts = list(range(0, num - size, step)) + [num - size]
     chunks = [list(range(s, s + size)) for s in starts]
-    if loop and len(chunks) > 2:
+    if loop:  # two chunks too: they share the middle photos, not the ends
         if size // 2 < MIN_SHARED:  # said before the network runs, as the overlap is
             raise ValueError(f"predict_loop: the loop-closure chunk shares {size // 2} photo(s) with the last chunk "
                              f"(half a chunk of {size}), need {MIN_SHARED}; raise predict_chunk_size to "

@@ -1,8 +1,10 @@
 """``ChunkedScene``: collect chunk reconstructions one at a time, then align, merge and write one scene.
 
 Memory stays bounded by the chunk size: of each chunk only its cameras and a sparse grid of depth points per view
-stay in memory; the Gaussians of the views it owns (:func:`anycity.city.plan.owners`) go to a spill file, and
-:meth:`ChunkedScene.finish` streams them through their chunk's Sim(3) into the PLY.
+stay in memory (the pose graph adds a dense ``7(C-1)`` square normal matrix for C chunks: 10 MB at 167); the
+Gaussians of the views it owns (:func:`anycity.city.plan.owners`) go to a spill file, and :meth:`ChunkedScene.finish`
+streams them through their chunk's Sim(3) into the PLY, deleting each spill file once its rows are written (the disk
+then holds at most the PLY body and the PLY: 2x the scene).
 
 Given the output folder, the spill files live in the hidden :func:`work_dir` beside it (on the disk the scene is
 written to, not in ``$TMPDIR``, which is RAM on a tmpfs ``/tmp``); ``finish`` stages its outputs there too, so each
@@ -24,9 +26,10 @@ import torch
 from torch import Tensor
 
 from anycity.atomic import atomic_write_bytes, publish
-from anycity.city.align import ChunkGeometry, align_chunks, sim3_parts, w2c_to_world
+from anycity.city.align import ChunkGeometry, sim3_parts, w2c_to_world
 from anycity.city.merge import PlyStream, sim3_gaussians
 from anycity.city.plan import owners
+from anycity.city.posegraph import align_chunks
 from anycity.export.cameras import save_cameras
 from anycity.structures import Gaussians
 
@@ -142,8 +145,8 @@ class ChunkedScene:
             shutil.rmtree(stage, ignore_errors=True)
 
     def _merge(self, ply: PlyStream, S: Tensor) -> Tensor:
-        """Stream every spill file through its chunk's Sim(3) ``S[k]`` into ``ply``; returns the world-frame
-        ``w2c [n, 4, 4]`` of all photos."""
+        """Stream every spill file through its chunk's Sim(3) ``S[k]`` into ``ply``, deleting each once written;
+        returns the world-frame ``w2c [n, 4, 4]`` of all photos."""
         w2c = torch.zeros(len(self.names), 4, 4, dtype=torch.float64)
         for k, path in sorted(self.spilled.items()):
             piece = torch.load(path, weights_only=True)
@@ -151,6 +154,7 @@ class ChunkedScene:
             for v, cam in zip(piece["views"], piece["w2c"]):
                 w2c[v] = w2c_to_world(cam, S[k])
             del piece
+            path.unlink()  # its rows are in the PLY body: the spill and the body never both hold the whole scene
         return w2c
 
     def close(self) -> None:
@@ -166,9 +170,10 @@ class ChunkedScene:
         pairs = [{"chunks": [e.a, e.b], "shared_photos": len(e.shared), "points": int(e.fit.inliers.numel()),
                   "inliers": e.fit.num_inliers, "rms_residual": e.fit.rms * float(s[e.a]),
                   "median_residual": e.fit.median * float(s[e.a]),
-                  "inlier_threshold": e.fit.threshold * float(s[e.a])} for e in edges]
+                  "inlier_threshold": e.fit.threshold * float(s[e.a]),
+                  "pose_graph_rms": _finite(e.graph_rms * float(s[e.a]))} for e in edges]
         return {"num_photos": len(self.names), "num_chunks": len(self.chunks), "chunks": chunks, "pairs": pairs,
-                "pose_graph": {k: (v if math.isfinite(v) else None) for k, v in rep.items()},
+                "pose_graph": {k: _finite(v) for k, v in rep.items()},
                 "gaussians": ply.count, "dropped": ply.dropped,
                 "units": "residuals in world units of chunk 0's frame"}
 
@@ -183,3 +188,8 @@ def _spill_dir(out: str | Path | None, workdir: str | Path | None) -> Path:
         shutil.rmtree(spill)
     spill.mkdir(parents=True)
     return spill
+
+
+def _finite(v):
+    """``v`` for JSON: a non-finite float as None (other values as they are)."""
+    return None if isinstance(v, float) and not math.isfinite(v) else v

@@ -192,8 +192,15 @@ def test_pair_residuals_are_in_chunk_0s_units_whatever_scale_each_chunk_has(tmp_
     assert [p["chunks"] for p in plain["pairs"]] == [[0, 1], [1, 2]]
     for a, b in zip(plain["pairs"], scaled["pairs"], strict=True):
         assert a["rms_residual"] > 0
-        for key in ("rms_residual", "median_residual", "inlier_threshold"):
+        for key in ("rms_residual", "median_residual", "inlier_threshold", "pose_graph_rms"):
             assert b[key] == pytest.approx(a[key], rel=1e-3), (key, a, b)
+    # a chain: the pose graph keeps the pairwise fits, and its rms is theirs pooled, in the same units
+    for rep in (plain, scaled):
+        pairs = rep["pairs"]
+        assert all(p["pose_graph_rms"] == pytest.approx(p["rms_residual"], rel=1e-6) for p in pairs)
+        pooled = math.sqrt(sum(p["rms_residual"] ** 2 for p in pairs) / len(pairs))
+        assert rep["pose_graph"]["final_rms"] == pytest.approx(pooled, rel=1e-6)
+        assert rep["pose_graph"]["dropped_pairs"] == []
 
 
 def test_a_loop_chunk_too_small_to_align_is_refused_before_the_network_runs():
@@ -285,6 +292,52 @@ def test_loop_closure_chunk_adds_a_cycle_and_owns_nothing():
     for loop in (False, True):
         p = plan_chunks(120, 16, 4, loop=loop)
         chunks, _ = oracle_chunks(w2c, pts, p, seed=0, rot_deg=0.3, centre_noise=0.01, depth_noise=0.01)
-        S, edges, _ = align_chunks(chunks)
+        S, edges, rep = align_chunks(chunks)
         errs.append(camera_errors(_merged_cameras(chunks, S, p), w2c))
+    assert rep["dropped_pairs"] == []  # a consistent loop is used
     assert errs[1]["pos_rel_max"] < errs[0]["pos_rel_max"] and errs[1]["rot_deg_mean"] < errs[0]["rot_deg_mean"]
+
+
+def test_a_loop_over_two_chunks_gets_its_loop_chunk():
+    """28 photos in chunks of 16/4 are 2 chunks: predict_loop was ignored there, silently."""
+    plan = plan_chunks(28, 16, 4, loop=True)
+    assert plan == [list(range(16)), list(range(12, 28)), list(range(20, 28)) + list(range(8))]
+    assert sorted(owners(plan)) == list(range(28)) and all(k < 2 for k in owners(plan).values())
+    w2c, pts = orbit_scene(28, points_per_view=32, arc=1.0)
+    chunks, _ = oracle_chunks(w2c, pts, plan, seed=0, depth_noise=0.003)
+    S, edges, rep = align_chunks(chunks)
+    assert {(e.a, e.b) for e in edges} == {(0, 1), (0, 2), (1, 2)} and rep["dropped_pairs"] == []
+    assert camera_errors(_merged_cameras(chunks, S, plan), w2c)["pos_rel_max"] < 0.01
+    assert plan_chunks(16, 16, 4, loop=True) == [list(range(16))]  # one pass sees both ends already
+
+
+def test_each_spill_file_is_deleted_once_its_rows_are_in_the_ply(tmp_path, monkeypatch):
+    """They stayed until the scene was written: the disk held the spill, the PLY body and the PLY (3x the scene)."""
+    from anycity.geometry.projection import unproject_depth
+
+    h = w = 4
+    w2c, _ = orbit_scene(12)
+    plan = plan_chunks(12, 6, 3)
+    scene = ChunkedScene(plan, [f"im{i}.png" for i in range(12)], (h, w), points_per_side=3, out=tmp_path / "out")
+    K = torch.tensor([[4.0, 0, 2], [0, 4, 2], [0, 0, 1]]).expand(6, 3, 3)
+    depth = 5 + torch.rand(1, 12, 1, h, w, generator=torch.Generator().manual_seed(0))  # one scene for all chunks
+    for k, views in enumerate(plan):
+        g = _gaussians(6 * h * w, seed=k)
+        g.means = unproject_depth(depth[:, views], K[None], w2c[None, views].float()).reshape(1, -1, 3)
+        scene.add(k, g, w2c[views].float(), K)
+    spilled = []
+    write, close = PlyStream.write, PlyStream.close
+
+    def spy_write(self, *args):
+        spilled.append(sorted(p.name for p in scene.spill.glob("chunk_*.pt")))
+        return write(self, *args)
+
+    def spy_close(self):
+        spilled.append(sorted(p.name for p in scene.spill.glob("chunk_*.pt")))
+        return close(self)
+
+    monkeypatch.setattr(PlyStream, "write", spy_write)
+    monkeypatch.setattr(PlyStream, "close", spy_close)
+    scene.finish(tmp_path / "out")
+    names = [f"chunk_{k:05d}.pt" for k in range(3)]
+    assert spilled == [names, names[1:], names[2:], []]
