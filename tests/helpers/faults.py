@@ -1,4 +1,4 @@
-"""Injected faults: a disk that fills up in the middle of a write."""
+"""Injected faults: a disk that fills up in the middle of a write; a shard with some members rewritten."""
 
 from __future__ import annotations
 
@@ -7,6 +7,8 @@ import errno
 import io
 import os
 import sys
+import tarfile
+from pathlib import Path
 
 
 class _HalfThenFull:
@@ -47,3 +49,13 @@ def fail_writes_midway(monkeypatch, name: str) -> None:
 
     monkeypatch.setattr(builtins, "open", fake_open)
     monkeypatch.setattr(io, "open", fake_open)  # pathlib's write_bytes / write_text
+
+
+def rewrite_shard(src: Path, dst: Path, edit) -> Path:
+    """Copy a shard, passing each member's ``(name, bytes)`` through ``edit`` (which returns the new bytes)."""
+    with tarfile.open(src) as a, tarfile.open(dst, "w") as b:
+        for m in a.getmembers():
+            data = edit(m.name, a.extractfile(m).read())
+            m.size = len(data)
+            b.addfile(m, io.BytesIO(data))
+    return dst

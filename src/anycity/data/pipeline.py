@@ -30,35 +30,49 @@ import webdataset as wds
 
 from anycity.data.schema import decode_image, decode_normals, decode_npy, member, read_meta, sample_where
 from anycity.data.tario import NoSampleGuard, tar_samples
-from anycity.data.views import Selection, jpeg_reduction, normalise, resize_plan, resize_view, select_eval, select_train
+from anycity.data.views import (
+    Selection,
+    TooFewViews,
+    jpeg_reduction,
+    normalise,
+    resize_plan,
+    resize_view,
+    select_eval,
+    select_train,
+)
 from anycity.structures import ViewBatch, Views
 
 GROUPS = ("context", "target", "dense")
 
 
 class SkipCounter:
-    """Counts skipped corrupt samples across processes (one append-only log file per process in ``directory``)."""
+    """Counts what was skipped as corrupt across processes (one append-only log file per process in
+    ``directory``): each distinct sample ``(shard, key)`` or failed shard once, however many workers met it and
+    however many times it was read (every validation reads its shards again)."""
 
     def __init__(self, directory: str | Path | None = None) -> None:
         self.directory = Path(directory) if directory else Path(os.environ.get("TMPDIR", "/tmp")) / (
             f"anycity-skips-{uuid.uuid4().hex[:12]}")
 
-    def add(self, where: str, error: BaseException) -> None:
+    def add(self, where: str, error: BaseException, what: str | None = None) -> None:
+        """Note a skip; ``what`` identifies the skipped thing (default ``where``): the same ``what`` counts once."""
         self.directory.mkdir(parents=True, exist_ok=True)
         with open(self.directory / f"skips-{os.getpid()}.log", "a") as f:
-            f.write(json.dumps({"where": where, "error": str(error)[:500]}) + "\n")
+            f.write(json.dumps({"where": where, "error": str(error)[:500], "what": what or where}) + "\n")
 
     @property
     def count(self) -> int:
-        if not self.directory.exists():
-            return 0
-        return sum(len(p.read_text().splitlines()) for p in self.directory.glob("skips-*.log"))
+        return len(self.records())
 
     def records(self) -> list[dict]:
+        """The first record of each distinct skipped thing."""
         if not self.directory.exists():
             return []
         logs = sorted(self.directory.glob("skips-*.log"))
-        return [json.loads(line) for p in logs for line in p.read_text().splitlines()]
+        first: dict[str, dict] = {}
+        for r in (json.loads(line) for p in logs for line in p.read_text().splitlines()):
+            first.setdefault(r.get("what", r["where"]), r)
+        return list(first.values())
 
 
 @contextlib.contextmanager
@@ -198,7 +212,9 @@ class SampleBuilder:
         else:
             with single_thread():
                 out = self._build(sample)
-        check_finite(out, sample_where(sample))  # a NaN camera/depth/image never reaches the loss
+        # a NaN camera/depth never reaches the loss; images (from uint8) and normals (from uint8, or from the depth
+        # and K checked here) cannot be non-finite, and checking them was a third of the build at 448 px
+        check_finite(out, sample_where(sample), skip=("images", "normal"))
         self._built += 1  # only a sample that reaches a batch counts (see train_context_count)
         return out
 
@@ -280,8 +296,8 @@ class SampleBuilder:
 def _normals_from_depth(depth: list | torch.Tensor, mask: torch.Tensor, K: torch.Tensor,
                         dtype: torch.dtype = torch.float32) -> torch.Tensor:
     """V z-depth maps (``[V, 1, H, W]`` or a list of ``[H, W]`` arrays, any units) + validity ``[V, 1, H, W]`` ->
-    camera-frame unit normals ``[V, 3, H, W]`` facing the camera, zero on the border and where the pixel or a
-    4-neighbour is invalid.
+    camera-frame unit normals ``[V, 3, H, W]`` facing the camera, zero (never NaN) on the border and where the pixel
+    or a 4-neighbour is invalid.
 
     The normal of the back-projected surface ``P = z (K^-1 [u, v, 1])`` in closed form from central depth
     differences ``g_u, g_v``: ``n ~ (fx g_u, fy g_v, -((u - cx) g_u + (v - cy) g_v + z))``; it agrees with
@@ -300,7 +316,7 @@ def _normals_from_depth(depth: list | torch.Tensor, mask: torch.Tensor, K: torch
         torch.sub(z[2:], z[:-2], out=gv[1:-1]).mul_(0.5)
         nz = torch.addcmul(z, uu - cx, gu).addcmul_(vv - cy, gv).neg_()
         nx, ny = gu * fx, gv * fy
-        inv = (nx * nx).addcmul_(ny, ny).addcmul_(nz, nz).rsqrt_()
+        inv = (nx * nx).addcmul_(ny, ny).addcmul_(nz, nz).clamp_(min=1e-30).rsqrt_()  # rsqrt(0) = inf: 0 * inf = NaN
         for c, comp in enumerate((nx, ny, nz)):
             n[i, c].copy_(comp.mul_(inv))
     ok = mask.clone()
@@ -310,7 +326,7 @@ def _normals_from_depth(depth: list | torch.Tensor, mask: torch.Tensor, K: torch
     ok[..., :, :-1] &= mask[..., :, 1:]
     ok[..., 0, :] = ok[..., -1, :] = False
     ok[..., :, 0] = ok[..., :, -1] = False
-    return n.mul_(ok)
+    return n.masked_fill_(~ok, 0.0)  # not mul_: a NaN times 0 stays NaN
 
 
 def _alloc(shape: tuple[int, ...], dtype: torch.dtype) -> torch.Tensor:
@@ -372,29 +388,36 @@ def _collate(samples: list[dict]) -> ViewBatch:
     return batch.validate(compact=True)  # shapes and dtypes only: no pass over the pixels
 
 
+def _stream_slot() -> tuple[int, int]:
+    """``(this stream's slot, number of slots)``: one slot per (rank, DataLoader worker)."""
+    rank, world, worker, workers = wds.utils.pytorch_worker_info()
+    return rank * workers + worker, world * workers
+
+
 def _eval_shard(src: Iterator[dict]) -> Iterator[dict]:
     """Keep every (world x workers)-th sample for this (rank, worker): balanced and deterministic."""
-    rank, world, worker, workers = wds.utils.pytorch_worker_info()
-    total, me = world * workers, rank * workers + worker
+    me, total = _stream_slot()
     for i, s in enumerate(src):
         if i % total == me:
             yield s
 
 
-def check_finite(obj, where: str = "sample", path: str = "") -> None:
+def check_finite(obj, where: str = "sample", path: str = "", skip: tuple[str, ...] = ()) -> None:
     """Raise ``ValueError`` naming ``where`` and the field if any floating tensor/array in ``obj`` (nested
-    dicts/lists of a built sample: images, depths, ``w2c``, ``K``...) holds NaN or inf. A view group's ``normal``
-    is checked only where its ``mask`` is valid: normals derived from depth are undefined (NaN) where there is no
-    depth (sky), and no loss reads them there."""
+    dicts/lists of a built sample: images, depths, ``w2c``, ``K``...) holds NaN or inf; dict entries named in
+    ``skip`` are not checked. A view group's ``normal`` is checked only where its ``mask`` is valid: no loss reads
+    normals where there is no depth (sky)."""
     if isinstance(obj, dict):
         mask = obj.get("mask")
         for k, v in obj.items():
+            if k in skip:
+                continue
             if k == "normal" and isinstance(v, torch.Tensor) and isinstance(mask, torch.Tensor):
                 v = v.masked_fill(~mask.bool().expand_as(v), 0.0)
-            check_finite(v, where, f"{path}.{k}" if path else str(k))
+            check_finite(v, where, f"{path}.{k}" if path else str(k), skip)
     elif isinstance(obj, (list, tuple)):
         for i, v in enumerate(obj):
-            check_finite(v, where, f"{path}[{i}]")
+            check_finite(v, where, f"{path}[{i}]", skip)
     elif isinstance(obj, torch.Tensor) and obj.is_floating_point():
         if not bool(torch.isfinite(obj).all()):
             raise ValueError(f"{where}: non-finite values (NaN/inf) in {path or 'tensor'}; fix or drop this sample "
@@ -445,9 +468,13 @@ def make_pipeline(urls: list[str], builder: SampleBuilder, *, train: bool, resam
             raise FileNotFoundError(f"shard {u}: file not found; check the data root or re-run anycity data synth")
 
     def handler(exn: BaseException) -> bool:
+        if isinstance(exn, TooFewViews):  # the settings, not the sample: every sample would be skipped
+            raise exn
         if skip_corrupt:
-            if counter is not None:
-                counter.add("shard", exn)
+            # every evaluation stream reads every shard: only the first one counts a shard's failure, so that the
+            # sum over ranks counts it once
+            if counter is not None and (train or _stream_slot()[0] == 0):
+                counter.add("shard", exn, what=f"shard: {str(exn)[:500]}")
             return True
         if isinstance(exn, (ValueError, FileNotFoundError)) and "shard" in str(exn):
             raise exn
@@ -458,12 +485,15 @@ def make_pipeline(urls: list[str], builder: SampleBuilder, *, train: bool, resam
     def build(sample: dict):
         try:
             out = builder(sample)
+        except TooFewViews as e:
+            raise TooFewViews(f"{sample_where(sample)}: {e}") from None
         except Exception as e:
             msg = str(e) if "shard" in str(e) else f"{sample_where(sample)}: {e}"
             if skip_corrupt:
+                url, key = sample.get("__url__", "?"), sample.get("__key__", "?")
                 if counter is not None:
-                    counter.add(sample_where(sample), e)
-                guard.sample_failed(sample.get("__url__", "?"), sample.get("__key__", "?"), msg)
+                    counter.add(sample_where(sample), e, what=f"{url}\t{key}")
+                guard.sample_failed(url, key, msg)
                 return None
             raise ValueError(msg) from e
         guard.sample_built()
@@ -482,7 +512,8 @@ def make_pipeline(urls: list[str], builder: SampleBuilder, *, train: bool, resam
     stages.append(functools.partial(tar_samples, handler=handler, guard=guard))
     if not train:
         stages.append(_eval_shard)
-    elif shuffle > 1:
+    stages.append(guard.kept)  # after the evaluation share: the guard waits only for this stream's own samples
+    if train and shuffle > 1:
         stages.append(wds.shuffle(shuffle, initial=min(shuffle, 4), rng=shuffle_rng))
     stages += [wds.map(build, handler=handler), _flatten]
     pipe = wds.DataPipeline(*stages)

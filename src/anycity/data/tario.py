@@ -95,10 +95,14 @@ class NoSampleGuard:
 
     - each of the split's shards has been seen to be unreadable, empty, or to hold no webdataset sample (which
       :func:`tar_samples` decides within the shard, so nothing buffered downstream can change it), or
-    - no sample has ever built, every shard has been read to its end, and every sample read has failed to build
-      at least ``attempts`` times. A sample still in the shuffle buffer has not failed yet, so the rule cannot
-      race it; ``attempts`` > 1 because a training sample picks random views, and a sample with one bad view
-      fails only when that view is picked.
+    - no sample has ever built, every shard has been read to its end, and every sample this stream keeps has
+      failed to build at least ``attempts`` times. A sample still in the shuffle buffer has not failed yet, so the
+      rule cannot race it; ``attempts`` > 1 because a training sample picks random views, and a sample with one bad
+      view fails only when that view is picked.
+
+    A stream counts every sample it reads (:meth:`sample_read`: does a shard give samples at all?) but waits only
+    for those it keeps (:meth:`kept`, after an evaluation stream's share of the samples): another worker's or
+    rank's samples never fail here, and waiting for them let a stream whose every sample failed end quietly.
     """
 
     def __init__(self, urls: Iterable[str], attempts: int = 3) -> None:
@@ -115,8 +119,13 @@ class NoSampleGuard:
 
     def sample_read(self, url: str, key: str) -> None:
         self.read[url] = self.read.get(url, 0) + 1
-        if not self.built:
-            self.build_fails.setdefault((url, key), 0)
+
+    def kept(self, samples: Iterable[dict]) -> Iterator[dict]:
+        """webdataset stage: the samples this stream builds, each noted as one that must build or fail."""
+        for s in samples:
+            if not self.built:
+                self.build_fails.setdefault((s.get("__url__", "?"), s.get("__key__", "?")), 0)
+            yield s
 
     def sample_built(self) -> None:
         self.built += 1

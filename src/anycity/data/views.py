@@ -22,6 +22,11 @@ import torch
 from anycity.geometry import camera_centers, crop_intrinsics, invert_rigid, rescale_intrinsics, unproject_depth
 
 
+class TooFewViews(ValueError):
+    """A training window too short for the distinct context + target views asked of it: a setting to change, so
+    ``skip_corrupt`` does not skip it as a corrupt sample."""
+
+
 @dataclass
 class Selection:
     """Trajectory positions of one sample's views."""
@@ -49,17 +54,26 @@ def _spread(pool: list[int], k: int) -> list[int]:
 
 def select_train(n: int, num_context: int, num_targets: int, num_dense: int, rng: np.random.Generator,
                  window: int | None = None) -> Selection:
-    """Random selection inside a sliding window of ``window`` consecutive views (default 2 x the largest set)."""
+    """Random selection inside a sliding window of ``window`` consecutive views (default 2 x the largest set).
+
+    Context and target views are always distinct (a target is a novel view); the dense set may repeat views. Raises
+    :class:`TooFewViews` when the window cannot hold ``num_context + num_targets`` distinct views.
+    """
     if n < 2:
         raise ValueError(f"view selection: a sample needs >= 2 views, got {n}")
     L = min(n, window or 2 * max(num_context + num_targets, num_dense))
+    if num_context + num_targets > L:
+        raise TooFewViews(f"view selection: a {L}-view training window cannot hold {num_context} context + "
+                         f"{num_targets} target views, all distinct; use at most {L - num_targets} context views "
+                         f"(num_context / train_num_context), fewer num_targets, or longer windows (data.window, "
+                         f"anycity data synth|convert --window)")
     start = int(rng.integers(0, n - L + 1))
     win = list(range(start, start + L))
     edges = np.linspace(0, L, num_context + 1)
     ctx = sorted({win[int(rng.integers(int(a), max(int(a) + 1, int(b))))] for a, b in zip(edges[:-1], edges[1:])})
     ctx = ctx + _pick(rng, [i for i in win if i not in ctx], num_context - len(ctx)) if len(ctx) < num_context else ctx
     rest = [i for i in win if i not in ctx]
-    tgt = _pick(rng, rest or win, num_targets)
+    tgt = _pick(rng, rest, num_targets)
     dense = _pick(rng, [i for i in win if i not in tgt] or win, num_dense)
     return Selection(sorted(ctx), tgt, dense)
 

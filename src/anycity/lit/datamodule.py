@@ -21,7 +21,7 @@ from torch.utils.data import DataLoader
 
 from anycity.data.photos import scene_name
 from anycity.data.pipeline import SampleBuilder, SkipCounter, collate, context_count_probs, make_pipeline, to_float32
-from anycity.data.writer import shard_urls
+from anycity.data.writer import read_index, shard_urls
 from anycity.structures import ViewBatch
 
 
@@ -49,15 +49,16 @@ def _collate_photos(items: list[dict]) -> dict:
 
 
 class _IgnoreSignalsInWorkers:
-    """DataLoader ``worker_init_fn``: a worker ignores SIGUSR1 and takes SIGTERM's default action, then runs
-    ``then`` (an earlier ``worker_init_fn``) if given, else Lightning's worker seeding when
-    ``seed_everything(workers=True)`` asked for it (Lightning adds that only to a loader without a ``worker_init_fn``).
+    """DataLoader ``worker_init_fn``: a worker ignores SIGUSR1, then runs ``then`` (an earlier ``worker_init_fn``) if
+    given, else Lightning's worker seeding when ``seed_everything(workers=True)`` asked for it (Lightning adds that
+    only to a loader without a ``worker_init_fn``).
 
     A forked worker inherits Lightning's handlers: on SLURM's SIGUSR1 (sent to every process of the step) each worker
-    would save an HPC checkpoint from its stale copy of the trainer and run ``scontrol requeue``; on SIGTERM it would
-    run Lightning's handler (a collective call in a worker). SIGTERM is not ignored: torch ends a loader's workers
-    with it (``terminate()``), and a process whose workers ignore it hangs at exit. A module-level class, so spawned
-    workers can unpickle it."""
+    would save an HPC checkpoint from its stale copy of the trainer and run ``scontrol requeue``. SIGTERM keeps torch's
+    own worker handler, installed before this runs (so Lightning's never runs in a worker): it exits quietly when the
+    loader's process ends the worker (``terminate()``) and dies by the signal otherwise. Ignored, workers outlived
+    ``terminate()`` and hung the exit; reset to the default action, each died by the signal and torch printed "worker
+    killed by signal: Terminated" at exit. A module-level class, so spawned workers can unpickle it."""
 
     def __init__(self, then=None, rank: int | None = None) -> None:
         self.then, self.rank = then, rank
@@ -65,7 +66,6 @@ class _IgnoreSignalsInWorkers:
     def __call__(self, worker_id: int) -> None:
         if hasattr(signal, "SIGUSR1"):  # not on Windows
             signal.signal(signal.SIGUSR1, signal.SIG_IGN)
-        signal.signal(signal.SIGTERM, signal.SIG_DFL)
         if self.then is not None:
             self.then(worker_id)
         elif int(os.environ.get("PL_SEED_WORKERS", 0)):
@@ -183,6 +183,7 @@ class AerialDataModule(pl.LightningDataModule):
             raise ValueError(f"predict_order: expected 'auto', 'time', 'name' or 'tokens', got {predict_order!r}")
         if len(image_size) != 2 or min(image_size) < 8:
             raise ValueError(f"image_size: expected [H, W] with sides >= 8, got {image_size!r}")
+        _check_epoch(epoch_samples, num_workers, batch_size)
         if (isinstance(root, str) and predict_images is None and "://" not in root and "{" not in root
                 and not Path(root).exists()):
             # here, not when the first batch is read: before the run writes its config and logs (a predict from
@@ -196,12 +197,12 @@ class AerialDataModule(pl.LightningDataModule):
 
     def _urls(self, split: str) -> list[str]:
         spec = {"train": self.hp.train_shards, "val": self.hp.val_shards, "test": self.hp.test_shards}[split]
+        if spec is None and split != "train":
+            _check_root_names_splits(self.hp.root, split)
         urls = _expand(spec if spec is not None else self.hp.root, split)
         if not urls:
             where = spec if spec is not None else self.hp.root
             if isinstance(where, str) and (Path(where) / "index.json").is_file():
-                from anycity.data.writer import read_index
-
                 has = {k: len(v) for k, v in read_index(where)["splits"].items() if v}
                 skip = {"val": "; or skip validation with --trainer.limit_val_batches 0", "train": ""}.get(split, "")
                 raise ValueError(f"{split} shards: {Path(where) / 'index.json'} lists none (it has "
@@ -239,9 +240,8 @@ class AerialDataModule(pl.LightningDataModule):
     def train_dataloader(self) -> DataLoader:
         # resumed (``--ckpt_path``): start at the interrupted run's epoch and skip the samples it already trained on
         # in it, so the resumed run sees the stream an uninterrupted one would (exact with num_workers=0)
-        t = self.trainer
-        done = 0 if t is None else t.global_step * t.accumulate_grad_batches
-        epoch = 0
+        self._check_windows()
+        done, epoch = _batches_trained(self.trainer), 0
         if done and self.hp.epoch_samples:
             workers = max(1, self.hp.num_workers)  # each worker drops its own last partial batch
             per_epoch = workers * (math.ceil(self.hp.epoch_samples / workers) // self.hp.batch_size)
@@ -253,6 +253,22 @@ class AerialDataModule(pl.LightningDataModule):
                                 persistent_workers=loader.persistent_workers, pin_memory=loader.pin_memory,
                                 drop_last=loader.drop_last, worker_init_fn=worker_init_fn(loader.worker_init_fn))
         return loader
+
+    def _check_windows(self) -> None:
+        """Refuse, before training starts, context + target counts that a training window of the shards' index (or
+        ``window``) cannot hold as distinct views (select_train refuses the sample otherwise)."""
+        hi = max(self.hp.train_num_context or [self.hp.num_context])
+        need = int(hi) + self.hp.num_targets
+        spec = self.hp.train_shards if self.hp.train_shards is not None else self.hp.root
+        short = _shortest_train_sample(spec)
+        if self.hp.window is not None and (short is None or self.hp.window < short[0]):
+            short = (self.hp.window, "data.window")
+        if short is not None and need > short[0]:
+            n, where = short
+            raise ValueError(f"train_num_context/num_context: up to {hi} context + {self.hp.num_targets} target "
+                             f"views do not fit the {n}-view training windows of {where}, so targets would repeat or "
+                             f"be context views; use at most {n - self.hp.num_targets} context views, fewer "
+                             "num_targets, or longer windows (anycity data synth|convert --window, data.window)")
 
     def val_dataloader(self) -> DataLoader:
         return self._loader("val")
@@ -315,6 +331,46 @@ class AerialDataModule(pl.LightningDataModule):
                                f"see {self.skip_counter.directory}")
                 self._reported = n
         return batch
+
+
+def _check_epoch(epoch_samples: int | None, num_workers: int, batch_size: int) -> None:
+    """Refuse an epoch whose samples leave each worker less than one whole batch: with ``drop_last`` the epoch would
+    have no batch, and Lightning would run empty epochs forever."""
+    workers = max(1, num_workers)
+    if epoch_samples and math.ceil(epoch_samples / workers) < batch_size:
+        raise ValueError(f"epoch_samples: {epoch_samples} samples over num_workers {num_workers} leave each worker "
+                         f"fewer than batch_size {batch_size}, so every training epoch would have no batch; set "
+                         f"epoch_samples >= {workers * batch_size} (num_workers x batch_size) or lower num_workers or "
+                         "batch_size")
+
+
+def _check_root_names_splits(root: str | None, split: str) -> None:
+    """Refuse a ``root`` that is a shard file or pattern for an evaluation split: it names no split, so validation
+    and testing would read the training shards."""
+    if isinstance(root, str) and ("://" in root or not Path(root).is_dir()):
+        raise ValueError(f"{split} shards: data.root {root} is a shard file or pattern, not a folder with index.json, "
+                         f"so it names no {split} set ({split} would read the training shards); pass "
+                         f"--data.{split}_shards FOLDER_OR_PATTERN, or point data.root at a folder written by anycity "
+                         "data synth|convert")
+
+
+def _shortest_train_sample(spec: str | list[str] | None) -> tuple[int, str] | None:
+    """``(views, folder)`` of the shortest training sample that the index.json of ``spec``'s shard folders lists;
+    None when ``spec`` names no folder."""
+    found = []
+    for folder in spec if isinstance(spec, (list, tuple)) else [spec]:
+        if isinstance(folder, str) and "://" not in folder and Path(folder).is_dir():
+            views = [int(s["num_views"]) for s in read_index(folder).get("samples", []) if s.get("split") == "train"]
+            found += [(min(views), folder)] if views else []
+    return min(found, default=None)
+
+
+def _batches_trained(trainer) -> int:
+    """Training batches a resumed fit already took from its loader, all epochs (0 for a fresh fit): Lightning's
+    restored loop progress. Not ``global_step x accumulate_grad_batches``: Lightning also steps on an epoch's last
+    batch, whatever the accumulation."""
+    loop = getattr(getattr(trainer, "fit_loop", None), "epoch_loop", None)
+    return 0 if loop is None else int(loop.batch_progress.total.processed)
 
 
 class _SkipFirst(torch.utils.data.IterableDataset):

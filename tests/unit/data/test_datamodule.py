@@ -7,11 +7,21 @@ from pathlib import Path
 import pytest
 import torch
 import webdataset as wds
+from helpers.faults import rewrite_shard
 
 from anycity.data.pipeline import SampleBuilder, make_pipeline
 from anycity.data.writer import read_index, shard_urls
 from anycity.lit.datamodule import AerialDataModule
 from anycity.structures import ViewBatch
+
+
+def resumed_after(batches: int):
+    """A trainer as Lightning restores it from a checkpoint taken after ``batches`` training batches (all epochs)."""
+    from types import SimpleNamespace
+
+    total = SimpleNamespace(processed=batches)
+    return SimpleNamespace(fit_loop=SimpleNamespace(epoch_loop=SimpleNamespace(batch_progress=SimpleNamespace(
+        total=total))))
 
 
 def _dm(root, **kw):
@@ -122,23 +132,13 @@ def test_a_stream_whose_every_shard_fails_stops_with_one_line(synth_root, tmp_pa
         assert len(list(pipe)) == 6
 
 
-def _rewrite(src: Path, dst: Path, edit) -> Path:
-    """Copy a shard, passing each member's ``(name, bytes)`` through ``edit`` (which returns the new bytes)."""
-    with tarfile.open(src) as a, tarfile.open(dst, "w") as b:
-        for m in a.getmembers():
-            data = edit(m.name, a.extractfile(m).read())
-            m.size = len(data)
-            b.addfile(m, io.BytesIO(data))
-    return dst
-
-
 @pytest.mark.timeout(60)
 def test_a_stream_whose_every_sample_fails_to_build_stops_with_one_line(synth_root, tmp_path):
     """Readable shards whose every sample fails to build (here: a cameras.json of another schema) streamed nothing
     forever with skip_corrupt; now they stop once every sample has failed 3 times (once, at the end of a finite
     stream). A sample that fails only for some view picks, and a split with one good shard, still stream."""
     good = shard_urls(synth_root, "train")
-    bad = [_rewrite(Path(u), tmp_path / f"bad{i}.tar",
+    bad = [rewrite_shard(Path(u), tmp_path / f"bad{i}.tar",
                     lambda n, b: b'{"scene": "x"}' if n.endswith("cameras.json") else b) for i, u in enumerate(good)]
     n = sum(1 for u in bad for m in tarfile.open(u).getnames() if m.endswith("cameras.json"))
     pipe = make_pipeline([str(u) for u in bad], SampleBuilder(2, 1, 0, (16, 16)), train=True, epoch_samples=4,
@@ -154,7 +154,7 @@ def test_a_stream_whose_every_sample_fails_to_build_stops_with_one_line(synth_ro
                           epoch_samples=12, skip_corrupt=True)
     assert len(list(mixed)) == 12
     # one view of every sample is garbage: a sample builds whenever its picks miss that view
-    one_bad = [_rewrite(Path(u), tmp_path / f"one_bad{i}.tar",
+    one_bad = [rewrite_shard(Path(u), tmp_path / f"one_bad{i}.tar",
                         lambda n, b: b"garbage" if n.endswith(".003.jpg") else b)
                for i, u in enumerate(good)]
     assert any(b"garbage" in Path(u).read_bytes() for u in one_bad)
@@ -265,7 +265,6 @@ def test_a_photo_folder_is_predicted_in_one_process(tmp_path):
 def test_a_resumed_run_sees_the_uninterrupted_stream_in_any_epoch(synth_root):
     """Resumed at any step (``--ckpt_path``), the training stream continues as the uninterrupted run's did: the same
     epoch's shard draws, shuffle and view choices, from the same position, and the epochs after it too."""
-    from types import SimpleNamespace
 
     def signature(b):
         ctx = b.context
@@ -277,7 +276,7 @@ def test_a_resumed_run_sees_the_uninterrupted_stream_in_any_epoch(synth_root):
     assert all(len(e) == 4 for e in epochs) and epochs[0] != epochs[1] != epochs[2]
     for step in (2, 4, 6):
         resumed = _dm(synth_root, batch_size=1, num_dense=0)
-        resumed.trainer = SimpleNamespace(global_step=step, accumulate_grad_batches=1)
+        resumed.trainer = resumed_after(step)
         loader = resumed.train_dataloader()
         epoch, pos = divmod(step, 4)
         assert [signature(b) for b in loader] == epochs[epoch][pos:], step
@@ -335,8 +334,6 @@ def test_two_workers_reading_one_shard_shuffle_it_differently(synth_root, monkey
 def test_a_run_resumed_with_workers_and_varied_context_counts_skips_whole_batches(synth_root):
     """Resumed at step 3 with 2 workers and batches of 3: splitting 9 samples over the workers cut a batch, and
     ``train_num_context`` (one count per batch) then failed to collate."""
-    from types import SimpleNamespace
-
     def signatures(dm):
         return sorted((tuple(b.scene), b.context.num_views, round(b.context.images.sum().item(), 3))
                       for b in dm.train_dataloader())
@@ -344,7 +341,7 @@ def test_a_run_resumed_with_workers_and_varied_context_counts_skips_whole_batche
     kw = dict(batch_size=3, num_dense=0, num_workers=2, epoch_samples=24, train_num_context=(2, 4))
     whole = _dm(synth_root, **kw)
     resumed = _dm(synth_root, **kw)
-    resumed.trainer = SimpleNamespace(global_step=3, accumulate_grad_batches=1)
+    resumed.trainer = resumed_after(3)
     loader = whole.train_dataloader()
     batches = [(tuple(b.scene), b.context.num_views, round(b.context.images.sum().item(), 3)) for b in loader]
     assert len(batches) == 8

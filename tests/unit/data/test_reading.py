@@ -149,3 +149,22 @@ def test_resampled_single_sample_shard_repeats(tmp_path):
     pipe = make_pipeline(shard_urls(tmp_path, "train"), SampleBuilder(1, 1, 0, (8, 8), with_depth=False),
                          train=True, epoch_samples=3, shuffle=0)
     assert [s["scene"] for s in pipe] == ["one"] * 3
+
+
+def test_derived_normals_are_zero_not_nan_where_there_is_no_depth():
+    """rsqrt(0) = inf and 0 x inf = NaN: pixels without depth (sky) got NaN normals, which poisoned any sum of
+    ``normal * mask``; they are zero, as the docstring and docs/design.md say."""
+    z = torch.zeros(1, 1, 6, 6)
+    z[..., 3:, :] = 5.0
+    K = torch.tensor([[[10.0, 0, 3], [0, 10, 3], [0, 0, 1]]])
+    n = _normals_from_depth(z, z > 0, K)
+    assert torch.isfinite(n).all() and (n[..., :4, :] == 0).all()
+    depth = np.full((16, 16), 10.0, np.float32)
+    depth[:8] = 0.0  # the top half is sky
+    views = [ViewRecord(name=f"{i}.png", image=np.full((16, 16, 3), 9 * i, np.uint8), w2c=np.eye(4),
+                        K=np.array([[16.0, 0, 8], [0, 16, 8], [0, 0, 1]]), width=16, height=16, depth=depth, ext="png")
+             for i in range(3)]
+    sample = encode_scene(SceneRecord(key="sky", views=views, source="t", units="m"), "test")
+    ctx = SampleBuilder(2, 1, 0, (16, 16), train=False, with_normals=True)(sample)[0]["context"]
+    assert torch.isfinite(ctx["normal"]).all() and (ctx["normal"] * ctx["mask"]).sum().isfinite()
+    assert (ctx["normal"][:, :, :9] == 0).all() and (ctx["normal"][:, 2, 10:-1, 1:-1] != 0).all()

@@ -9,12 +9,39 @@ from anycity.geometry import camera_centers, project_points, transform_points, u
 
 def test_select_train_fixed_sizes():
     rng = np.random.default_rng(0)
-    for n in (6, 24, 48):
+    for n in (7, 24, 48):
         s = select_train(n, 4, 3, 12, rng)
         assert (len(s.context), len(s.target), len(s.dense)) == (4, 3, 12)
-        assert not set(s.context) & set(s.target) or n < 7
+        assert not set(s.context) & set(s.target)
         assert not set(s.target) & set(s.dense) or n < 15
         assert max(s.context + s.target + s.dense) - min(s.context + s.target + s.dense) < 2 * 15
+
+
+def test_targets_are_never_context_views_or_repeats():
+    """With the context filling the window (train_num_context [2, 24] on 24-view windows: 17-41% of batches), targets
+    silently became context views or repeated; now every count that fits gives distinct novel targets, and one that
+    does not is refused in one line naming the largest context count that fits."""
+    rng = np.random.default_rng(0)
+    for nc in range(1, 21):
+        for _ in range(20):
+            s = select_train(24, nc, 4, 0, rng)
+            assert len(set(s.target)) == 4 and not set(s.target) & set(s.context) and len(set(s.context)) == nc
+    for nc in (21, 22, 24):
+        with pytest.raises(ValueError, match=rf"^view selection: a 24-view training window cannot hold {nc} context "
+                                              r"\+ 4 target views.*use at most 20 context views[^\n]*$") as e:
+            select_train(24, nc, 4, 0, rng)
+        assert type(e.value).__name__ == "TooFewViews"  # a setting: skip_corrupt does not skip it
+
+
+def test_select_train_draws_where_the_window_fits_are_unchanged():
+    """The draws the quickstart's stream is made of (same seed, same picks) as before the refusal above."""
+    rng = np.random.default_rng(7)
+    got = [vars(select_train(n, nc, nt, nd, rng)) for n, nc, nt, nd in ((24, 4, 2, 6), (24, 4, 2, 6), (24, 2, 4, 0),
+                                                                         (8, 4, 4, 3))]
+    assert got == [dict(context=[13, 17, 20, 22], target=[19, 21], dense=[12, 13, 18, 20, 22, 23]),
+                   dict(context=[8, 9, 13, 15], target=[10, 14], dense=[8, 9, 11, 12, 16, 17]),
+                   dict(context=[9, 12], target=[5, 11, 14, 15], dense=[]),
+                   dict(context=[0, 2, 4, 7], target=[1, 3, 5, 6], dense=[0, 2, 7])]
 
 
 def test_select_eval_llffhold():

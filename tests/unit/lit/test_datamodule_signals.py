@@ -1,5 +1,6 @@
-"""DataLoader workers of AerialDataModule ignore SIGUSR1 and take SIGTERM's default action: only the main process
-answers SLURM's signals, and a process that leaves a loader unfinished still exits."""
+"""DataLoader workers of AerialDataModule ignore SIGUSR1 and keep torch's own SIGTERM handler: only the main process
+answers SLURM's signals, a process that leaves a loader unfinished still exits, and a worker its loader ends exits
+quietly."""
 
 import pickle
 import signal
@@ -14,8 +15,7 @@ from anycity.lit.datamodule import AerialDataModule
 
 class _ReportSignals(torch.utils.data.IterableDataset):
     def __iter__(self):
-        yield torch.tensor([signal.getsignal(signal.SIGUSR1) is signal.SIG_IGN,
-                            signal.getsignal(signal.SIGTERM) is signal.SIG_DFL])
+        yield torch.tensor([signal.getsignal(signal.SIGUSR1) is signal.SIG_IGN])
 
 
 def _lightning_like_handler(signum, frame):  # what a forked worker would otherwise inherit
@@ -34,7 +34,9 @@ def _dm(root):
 def test_every_loader_gives_its_workers_a_picklable_init_that_ignores_slurm_signals(tmp_path):
     dm = _dm(tmp_path)
     loaders = [dm.train_dataloader(), dm.val_dataloader(), dm.test_dataloader()]
-    dm.trainer = SimpleNamespace(global_step=3, accumulate_grad_batches=1)  # a resumed fit: the _SkipFirst loader
+    total = SimpleNamespace(processed=3)  # a resumed fit (Lightning's restored loop progress): the _SkipFirst loader
+    dm.trainer = SimpleNamespace(fit_loop=SimpleNamespace(epoch_loop=SimpleNamespace(batch_progress=SimpleNamespace(
+        total=total))))
     loaders.append(dm.train_dataloader())
     assert loaders[-1].dataset.batches == 3
     old = {s: signal.signal(s, _lightning_like_handler) for s in (signal.SIGUSR1, signal.SIGTERM)}
@@ -43,11 +45,36 @@ def test_every_loader_gives_its_workers_a_picklable_init_that_ignores_slurm_sign
             init = pickle.loads(pickle.dumps(loader.worker_init_fn))  # spawned workers get it pickled
             seen = list(torch.utils.data.DataLoader(_ReportSignals(), batch_size=None, num_workers=1,
                                                     worker_init_fn=init))
-            assert [t.tolist() for t in seen] == [[True, True]]
+            assert [t.tolist() for t in seen] == [[True]]
         assert signal.getsignal(signal.SIGUSR1) is _lightning_like_handler  # the main process keeps its handler
     finally:
         for s, h in old.items():
             signal.signal(s, h)
+
+
+def test_a_worker_its_loader_terminates_exits_quietly():
+    """The init reset SIGTERM to its default action, replacing torch's worker handler (exit 0 when the loader's
+    process sends it): workers then died by the signal, and torch printed 'DataLoader worker killed by signal:
+    Terminated' at exit. Lightning's handler, inherited at fork, must not run in the worker either."""
+    code = """
+import itertools, os, signal, torch
+from anycity.lit.datamodule import worker_init_fn
+class Forever(torch.utils.data.IterableDataset):
+    def __iter__(self):
+        return (torch.zeros(1) for _ in itertools.count())
+def lightning_like(signum, frame):
+    os._exit(3)
+signal.signal(signal.SIGTERM, lightning_like)
+it = iter(torch.utils.data.DataLoader(Forever(), batch_size=None, num_workers=1, worker_init_fn=worker_init_fn()))
+next(it)
+w = it._workers[0]
+os.kill(w.pid, signal.SIGTERM)
+w.join(20)
+print("worker exit code", w.exitcode, flush=True)
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert "worker exit code 0" in out.stdout, (out.stdout, out.stderr[-2000:])
+    assert "killed by signal" not in out.stderr, out.stderr[-2000:]
 
 
 def test_the_init_runs_an_earlier_worker_init_fn_too():

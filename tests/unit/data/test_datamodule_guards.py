@@ -1,0 +1,197 @@
+"""Settings and streams that used to fail quietly: an epoch with no batch, an evaluation whose every sample fails
+under several workers, a shard pattern as data.root read as val/test, windows too short for distinct targets, skip
+counts of events instead of things, resuming with gradient accumulation, and data work nothing reads."""
+
+import tarfile
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+from helpers.faults import rewrite_shard
+
+from anycity.data.pipeline import SampleBuilder, SkipCounter, make_pipeline
+from anycity.data.writer import shard_urls
+from anycity.lit.datamodule import AerialDataModule
+
+CONFIGS = Path(__file__).resolve().parents[3] / "configs"
+
+
+def _dm(root, **kw):
+    args = dict(root=str(root), image_size=(32, 32), num_context=2, num_dense=0, num_targets=2, batch_size=1,
+                num_workers=0, epoch_samples=4, seed=1)
+    args.update(kw)
+    return AerialDataModule(**args)
+
+
+def _unbuildable(synth_root, tmp_path, split: str) -> list[str]:
+    """The split's shards with every sample's cameras.json replaced: no sample builds."""
+    return [str(rewrite_shard(Path(u), tmp_path / f"bad{i}.tar", lambda n, b: b'{"scene": "x"}'
+                         if n.endswith("cameras.json") else b)) for i, u in enumerate(shard_urls(synth_root, split))]
+
+
+@pytest.mark.parametrize("epoch_samples,workers,batch", [(16, 4, 8), (7, 0, 8), (5, 2, 4)])
+def test_an_epoch_that_leaves_a_worker_no_whole_batch_is_refused(synth_root, epoch_samples, workers, batch):
+    """Each worker's share smaller than a batch: drop_last left every epoch empty and Lightning looped forever."""
+    with pytest.raises(ValueError, match=rf"^epoch_samples: {epoch_samples} samples over num_workers {workers} leave "
+                                         rf"each worker fewer than batch_size {batch}.*epoch_samples >= "
+                                         rf"{max(1, workers) * batch} \(num_workers x batch_size\)[^\n]*$"):
+        _dm(synth_root, epoch_samples=epoch_samples, num_workers=workers, batch_size=batch)
+    _dm(synth_root, epoch_samples=max(1, workers) * batch, num_workers=workers, batch_size=batch)
+
+
+@pytest.mark.timeout(120)
+def test_an_eval_stream_whose_every_sample_fails_stops_with_two_workers(synth_root, tmp_path, monkeypatch):
+    """Each worker waited for the samples it hands to the others too (they never fail there), so with 2+ workers or
+    ranks the stream ended quietly with no batch."""
+    bad = _unbuildable(synth_root, tmp_path, "train")  # trajectory windows: several samples, so each worker has some
+    for worker in (0, 1):  # webdataset reads WORKER / NUM_WORKERS as a DataLoader worker's id
+        monkeypatch.setenv("WORKER", str(worker))
+        monkeypatch.setenv("NUM_WORKERS", "2")
+        pipe = make_pipeline(bad, SampleBuilder(2, 1, 0, (16, 16), train=False), train=False, skip_corrupt=True)
+        with pytest.raises(ValueError, match=r"^shards: none of the \d+ sample\(s\) in the \d+ shard\(s\) builds, "
+                                             r"tried 1 time\(s\) each"):
+            list(pipe)
+    monkeypatch.delenv("WORKER")
+    monkeypatch.delenv("NUM_WORKERS")
+    dm = _dm(synth_root, test_shards=bad, num_workers=2)
+    with pytest.raises(ValueError, match=r"none of the \d+ sample\(s\) in the \d+ shard\(s\) builds"):
+        list(dm.test_dataloader())
+
+
+def test_a_shard_pattern_as_root_is_not_read_as_val_or_test(synth_root):
+    """A pattern or file names no split: val and test read the training shards without a word."""
+    train = shard_urls(synth_root, "train")
+    for root in (train[0], str(Path(train[0]).parent / "train-{000000..000000}.tar")):
+        dm = _dm(root)
+        assert len(list(dm.train_dataloader())) == 4
+        for split in ("val", "test"):
+            with pytest.raises(ValueError, match=rf"^{split} shards: data.root .* is a shard file or pattern, not a "
+                                                 rf"folder with index.json.* pass --data.{split}_shards [^\n]*$"):
+                getattr(dm, f"{split}_dataloader")()
+    dm = _dm(train[0], val_shards=shard_urls(synth_root, "val"))
+    assert len(list(dm.val_dataloader())) > 0
+
+
+def test_context_and_target_counts_a_window_cannot_hold_are_refused_at_the_loader(synth_root):
+    """The fixture's training windows hold 8 views: up to 7 context + 2 targets would repeat targets or score
+    context views as novel ones; refused when the training loader is built, naming the largest count that fits."""
+    with pytest.raises(ValueError, match=r"^train_num_context/num_context: up to 7 context \+ 2 target views do not "
+                                         r"fit the 8-view training windows of .*use at most 6 context views[^\n]*$"):
+        _dm(synth_root, train_num_context=[2, 7]).train_dataloader()
+    with pytest.raises(ValueError, match=r"up to 4 context \+ 2 target views do not fit the 5-view training windows "
+                                         r"of data.window"):
+        _dm(synth_root, num_context=4, window=5).train_dataloader()
+    assert len(list(_dm(synth_root, train_num_context=[2, 6]).train_dataloader())) == 4
+    # shards without an index: the sample is refused, not skipped as a corrupt one
+    pipe = make_pipeline(shard_urls(synth_root, "train"), SampleBuilder(7, 2, 0, (16, 16)), train=True,
+                         epoch_samples=2, skip_corrupt=True)
+    with pytest.raises(ValueError, match=r"shard .* sample .*: view selection: a 8-view training window cannot hold"):
+        list(pipe)
+
+
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize("workers", [0, 2])
+def test_a_bad_shard_counts_once_however_many_workers_and_validations_read_it(synth_root, tmp_path, workers):
+    """Skips were events: one unreadable shard counted once per worker, and again at every validation."""
+    junk = tmp_path / "val-junk.tar"
+    junk.write_bytes(b"this is not a tar file" * 100)
+    windows = shard_urls(synth_root, "train")[0]  # several samples: one fails, the others build
+    bad_sample = rewrite_shard(Path(windows), tmp_path / "val-one-bad.tar", lambda n, b: b'{"scene": "x"}'
+                          if n.endswith("cameras.json") and n.startswith(_first_key(windows)) else b)
+    dm = _dm(synth_root, val_shards=[str(junk), str(bad_sample)], num_workers=workers)
+    loader = dm.val_dataloader()
+    for _ in range(2):  # two validations (persistent workers, as Lightning runs them)
+        assert len(list(loader)) > 0
+    assert dm.num_skipped == 2  # the junk shard and the sample
+    assert len(dm.skip_counter.records()) == 2
+
+
+def _first_key(url: str) -> str:
+    with tarfile.open(url) as t:
+        return next(n for n in t.getnames() if n.endswith("cameras.json")).split(".")[0]
+
+
+def test_the_skip_counter_counts_things_not_events(tmp_path):
+    c = SkipCounter(tmp_path)
+    for _ in range(3):
+        c.add("shard a sample k", ValueError("bad"), what="a\tk")
+    c.add("shard", ValueError("shard b: unreadable"), what="shard: b")
+    assert c.count == 2 and [r["where"] for r in c.records()] == ["shard a sample k", "shard"]
+
+
+@pytest.mark.timeout(300)
+@pytest.mark.parametrize("resume_step", [4, 5])
+def test_a_run_resumed_with_gradient_accumulation_continues_at_its_batch(synth_root, tmp_path, resume_step):
+    """accumulate_grad_batches 3, 10 batches an epoch: Lightning steps on batches 3, 6, 9 and the epoch's last, so
+    global_step x 3 overcounted the batches trained (step 4 = the end of epoch 0 resumed at batch 2 of epoch 1, step 5
+    at batch 5 instead of 3). The resumed run must see what the uninterrupted one saw after that step."""
+    import lightning.pytorch as pl
+    from lightning.pytorch.callbacks import ModelCheckpoint
+
+    class Recorder(pl.LightningModule):
+        def __init__(self):
+            super().__init__()
+            self.w = torch.nn.Parameter(torch.zeros(1))
+            self.seen = []
+
+        def training_step(self, batch, i):
+            self.seen.append((batch.scene[0], batch.context.index[0].tolist(), round(batch.context.images.sum().item(),
+                                                                                      3)))
+            return (self.w * batch.context.images.mean() + self.w ** 2).sum()
+
+        def configure_optimizers(self):
+            return torch.optim.SGD(self.parameters(), lr=0.1)
+
+    def fit(max_steps, ckpt_path=None, callbacks=()):
+        trainer = pl.Trainer(accelerator="cpu", devices=1, max_steps=max_steps, accumulate_grad_batches=3,
+                             logger=False, enable_progress_bar=False, enable_model_summary=False,
+                             limit_val_batches=0, num_sanity_val_steps=0, callbacks=list(callbacks),
+                             enable_checkpointing=bool(callbacks), default_root_dir=tmp_path)
+        module = Recorder()
+        trainer.fit(module, datamodule=_dm(synth_root, epoch_samples=10), ckpt_path=ckpt_path)
+        return module.seen
+
+    whole = fit(10)
+    assert len(whole) == 26  # epochs of 10 batches, 4 steps each; steps 9 and 10 at batches 23 and 26
+    ckpt = ModelCheckpoint(dirpath=tmp_path / "ckpt", filename="{step}", every_n_train_steps=resume_step, save_top_k=-1)
+    fit(resume_step, callbacks=[ckpt])
+    resumed = fit(10, ckpt_path=str(tmp_path / "ckpt" / f"step={resume_step}.ckpt"))
+    trained = {4: 10, 5: 13}[resume_step]
+    assert resumed == whole[trained:]
+
+
+def test_shipped_configs_do_no_data_work_that_nothing_reads():
+    """No loss reads the data's normals (L_normal renders its own from the Gaussians and their depth), so the shipped
+    configs do not derive them per sample (about 1.5x the build time at 448 px)."""
+    for name in ("stage1", "stage2", "quickstart"):
+        cfg = yaml.safe_load((CONFIGS / f"{name}.yaml").read_text())
+        assert cfg["data"]["with_normals"] is False, name
+
+
+def test_the_sample_check_skips_what_cannot_be_non_finite(synth_root, monkeypatch):
+    """Images decoded from uint8 (and normals from uint8 or from the checked depth) cannot hold NaN/inf: checking
+    them was about a third of the sample build at 448 px. Depth, cameras and intrinsics are still checked."""
+    import anycity.data.pipeline as pipeline
+
+    calls = []
+    real = pipeline.check_finite
+
+    def spy(obj, where="sample", path="", skip=()):
+        calls.append(skip) if not path else None
+        return real(obj, where, path, skip)
+
+    monkeypatch.setattr(pipeline, "check_finite", spy)
+    sample = next(iter(make_pipeline(shard_urls(synth_root, "train"), _Raw(), train=False)))
+    SampleBuilder(2, 1, 0, (16, 16), train=False)(sample)
+    assert calls and set(calls[0]) == {"images", "normal"}
+    with pytest.raises(ValueError, match=r"context\.depth"):
+        real({"context": {"images": torch.full((1,), float("nan")), "depth": torch.tensor([float("inf")])}}, "s",
+             skip=("images",))
+
+
+class _Raw:
+    """A builder that passes the raw sample on (to get one sample as the pipeline reads it)."""
+
+    def __call__(self, sample):
+        return [sample]
