@@ -5,7 +5,8 @@ that is not a LoRA adapter) and records ``checkpoint["video_prior"] = {"dir", "s
 checks that the prior this module was built from has the same content hash, then puts its frozen weights back
 into the state dict, so Lightning's strict loading still catches every other missing or unexpected key. The
 LoRA adapters, the completion branch and the scaffold stay in the checkpoint. Priors not loaded from a folder
-(the small built-in one, the random ``wan-tiny``) are saved as they are.
+(the small built-in one, the random ``wan-tiny``) are saved as they are. The Wan VAE's decoder is dropped when the
+prior is built (it is never run); loading forgets its keys, which checkpoints saved before then carry.
 
 The small frozen pose prior (``net.pose_prior``, beyond the paper) is the opposite: its weights (2 MB) travel in
 the checkpoint, with ``checkpoint["pose_prior"] = {"image_size"}``, and loading rebuilds it at the size of
@@ -17,9 +18,11 @@ from __future__ import annotations
 from torch import nn
 
 from anycity.models.pose_prior import pose_prior_from_state
+from anycity.models.video_prior import DROPPED_VAE_MODULES
 
 PREFIX = "net.video_prior."
 FROZEN = (PREFIX + "vae.", PREFIX + "transformer.")
+DROPPED = tuple(f"{PREFIX}vae.{m}." for m in DROPPED_VAE_MODULES)
 
 
 def _is_frozen_prior_key(key: str) -> bool:
@@ -37,7 +40,17 @@ def drop_frozen_prior(net: nn.Module, checkpoint: dict) -> None:
     checkpoint["video_prior"] = {"dir": source["dir"], "sha256": prior.content_hash(), "block": int(prior.block)}
 
 
+def forget_dropped_vae(net: nn.Module, checkpoint: dict) -> None:
+    """Remove the Wan VAE decoder keys that checkpoints saved before it was dropped carry (a ``wan-tiny`` prior is
+    saved whole), so strict loading still passes."""
+    own = net.state_dict(prefix="net.", keep_vars=True)
+    sd = checkpoint.get("state_dict", {})
+    for k in [k for k in sd if k.startswith(DROPPED) and k not in own]:
+        del sd[k]
+
+
 def restore_frozen_prior(net: nn.Module, checkpoint: dict) -> None:
+    forget_dropped_vae(net, checkpoint)
     ref = checkpoint.get("video_prior")
     if ref is None:
         return

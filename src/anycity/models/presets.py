@@ -131,6 +131,11 @@ def preset_config(preset: str, **overrides) -> NetConfig:
     if len(layers) != 4 or not all(0 <= i < cfg.depth for i in layers):
         raise ValueError(f"head_layers: the DPT heads read 4 aggregator layers of 0..{cfg.depth - 1}, got "
                          f"{list(layers)} (depth {cfg.depth}); use depth >= 4 or give head_layers 4 indices")
+    inject = cfg.resolved_inject_layers()
+    if cfg.completion and not all(0 <= i < cfg.depth for i in inject):
+        raise ValueError(f"inject_layers: the completion branch reads aggregator layers 0..{cfg.depth - 1} of this "
+                         f"preset (depth {cfg.depth}), got {list(inject)}; set net.inject_layers: null (the paper's "
+                         f"{list(PAPER_INJECT_LAYERS)} scaled to the depth) or give indices below {cfg.depth}")
     return cfg
 
 

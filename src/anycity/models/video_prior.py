@@ -10,7 +10,8 @@
   causal VAE would drop frames 1-3 of a 4-frame clip), latents are stacked as V frames, the transformer runs
   at timestep ``t_feat * 1000`` (default 0, clean) with an empty-text embedding (from a file, else zeros) and
   the hidden states of block ``k`` are taken by a forward hook. LoRA (peft) on ``attn1`` q/k/v/out is the
-  only trainable part. Weights load from a local diffusers folder only (``HF_HUB_OFFLINE=1``).
+  only trainable part. Weights load from a local diffusers folder only (``HF_HUB_OFFLINE=1``). The VAE keeps only
+  its encoder (the decoder is never run) and encodes one view at a time (diffusers' slicing).
 
 This is the only module under ``anycity`` that imports diffusers (lazily).
 """
@@ -26,11 +27,17 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from anycity.atomic import atomic_write_bytes
 from anycity.models.layers import Block
 from anycity.safe_load import safe_torch_load
 
 LORA_TARGETS = ("attn1.to_q", "attn1.to_k", "attn1.to_v", "attn1.to_out.0")
 EMPTY_PROMPT_FILE = "empty_prompt.pt"
+WEIGHTS_GLOB = "diffusion_pytorch_model*.safetensors"
+# VAE parts the prior never runs, replaced by parameter-free stand-ins (Wan 2.2 TI2V-5B: 555M parameters, 2.2 GB in
+# float32 on every GPU); checkpoints saved before they were dropped still carry their keys (lit/prior_ckpt.py)
+DROPPED_VAE_MODULES = ("decoder", "post_quant_conv")
+EVAL_NOISE_SEED = 0
 
 
 def folder_hash(root: str | Path, subfolders: tuple[str, ...] = ("transformer", "vae")) -> str:
@@ -59,10 +66,9 @@ def folder_hash(root: str | Path, subfolders: tuple[str, ...] = ("transformer", 
             while chunk := fh.read(1 << 24):
                 h.update(chunk)
     table[str(root)] = {"key": key, "sha256": h.hexdigest()}
-    try:  # a read-only home is fine: the hash is just recomputed next time
-        cache.parent.mkdir(parents=True, exist_ok=True)
-        cache.write_text(json.dumps(table))
-    except OSError:
+    try:  # temp file + rename: DDP ranks write it at once, and a reader must never see half a table
+        atomic_write_bytes(cache, json.dumps(table).encode())
+    except OSError:  # a read-only home is fine: the hash is just recomputed next time
         pass
     return table[str(root)]["sha256"]
 
@@ -116,15 +122,79 @@ def _diffusers():
     return diffusers
 
 
+def _first_line(e: BaseException) -> str:
+    text = str(e).strip()
+    return text.splitlines()[0] if text else type(e).__name__
+
+
+def _load_part(model_cls, root: Path, sub: str, ignore: tuple[str, ...] = (), **kwargs) -> nn.Module:
+    """``model_cls.from_pretrained(root, subfolder=sub)`` from local files, refusing a folder without weights and
+    one that lacks some of the model's weights (diffusers leaves those on the meta device, and the first forward
+    then fails naming nothing). Keys starting with ``ignore`` may be missing."""
+    folder = root / sub
+    try:
+        model, info = model_cls.from_pretrained(root, subfolder=sub, local_files_only=True, output_loading_info=True,
+                                                **kwargs)
+    except OSError as e:
+        if not any(folder.glob("diffusion_pytorch_model*")):
+            raise FileNotFoundError(f"Wan weights: no {WEIGHTS_GLOB} in {folder}; copy {sub}/ of the Diffusers-format "
+                                    "Wan folder in full (config.json and its weight files)") from e
+        raise OSError(f"Wan weights: cannot load {folder}: {_first_line(e)}; copy {sub}/ of the Diffusers-format "
+                      "Wan folder again") from e
+    meta = [n for n, t in (*model.named_parameters(), *model.named_buffers()) if t.is_meta]
+    missing = sorted(k for k in {*info["missing_keys"], *meta} if not k.startswith(ignore))
+    if missing:
+        raise ValueError(f"Wan weights: {folder} lacks {len(missing)} of the {model_cls.__name__} weights (e.g. "
+                         f"{missing[:3]}); it is incomplete or another model's: copy {sub}/ of the Diffusers-format "
+                         "Wan folder again")
+    return model
+
+
+def _as_empty_prompt(obj, text_dim: int, where: str) -> Tensor:
+    """The text embedding of "" as ``[1, L, text_dim]``, from a ``[L, text_dim]`` or ``[1, L, text_dim]`` tensor, or
+    from the ``(prompt_embeds, negative_prompt_embeds)`` pair ``WanPipeline.encode_prompt`` returns (its first)."""
+    if isinstance(obj, (tuple, list)) and len(obj) == 2 and isinstance(obj[0], Tensor):
+        obj = obj[0]
+    fits = (isinstance(obj, Tensor) and obj.is_floating_point() and obj.shape[-1:] == (text_dim,)
+            and (obj.ndim == 2 or (obj.ndim == 3 and obj.shape[0] == 1)) and obj.shape[-2] > 0)
+    finite = fits and bool(torch.isfinite(obj).all())
+    if not finite:
+        got = f"{list(obj.shape)} {obj.dtype}" if isinstance(obj, Tensor) else type(obj).__name__
+        got += " with non-finite values" if fits else ""
+        raise ValueError(f"{where}: expected the umT5 embedding of '' as a finite [1, L, {text_dim}] float tensor "
+                         f"(torch.save), got {got}; save WanPipeline.encode_prompt('')[0] of this Wan model")
+    return obj.reshape(1, -1, text_dim)
+
+
+class _Dropped(nn.Module):
+    """Parameter-free stand-in for a VAE part the prior never runs (:data:`DROPPED_VAE_MODULES`)."""
+
+    def forward(self, *args, **kwargs):
+        raise RuntimeError("WanVideoPrior: its VAE decoder was dropped (the prior only encodes); decode with an "
+                           "AutoencoderKLWan loaded on its own")
+
+
+def _encoder_only(vae: nn.Module) -> nn.Module:
+    """Drop the decoder and turn slicing on: encoding all B*V frames at once keeps diffusers' causal-conv cache
+    of every conv input for all of them (about 16 GB for 64 views at 448 px with Wan 2.2's VAE, 0.26 GB sliced)."""
+    for name in DROPPED_VAE_MODULES:
+        setattr(vae, name, _Dropped())
+    vae.enable_slicing()
+    return vae
+
+
 class WanVideoPrior(nn.Module):
     """Frozen Wan VAE + transformer (truncated after ``block``) with optional LoRA; see the module docstring.
 
     Args:
-        vae: an ``AutoencoderKLWan``; transformer: a ``WanTransformer3DModel`` (both frozen here).
+        vae: an ``AutoencoderKLWan``; transformer: a ``WanTransformer3DModel`` (both frozen here; the VAE loses its
+            decoder and encodes with slicing on, the transformer loses the blocks after ``block``).
         block: index of the transformer block whose output is returned; later blocks are dropped. None: the middle
             block, ``(n - 1) // 2`` of n (14 of Wan 2.2 TI2V-5B's 30).
-        t_feat: noise level s in [0, 1]; latents become ``(1-s) z + s eps`` and the timestep ``1000 s``.
-        empty_prompt: ``[1, L, text_dim]`` text embedding of "" (zeros ``[1, 1, text_dim]`` if None).
+        t_feat: noise level s in [0, 1]; latents become ``(1-s) z + s eps`` and the timestep ``1000 s`` (eps fixed
+            in eval mode: see :meth:`_noise`).
+        empty_prompt: ``[1, L, text_dim]`` text embedding of "" (zeros ``[1, 1, text_dim]`` if None); also
+            ``[L, text_dim]`` or ``encode_prompt``'s ``(embeds, negative)`` pair, whose first is used.
     """
 
     def __init__(self, vae: nn.Module, transformer: nn.Module, block: int | None = None, t_feat: float = 0.0,
@@ -137,12 +207,13 @@ class WanVideoPrior(nn.Module):
         if not 0.0 <= t_feat <= 1.0:
             raise ValueError(f"WanVideoPrior: t_feat is a noise level in [0, 1], got {t_feat}")
         transformer.blocks = nn.ModuleList(list(transformer.blocks)[: block + 1])
-        self.vae, self.transformer = vae.requires_grad_(False), transformer.requires_grad_(False)
+        self.vae, self.transformer = _encoder_only(vae).requires_grad_(False), transformer.requires_grad_(False)
         self.t_feat = t_feat
         cfg = transformer.config
         self.out_dim = cfg.num_attention_heads * cfg.attention_head_dim
         self.stride = (vae.config.scale_factor_spatial or 8) * cfg.patch_size[1]
-        text = empty_prompt if empty_prompt is not None else torch.zeros(1, 1, cfg.text_dim)
+        text = (torch.zeros(1, 1, cfg.text_dim) if empty_prompt is None
+                else _as_empty_prompt(empty_prompt, cfg.text_dim, "WanVideoPrior: empty_prompt"))
         self.register_buffer("empty_prompt", text.float(), persistent=False)
         self._feat: Tensor | None = None
         self.block = block
@@ -166,10 +237,9 @@ class WanVideoPrior(nn.Module):
         d = _diffusers()
         # `torch_dtype`: the name every diffusers we allow (>= 0.35, the first with the Wan 2.2 VAE) reads; `dtype=`
         # only arrived later, and an older diffusers would ignore it and load 5B parameters in float32 (20 GB)
-        tr = d.WanTransformer3DModel.from_pretrained(root, subfolder=subfolder, torch_dtype=dtype,
-                                                     local_files_only=True)
-        vae = d.AutoencoderKLWan.from_pretrained(root, subfolder=vae_subfolder, torch_dtype=torch.float32,
-                                                 local_files_only=True)
+        tr = _load_part(d.WanTransformer3DModel, root, subfolder, torch_dtype=dtype)
+        vae = _load_part(d.AutoencoderKLWan, root, vae_subfolder, ignore=tuple(f"{m}." for m in DROPPED_VAE_MODULES),
+                         torch_dtype=torch.float32)
         got = tr.blocks[0].attn1.to_q.weight.dtype  # (diffusers keeps a few norm/time modules in float32 on purpose)
         if got != dtype:
             raise RuntimeError(f"Wan weights: transformer loaded as {got}, asked for {dtype}; upgrade diffusers "
@@ -181,7 +251,8 @@ class WanVideoPrior(nn.Module):
             if not Path(empty_prompt_path).is_file():
                 raise FileNotFoundError(f"empty_prompt_path: {empty_prompt_path} not found; precompute the umT5 "
                                         "embedding of '' as a [1, L, text_dim] tensor or pass None for zeros")
-            prompt = safe_torch_load(empty_prompt_path, what="empty_prompt_path")
+            prompt = _as_empty_prompt(safe_torch_load(empty_prompt_path, what="empty_prompt_path"),
+                                      tr.config.text_dim, f"empty prompt file {empty_prompt_path}")
         prior = cls(vae, tr, empty_prompt=prompt, **kwargs)
         prior.source = {"dir": str(root), "subfolders": (subfolder, vae_subfolder)}
         return prior
@@ -195,9 +266,10 @@ class WanVideoPrior(nn.Module):
             self._sha256 = folder_hash(self.source["dir"], tuple(self.source["subfolders"]))
         return self._sha256
 
-    @classmethod
-    def tiny_random(cls, z_dim: int = 16, block: int = 1, **kwargs) -> WanVideoPrior:
-        """Random tiny Wan 2.2-style VAE (~0.2M) + transformer (~40k) for tests; no weights needed."""
+    @staticmethod
+    def tiny_parts(z_dim: int = 16) -> tuple[nn.Module, nn.Module]:
+        """Random tiny Wan 2.2-style ``(AutoencoderKLWan, WanTransformer3DModel)`` (~0.2M + ~40k parameters), whole
+        (decoder and all 4 blocks kept): what a test saves as a Diffusers folder."""
         d = _diffusers()
         vae = d.AutoencoderKLWan(base_dim=8, decoder_base_dim=8, z_dim=z_dim, in_channels=12, out_channels=12,
                                  is_residual=True, patch_size=2, dim_mult=[1, 2, 2, 2], num_res_blocks=1,
@@ -207,7 +279,12 @@ class WanVideoPrior(nn.Module):
                                      in_channels=z_dim, out_channels=z_dim, text_dim=32, freq_dim=32, ffn_dim=48,
                                      num_layers=4, cross_attn_norm=True, qk_norm="rms_norm_across_heads",
                                      rope_max_seq_len=32)
-        return cls(vae, tr, block=block, **kwargs)
+        return vae, tr
+
+    @classmethod
+    def tiny_random(cls, z_dim: int = 16, block: int = 1, **kwargs) -> WanVideoPrior:
+        """A prior on :meth:`tiny_parts`, for tests; no weights needed."""
+        return cls(*cls.tiny_parts(z_dim), block=block, **kwargs)
 
     # LoRA --------------------------------------------------------------------------------------------------
     def add_lora(self, rank: int = 16, alpha: float | None = None, targets: tuple[str, ...] = LORA_TARGETS) -> None:
@@ -246,6 +323,14 @@ class WanVideoPrior(nn.Module):
                              "was it saved with the same rank and targets?")
 
     # forward -----------------------------------------------------------------------------------------------
+    def _noise(self, z: Tensor) -> Tensor:
+        """Gaussian noise like ``z`` for ``t_feat > 0``: fresh in training; in eval drawn from a generator seeded
+        with :data:`EVAL_NOISE_SEED` on every call, so validation/test/predict features repeat run to run."""
+        if self.training:
+            return torch.randn_like(z)
+        g = torch.Generator(device=z.device).manual_seed(EVAL_NOISE_SEED)
+        return torch.randn(z.shape, generator=g, device=z.device, dtype=z.dtype)
+
     def forward(self, images: Tensor) -> Tensor:
         """``[B, V, 3, H, W]`` in [0, 1] -> ``[B, V * (H'/s) * (W'/s), out_dim]`` (H', W' rounded to the stride s)."""
         b, v, _, h, w = images.shape
@@ -262,7 +347,7 @@ class WanVideoPrior(nn.Module):
             std = torch.tensor(cfg.latents_std, device=z.device, dtype=z.dtype).view(1, -1, 1, 1, 1)
             z = ((z - mean) / std)[:, :, 0].unflatten(0, (b, v)).transpose(1, 2)  # [B, z, V, h, w]
             if self.t_feat > 0:
-                z = (1 - self.t_feat) * z + self.t_feat * torch.randn_like(z)
+                z = (1 - self.t_feat) * z + self.t_feat * self._noise(z)
         dtype = self.transformer.dtype
         t = torch.full((b,), self.t_feat * 1000.0, device=z.device)
         text = self.empty_prompt.to(device=z.device, dtype=dtype).expand(b, -1, -1)

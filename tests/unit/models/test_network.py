@@ -114,6 +114,19 @@ def test_unknown_preset_and_option():
         build_network("tiny", head_layers=(0, 1, 9, 3))
 
 
+@pytest.mark.parametrize("preset, depth", [("tiny", 4), ("base", 12)])
+def test_inject_layers_beyond_the_depth_are_refused_when_configured(preset, depth):
+    # stage2.yaml pins the paper's [4, 7, 11, 23]; on a shallower preset that was an IndexError at the first forward
+    with pytest.raises(ValueError, match=rf"^inject_layers: .* 0\.\.{depth - 1} .*got \[4, 7, 11, 23\]; set "
+                                         r"net.inject_layers: null"):
+        preset_config(preset, inject_layers=(4, 7, 11, 23))
+    with pytest.raises(ValueError, match=r"got \[-1, 2\]"):
+        preset_config(preset, inject_layers=(-1, 2))
+    assert preset_config(preset, inject_layers=(0, depth - 1)).resolved_inject_layers() == (0, depth - 1)
+    assert preset_config(preset, inject_layers=(4, 7, 11, 23), completion=False).completion is False  # unused
+    assert preset_config("vggt-1b", inject_layers=(4, 7, 11, 23)).depth == 24
+
+
 def test_layer_scaling():
     assert scale_layers((4, 11, 17, 23), 24) == (4, 11, 17, 23)
     assert scale_layers((4, 11, 17, 23), 4) == (0, 1, 2, 3)
