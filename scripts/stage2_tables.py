@@ -15,9 +15,10 @@ Figures are observed / weak PSNR (``anycity.metrics.regions``) in two protocols 
 feed-forward, and after the context-only camera refinement (``camrefine``, when ``camera_refine_steps > 0``).
 The "scaffold only" row is the scaffold variant every test also scores (the scaffold is frozen in Stage II).
 The frozen AA and frozen-all rows need their own Stage I (``quickstart.yaml`` or ``stage1.yaml`` with
-``configs/ablations/frozen_aa.yaml`` / ``frozen_all.yaml``): pass them as ``--frozen_aa_stage1`` /
-``--frozen_all_stage1``; without it a row says so in its table instead of a figure. The ``prior_*`` rows (beyond the
-paper) also load ``net.pose_prior`` from ``--pose_prior FILE`` (``scripts/pose_prior.py``), and say so likewise.
+``configs/ablations/frozen_aa.yaml`` / ``frozen_all.yaml``, with ``--freeze.allow_random_init true`` when trained
+from scratch): pass them as ``--frozen_aa_stage1`` / ``--frozen_all_stage1``; without it a row says so in its
+table instead of a figure. The ``prior_*`` rows (beyond the paper) also load ``net.pose_prior`` from
+``--pose_prior FILE`` (``scripts/pose_prior.py``), and say so likewise.
 Unknown ``--x.y`` options go to every ``fit`` and ``test`` call.
 """
 

@@ -33,3 +33,82 @@ def test_config_prints(rel, capsys, monkeypatch):
     assert exc.value.code in (0, None)
     out = capsys.readouterr().out
     assert "model:" in out and "trainer:" in out and "freeze:" in out and "lora:" not in out
+
+
+def _print_config(args: list[str], capsys) -> dict:
+    """The merged config LightningCLI would run with (``--print_config``), as a dict."""
+    import yaml
+
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exc:
+        build_cli([*args, "--print_config"], run=False)
+    assert exc.value.code in (0, None)
+    return yaml.safe_load(capsys.readouterr().out)
+
+
+def _header_command(rel: str) -> list[str]:
+    """The ``anycity fit ...`` command a config's header comment gives (continuation lines joined)."""
+    import shlex
+
+    lines = [ln.lstrip("# ").rstrip() for ln in (CONFIGS / rel).read_text().splitlines() if ln.startswith("#")]
+    start = next(i for i, ln in enumerate(lines) if ln.startswith("anycity fit"))
+    cmd = lines[start]
+    while cmd.endswith("\\"):
+        start += 1
+        cmd = cmd[:-1] + " " + lines[start]
+    return shlex.split(cmd)[2:]
+
+
+@pytest.mark.parametrize("rel", ["ablations/frozen_aa.yaml", "ablations/frozen_all.yaml"])
+def test_frozen_ablation_commands_freeze_loaded_weights(rel, capsys, monkeypatch):
+    """Their header commands froze a random aggregator (pretrained: null); FreezeModules now refuses that."""
+    monkeypatch.setattr("sys.argv", ["anycity"])
+    monkeypatch.chdir(CONFIGS.parent)  # the commands name configs/... from the repository root
+    cfg = _print_config(_header_command(rel), capsys)
+    assert cfg["model"]["init_args"]["pretrained"] and cfg["freeze"]["patterns"]
+    assert cfg["freeze"]["allow_random_init"] is False
+
+
+def test_frozen_ablation_from_scratch_is_refused_unless_asked(tiny_shards, tmp_path, monkeypatch):
+    """docs/stage2.md trains the frozen ablations at quickstart scale from random init, on purpose."""
+    from anycity.callbacks import FreezeModules
+
+    monkeypatch.setattr("sys.argv", ["anycity"])
+    args = ["-c", str(CONFIGS / "quickstart.yaml"), "-c", str(CONFIGS / "ablations/frozen_aa.yaml"),
+            "--data.root", str(tiny_shards), "--data.image_size", "[32, 32]", "--trainer.default_root_dir",
+            str(tmp_path), "--trainer.logger.init_args.save_dir", str(tmp_path)]
+    for extra, refused in (([], True), (["--freeze.allow_random_init", "true"], False)):
+        cli = build_cli([*args, *extra], run=False)
+        cb = next(c for c in cli.trainer.callbacks if isinstance(c, FreezeModules))
+        if refused:
+            with pytest.raises(ValueError, match="freeze.patterns: .*net.aggregator.*--freeze.allow_random_init true"):
+                cb.setup(cli.trainer, cli.model, "fit")
+        else:
+            cb.setup(cli.trainer, cli.model, "fit")
+            assert not any(p.requires_grad for p in cli.model.net.aggregator.parameters())
+
+
+def test_the_overrides_load_stage1_names_rebuild_its_scaffold_after_stage2_yaml(tmp_path, capsys, monkeypatch):
+    """load_stage1 said '-c the Stage I config -c the Stage II config', which cannot work: stage2.yaml's net dict
+    replaces the Stage I one (and sets preset vggt-1b). The overrides it names now, given after stage2.yaml, do."""
+    import shlex
+
+    import torch
+
+    from anycity.lit import RefinementModule, ScaffoldModule
+
+    monkeypatch.setattr("sys.argv", ["anycity"])
+    stage1 = ScaffoldModule(net={"sh_degree": 0, "camera_trunk_depth": 2, "head_layers": None})  # a tiny Stage I
+    ckpt = tmp_path / "stage1.ckpt"
+    torch.save({"state_dict": stage1.state_dict(), "hyper_parameters": dict(stage1.hparams)}, ckpt)
+    stage2 = ["-c", str(CONFIGS / "stage2.yaml"), "--model.init_args.init_from", str(ckpt),  # CPU-sized prior:
+              "--model.init_args.net.video_prior", "none", "--model.init_args.net.inject_layers", "[0, 1, 3]"]
+    wrong = _print_config([*stage2, "--model.init_args.preset", "tiny"], capsys)["model"]["init_args"]
+    with pytest.raises(ValueError, match="does not fit this network's scaffold") as err:
+        RefinementModule(**wrong).load_stage1(str(ckpt))
+    flags = shlex.split(str(err.value).split("after its config: ")[1])
+    fixed = _print_config([*stage2, *flags], capsys)["model"]["init_args"]
+    m = RefinementModule(**fixed)
+    m.load_stage1(str(ckpt))
+    torch.testing.assert_close(m.net.gaussian_head.state_dict(), stage1.net.gaussian_head.state_dict())
+    assert m.net.cfg.completion and list(m.net.cfg.inject_layers) == [0, 1, 3]  # stage2.yaml's completion branch kept

@@ -8,6 +8,8 @@ import lightning.pytorch as pl
 from lightning.pytorch.callbacks import Callback
 from torch import nn
 
+from anycity.models.anycity import SCAFFOLD_PREFIXES
+
 
 def require_matches(module: nn.Module, patterns: list[str], what: str) -> None:
     """Raise one line for the first glob of ``patterns`` that matches no name of ``module.named_parameters()``
@@ -53,13 +55,35 @@ class FreezeModules(Callback):
         patterns: glob patterns over ``pl_module.named_parameters()`` names, e.g. ``["net.aggregator.*"]``.
             Empty list = no-op. A pattern that matches nothing raises ``ValueError``.
         unfreeze: patterns kept trainable inside the frozen set (e.g. ``["*lora_*"]``).
+        allow_random_init: freeze scaffold weights (``net.aggregator|camera_head|depth_head|gaussian_head.*``) in a
+            fit whose module loads none (neither ``model.pretrained`` nor ``model.init_from``): they stay at their
+            random init. Refused unless true (e.g. the frozen ablations at quickstart scale, trained from scratch).
     """
 
-    def __init__(self, patterns: list[str] | None = None, unfreeze: list[str] | None = None) -> None:
+    def __init__(self, patterns: list[str] | None = None, unfreeze: list[str] | None = None,
+                 allow_random_init: bool = False) -> None:
         self.patterns = list(patterns or [])
         self.unfreeze = list(unfreeze or [])
+        self.allow_random_init = allow_random_init
         self.frozen: list[str] = []
 
     def setup(self, trainer: pl.Trainer, pl_module: pl.LightningModule, stage: str) -> None:
-        if self.patterns:
-            self.frozen = freeze_by_patterns(pl_module, self.patterns, self.unfreeze)
+        if not self.patterns:
+            return
+        self.frozen = freeze_by_patterns(pl_module, self.patterns, self.unfreeze)
+        if stage == "fit" and not self.allow_random_init:
+            require_loaded_weights(pl_module, self.frozen)
+
+
+def require_loaded_weights(module: nn.Module, frozen: list[str]) -> None:
+    """Raise one line when ``frozen`` (parameter names) holds scaffold weights and ``module`` loads none: its
+    ``hparams`` have neither ``pretrained`` nor ``init_from``, so they would stay random for the whole fit."""
+    hp = getattr(module, "hparams", None) or {}
+    if hp.get("pretrained") or hp.get("init_from"):
+        return
+    scaffold = [n for n in frozen if n.startswith(tuple(f"net.{p}" for p in SCAFFOLD_PREFIXES))]
+    if scaffold:
+        raise ValueError(f"freeze.patterns: {len(scaffold)} scaffold weights (e.g. {scaffold[0]}) would stay frozen at "
+                         "their random init (no model.pretrained, no model.init_from); pass the weights, e.g. "
+                         "--model.init_args.pretrained /path/to/vggt/model.pt, or --freeze.allow_random_init true to "
+                         "freeze random weights on purpose")

@@ -8,12 +8,14 @@ cameras, each mapped into its own predicted frame, and depths are compared up to
 
 from __future__ import annotations
 
+import json
+import shlex
 from dataclasses import fields, replace
 from pathlib import Path
 from typing import Literal
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from anycity.geometry import camera_centers
 from anycity.geometry.pose_encoding import extri_intri_to_pose_encoding
@@ -26,6 +28,36 @@ from anycity.structures import RenderOutput, ViewBatch, Views
 # scaffold weights a Stage I checkpoint may lack: the centre offset came later, and its zero init is what an older
 # Stage I decoded
 OPTIONAL_SCAFFOLD_PREFIXES = ("gaussian_head.offset_conv.",)
+
+
+def stage1_net_flags(stage1: dict, stage2_net: dict | None) -> str:
+    """The command-line overrides, to follow the Stage II config, that rebuild the scaffold of a Stage I checkpoint
+    (``stage1``: its ``hyper_parameters``): its preset, and one ``net`` dict holding this Stage II ``net``
+    (``stage2_net``) with the Stage I keys laid over it (``completion`` excepted). One dict, as a later ``-c`` file's
+    ``net`` replaces the whole dict, and a dotted ``net.KEY null`` does not parse. A generic hint without a preset."""
+    if not stage1.get("preset"):
+        return ("--model.init_args.preset PRESET and --model.init_args.net.KEY VALUE for each key of the Stage I "
+                "config's model.net (a later -c file's net replaces the whole dict)")
+    net = {**(stage2_net or {}), **{k: v for k, v in (stage1.get("net") or {}).items() if k != "completion"}}
+    return (f"--model.init_args.preset {shlex.quote(str(stage1['preset']))} "
+            f"--model.init_args.net {shlex.quote(json.dumps(net))}")
+
+
+def pretrained_scaffold_gaps(net: nn.Module, path: str, kind: str) -> list[str]:
+    """Scaffold weights of ``net`` that the pretrained file ``path`` (layout ``kind``) does not fill: absent or of
+    another shape (the zero-initialised centre offset excepted). Reads names and shapes only."""
+    from anycity.models.pretrained import read_state_dict, remap_keys
+
+    if Path(path).suffix == ".safetensors" and Path(path).is_file():
+        from safetensors import safe_open
+
+        with safe_open(str(path), framework="pt") as f:
+            shapes = {k: tuple(f.get_slice(k).get_shape()) for k in f.keys()}
+    else:  # memory-mapped: the tensors are not read
+        shapes = {k: tuple(v.shape) for k, v in read_state_dict(path).items()}
+    shapes = remap_keys(shapes, kind)
+    return sorted(k for k, v in net.state_dict().items() if k.startswith(SCAFFOLD_PREFIXES)
+                  and not k.startswith(OPTIONAL_SCAFFOLD_PREFIXES) and shapes.get(k) != tuple(v.shape))
 
 
 def far_index(views: Views, context: Views, k: int | None) -> Tensor | None:
@@ -137,11 +169,8 @@ class RefinementModule(AnyCityModule):
         except FileNotFoundError as e:
             self._fresh_fit_problems.append(e)
         if not self.hparams.init_from:
-            if not self.hparams.pretrained and self.hparams.freeze_scaffold:
-                self._fresh_fit_problems.append(ValueError(
-                    "model.init_from: Stage II freezes the scaffold, and none was given (no init_from, no pretrained), "
-                    "so it would train on a random one; pass the Stage I checkpoint, e.g. "
-                    "--model.init_args.init_from runs/stage1/checkpoints/last.ckpt"))
+            if self.hparams.freeze_scaffold and (problem := self._random_scaffold()) is not None:
+                self._fresh_fit_problems.append(problem)
         elif not Path(self.hparams.init_from).is_file():
             self._fresh_fit_problems.append(FileNotFoundError(
                 f"model.init_from: {self.hparams.init_from} not found; pass the Stage I checkpoint (e.g. "
@@ -151,6 +180,25 @@ class RefinementModule(AnyCityModule):
                 self.load_stage1(self.hparams.init_from)
             except ValueError as e:  # unreadable, or another network's scaffold: a resumed fit does not need it
                 self._fresh_fit_problems.append(e)
+
+    def _random_scaffold(self) -> Exception | None:
+        """Without ``init_from``: the error if the frozen scaffold would keep random weights, i.e. no ``pretrained``
+        file, or one that does not fill every scaffold weight (a VGGT file has no Gaussian head); else None."""
+        fix = "pass the Stage I checkpoint, e.g. --model.init_args.init_from runs/stage1/checkpoints/last.ckpt"
+        if not self.hparams.pretrained:
+            return ValueError("model.init_from: Stage II freezes the scaffold, and none was given (no init_from, no "
+                              f"pretrained), so it would train on a random one; {fix}")
+        try:
+            gaps = pretrained_scaffold_gaps(self.net, self.hparams.pretrained, self.hparams.pretrained_kind)
+        except (FileNotFoundError, ValueError) as e:  # a resumed fit may lack the file: reported on a fresh fit only
+            return e
+        if not gaps:
+            return None
+        why = ("a VGGT file has no Gaussian head" if self.hparams.pretrained_kind == "vggt" else
+               "weights made for another network, e.g. another net.sh_degree")
+        return ValueError(f"model.init_from: Stage II freezes the scaffold, and model.pretrained "
+                          f"{self.hparams.pretrained} leaves {len(gaps)} of its weights random (e.g. {gaps[0]}: "
+                          f"{why}); {fix}, or an AnySplat file that fits (model.pretrained_kind: anysplat)")
 
     def on_fit_start(self) -> None:
         if not self.trainer.strategy.restore_checkpoint_after_setup:
@@ -177,7 +225,8 @@ class RefinementModule(AnyCityModule):
         # memory-mapped, tensors only: the weights are read on use and the optimiser state (2x the weights) never is
         ckpt = safe_torch_load(path, mmap=True, what="model.init_from")
         state = ckpt.get("state_dict", ckpt)
-        decode = ((ckpt.get("hyper_parameters") or {}).get("net") or {}).get("focal_decode", "vggt")
+        stage1_hp = ckpt.get("hyper_parameters") or {}
+        decode = (stage1_hp.get("net") or {}).get("focal_decode", "vggt")
         del ckpt
         if decode != self.net.cfg.focal_decode:  # e.g. Stage I started from AnySplat: keep its camera decode
             self.net.cfg = replace(self.net.cfg, focal_decode=decode)
@@ -203,8 +252,8 @@ class RefinementModule(AnyCityModule):
                             f"{list(own[k].shape)} here)")
         if problems:
             raise ValueError(f"model.init_from: {path} does not fit this network's scaffold: {'; '.join(problems)}; "
-                             "give Stage II the Stage I config's model.preset and model.net (e.g. -c the Stage I "
-                             "config -c the Stage II config)")
+                             "give Stage II the Stage I network after its config: "
+                             f"{stage1_net_flags(stage1_hp, self.hparams.net)}")
         self.net.load_state_dict(theirs, strict=False)
 
     # ----------------------------------------------------------------------------------------- checkpoints

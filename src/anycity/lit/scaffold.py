@@ -35,7 +35,8 @@ class ScaffoldModule(AnyCityModule):
         ray_weight: weight of the ray-anchoring term ``L_xy`` (mean reprojection L1 of the centres, pixels) inside
             ``L_depth``.
         depth_conf_threshold: ignore depth pixels whose predicted confidence is below this (None = keep all).
-        flat_weight: weight of the flatness prior (smallest Gaussian scale) inside ``L_normal``.
+        flat_weight: weight ``lambda_flat`` of the flatness prior (smallest Gaussian scale) inside ``L_normal``,
+            gated per pixel like the normal term (structure weight, valid ground truth, rendered coverage).
         **base: see :class:`anycity.lit.base.AnyCityModule` (preset, lr, schedule, renderer, ...).
     """
 
@@ -110,7 +111,7 @@ class ScaffoldModule(AnyCityModule):
             loss = loss + hp.depth_weight * terms["depth"]
         if geo_on and hp.normal_weight > 0:
             n = normal_loss(r_ctx.depth, r_ctx.normal, out["K"], image=ctx.images, alpha=r_ctx.alpha,
-                            scales=g.scales, flat_weight=hp.flat_weight, scales_valid=g.valid)
+                            scales=g.scales, flat_weight=hp.flat_weight, scales_valid=g.valid, mask=ctx.mask)
             terms["normal"] = n["total"]
             loss = loss + hp.normal_weight * terms["normal"]
         terms["loss"] = loss

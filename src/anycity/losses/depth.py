@@ -20,7 +20,8 @@ def align_scale_shift(pred: Tensor, target: Tensor, mask: Tensor) -> tuple[Tenso
     Args:
         pred, target: ``[M, H, W]``; mask: ``[M, H, W]`` float weights (0/1).
     Returns:
-        ``s, t`` each ``[M]`` (``s = 1, t = 0`` where fewer than 2 valid pixels or no variance).
+        ``s, t`` each ``[M]`` (``s = 1, t = 0`` where fewer than 2 valid pixels or no variance). ``s >= 0``: a
+        negative fit (an inverted map) is clamped to ``s = 0`` with ``t`` the mean target, the best constant.
     """
     w = mask
     n = w.sum((-1, -2))
@@ -29,7 +30,8 @@ def align_scale_shift(pred: Tensor, target: Tensor, mask: Tensor) -> tuple[Tenso
     det = n * spp - sp * sp
     ok = (n >= 2) & (det.abs() > 1e-12 * n.clamp_min(1) ** 2)
     safe = torch.where(ok, det, torch.ones_like(det))
-    s = torch.where(ok, (n * spt - sp * st) / safe, torch.ones_like(det))
+    # an exact identity (value and gradient) wherever the fit's s >= 0; t below is computed from the clamped s
+    s = torch.where(ok, (n * spt - sp * st) / safe, torch.ones_like(det)).clamp_min(0.0)
     t = torch.where(ok, (st - s * sp) / n.clamp_min(1), torch.zeros_like(det))
     return s, t
 
@@ -63,8 +65,9 @@ def depth_z_loss(
     """Scale-and-shift aligned log-inverse depth L1 + gradient matching.
 
     Both depths go to ``u = log(1 / z)``; the prediction is aligned per image by least squares
-    (``s * u_pred + t``), so any ``pred = c * gt^k`` gives zero loss. Invalid pixels (mask 0, z <= 0, or
-    confidence below ``conf_threshold``) are ignored.
+    (``s * u_pred + t``, ``s >= 0``), so any ``pred = c * gt^k`` with ``k > 0`` gives zero loss; an inverted map
+    (``k < 0``) is scored against the best constant. Invalid pixels (mask 0, ground truth <= 0 or not finite,
+    prediction <= 0, or confidence below ``conf_threshold``) are ignored, whatever values they hold.
 
     Args:
         pred_depth, gt_depth: ``[..., 1, H, W]`` z-depth (> 0 where valid).
@@ -81,14 +84,16 @@ def depth_z_loss(
     h, w = pred_depth.shape[-2:]
     p = pred_depth.reshape(-1, h, w).float()
     g = gt_depth.reshape(-1, h, w).float()
-    valid = (g > eps) & (p > eps)
+    valid = (g > eps) & torch.isfinite(g) & (p > eps)
     if mask is not None:
         valid = valid & mask.reshape(-1, h, w).bool()
     if confidence is not None and conf_threshold is not None:
         valid = valid & (confidence.reshape(-1, h, w) >= conf_threshold)
     m = valid.float()
-    up = -torch.log(p.clamp_min(eps))
-    ug = -torch.log(g.clamp_min(eps))
+    # invalid pixels read 1 (u = 0) before the log: a masked inf/NaN would otherwise reach the sums as 0 * inf = NaN
+    # (and its gradient as NaN); valid pixels are untouched
+    up = -torch.log(torch.where(valid, p, 1.0).clamp_min(eps))
+    ug = -torch.log(torch.where(valid, g, 1.0).clamp_min(eps))
     if align:
         s, t = align_scale_shift(up, ug, m)
     else:

@@ -34,3 +34,26 @@ def test_freeze_callback_runs_in_setup():
     FreezeModules(["net.head.*"]).setup(None, m, "fit")
     assert not m.net["head"].weight.requires_grad
     FreezeModules([]).setup(None, Tiny(), "fit")  # empty = no-op
+
+
+def test_freezing_random_scaffold_weights_in_a_fit_is_refused():
+    """The frozen-transformer ablations without model.pretrained froze a random aggregator and trained on."""
+    from anycity.lit import ScaffoldModule
+
+    m = ScaffoldModule(preset="tiny")  # no pretrained: random init
+    with pytest.raises(ValueError, match=r"freeze.patterns: \d+ scaffold weights \(e.g. net.aggregator.*random init.*"
+                                         r"--model.init_args.pretrained .*--freeze.allow_random_init true"):
+        FreezeModules(["net.aggregator.*"]).setup(None, m, "fit")
+    FreezeModules(["net.aggregator.*"], allow_random_init=True).setup(None, m, "fit")  # on purpose
+    FreezeModules(["net.aggregator.*"]).setup(None, m, "test")  # evaluation takes its weights from a checkpoint
+
+
+def test_freezing_scaffold_weights_a_module_loads_is_allowed():
+    for hp in ({"pretrained": "vggt.pt"}, {"init_from": "stage1.ckpt"}):
+        m = Tiny()
+        m.hparams = hp
+        FreezeModules(["net.aggregator.*"]).setup(None, m, "fit")
+        assert not m.net["aggregator"][0].weight.requires_grad
+    with pytest.raises(ValueError, match="freeze.patterns: 4 scaffold weights"):
+        FreezeModules(["net.aggregator.*"]).setup(None, Tiny(), "fit")
+    FreezeModules(["net.head.*"]).setup(None, Tiny(), "fit")  # not the scaffold (the prior, say): no weights needed

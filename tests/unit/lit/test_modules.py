@@ -44,6 +44,23 @@ def test_scaffold_step_trains_scaffold_only(batch):
     assert all(g is None for n, g in grads.items() if n.startswith("net.completion"))
 
 
+def test_scaffold_normal_term_skips_the_sky(batch):
+    """ctx.mask (sky / invalid = 0) reached the depth terms but not L_normal."""
+    from dataclasses import replace
+
+    def normal_term(context):
+        torch.manual_seed(0)
+        m = ScaffoldModule(depth_warmup_steps=0, normal_weight=0.1, flat_weight=0.1, render_backend="torch")
+        terms = {}
+        m.log_terms = lambda t, *a, **k: terms.update(t)
+        m.training_step(replace(batch, context=context), 0)
+        return terms["normal"]
+
+    assert normal_term(batch.context).item() > 0
+    sky = replace(batch.context, mask=torch.zeros_like(batch.context.mask))
+    assert normal_term(sky).item() == 0.0  # the flatness term too: the sky's Gaussians are not pressed flat
+
+
 def test_refinement_freezes_scaffold_starts_at_scaffold_and_loads_stage1(batch, tmp_path):
     torch.manual_seed(0)
     stage1 = ScaffoldModule()
@@ -96,6 +113,57 @@ def test_refinement_rejects_missing_init_and_bad_gate_mode(tmp_path):
     RefinementModule(net={"voxel_size": 0.1}, reg_weight=0.0)
     with pytest.raises(ValueError, match="d2s_depth_scale"):
         RefinementModule(d2s_depth_scale="gt")
+
+
+def _scaffold_file(path, prefixes, rename=lambda k: k):
+    """A pretrained-weights file holding the tiny scaffold's ``prefixes`` (``rename`` maps to the file's layout)."""
+    from safetensors.torch import save_file
+
+    sd = {rename(k): v.contiguous() for k, v in ScaffoldModule().net.state_dict().items() if k.startswith(prefixes)}
+    save_file(sd, str(path)) if path.suffix == ".safetensors" else torch.save(sd, path)
+    return str(path)
+
+
+def test_refinement_rejects_a_pretrained_file_that_leaves_the_frozen_scaffold_random(tmp_path):
+    """Stage II from a VGGT file and no init_from trained on a random, frozen Gaussian head (VGGT has none)."""
+    vggt = _scaffold_file(tmp_path / "model.pt", ("aggregator.", "camera_head.", "depth_head."))
+    m = RefinementModule(pretrained=vggt, pretrained_kind="vggt")
+    with pytest.raises(ValueError, match=r"model.init_from: Stage II freezes the scaffold, and model.pretrained .*"
+                                         r"model.pt leaves \d+ of its weights random \(e.g. gaussian_head\..*"
+                                         r"--model.init_args.init_from"):
+        _start_fit(m)
+    _start_fit(m, "last.ckpt")  # a resumed fit reads its checkpoint
+    _start_fit(RefinementModule(pretrained=vggt, freeze_scaffold=False))  # the Gaussian head trains
+    # an AnySplat file fills the whole scaffold (its Gaussian head under another name; no centre offset, zero-init)
+    def anysplat_name(k):
+        return k.replace("gaussian_head.", "gaussian_param_head.") if k.startswith("gaussian_head.") else f"encoder.{k}"
+
+    for name in ("anysplat.safetensors", "anysplat.ckpt"):
+        anysplat = _scaffold_file(tmp_path / name, ("aggregator.", "camera_head.", "depth_head.", "gaussian_head."),
+                                  anysplat_name)
+        _start_fit(RefinementModule(pretrained=anysplat, pretrained_kind="anysplat"))
+    with pytest.raises(ValueError, match=r"leaves \d+ of its weights random \(e.g. gaussian_head\."):  # other SH
+        _start_fit(RefinementModule(pretrained=anysplat, pretrained_kind="anysplat", net={"sh_degree": 0}))
+
+
+def test_stage1_mismatch_names_the_overrides_that_rebuild_its_scaffold(tmp_path):
+    """The fix load_stage1 named ('-c the Stage I config -c the Stage II config') cannot work: the Stage II config's
+    net dict replaces the Stage I one. It names overrides built from the checkpoint's hyperparameters and this Stage II
+    net (tests/integration/test_configs.py runs them)."""
+    import json
+    import shlex
+
+    stage1 = ScaffoldModule(net={"sh_degree": 0, "head_layers": None})
+    ckpt = tmp_path / "stage1.ckpt"
+    torch.save({"state_dict": stage1.state_dict(), "hyper_parameters": dict(stage1.hparams)}, ckpt)
+    with pytest.raises(ValueError, match=r"does not fit .* after its config: --model.init_args.preset tiny "
+                                         r"--model.init_args.net '\{.*\}'$") as err:
+        RefinementModule(net={"video_prior": "none"}).load_stage1(str(ckpt))
+    flags = shlex.split(str(err.value).split("after its config: ")[1])
+    assert json.loads(flags[-1]) == {"video_prior": "none", "sh_degree": 0, "head_layers": None}
+    torch.save({"state_dict": stage1.state_dict()}, ckpt)  # no hyperparameters: the rule, not the values
+    with pytest.raises(ValueError, match=r"--model.init_args.preset PRESET and --model.init_args.net.KEY VALUE"):
+        RefinementModule().load_stage1(str(ckpt))
 
 
 @pytest.mark.parametrize("option, aligned", [("median", True), ("cameras", False)])

@@ -254,3 +254,90 @@ def test_flatness_prior_averages_only_existing_gaussians():
     out = normal_loss(depth, normal, K, scales=scales, scales_valid=valid, flat_weight=1.0)
     assert out["flat"].item() == pytest.approx(0.5)
     assert normal_loss(depth, normal, K, scales=scales)["flat"].item() == pytest.approx((3 * 0.5 + 1e-4) / 4)
+
+
+def _old_z_l1(pred, gt, mask):
+    """L_z's L1 as it was before s >= 0 and the masked-value guard: the reference a normal case must equal."""
+    p, g, m = pred.reshape(-1, *pred.shape[-2:]), gt.reshape(-1, *gt.shape[-2:]), mask.reshape(-1, *gt.shape[-2:])
+    valid = ((g > 1e-6) & (p > 1e-6) & m).float()
+    up, ug = -torch.log(p.clamp_min(1e-6)), -torch.log(g.clamp_min(1e-6))
+    n = valid.sum((-1, -2))
+    sp, st = (valid * up).sum((-1, -2)), (valid * ug).sum((-1, -2))
+    spp, spt = (valid * up * up).sum((-1, -2)), (valid * up * ug).sum((-1, -2))
+    s = (n * spt - sp * st) / (n * spp - sp * sp)
+    t = (st - s * sp) / n
+    residual = (s[:, None, None] * up + t[:, None, None] - ug) * valid
+    return residual.abs().sum() / valid.sum()
+
+
+def test_depth_loss_scores_an_inverted_map_and_leaves_a_positive_fit_bitwise_unchanged():
+    g = torch.Generator().manual_seed(0)
+    gt = torch.rand(1, 1, 1, 32, 32, generator=g) * 4 + 1
+    # near and far swapped: the least-squares scale in log-inverse depth is -1, which fitted it exactly (loss 0)
+    inverted = depth_z_loss(5.0 / gt, gt)
+    u = -torch.log(gt)
+    assert inverted["depth_l1"].item() == pytest.approx((u - u.mean()).abs().mean().item(), rel=1e-5)  # best constant
+    assert inverted["total"].item() > 0.2
+    # a right-way-up map (s > 0): value and gradient exactly as before
+    mask = torch.rand(1, 1, 1, 32, 32, generator=g) > 0.2
+    a = (gt * torch.exp(0.1 * torch.randn(gt.shape, generator=g))).requires_grad_()
+    b = a.detach().clone().requires_grad_()
+    new, old = depth_z_loss(a, gt, mask, grad_weight=0.0)["total"], _old_z_l1(b, gt, mask)
+    assert torch.equal(new, old)
+    new.backward(), old.backward()
+    assert torch.equal(a.grad, b.grad)
+
+
+def test_depth_loss_ignores_non_finite_values_at_masked_pixels():
+    g = torch.Generator().manual_seed(1)
+    gt = torch.rand(1, 2, 1, 16, 16, generator=g) * 3 + 1
+    pred = (gt * torch.exp(0.2 * torch.randn(gt.shape, generator=g))).requires_grad_()
+    mask = torch.ones_like(gt, dtype=torch.bool)
+    mask[..., 0, :3] = False
+    ref = depth_z_loss(pred, gt, mask)["total"]
+    bad_gt, bad_pred = gt.clone(), pred.detach().clone()
+    bad_gt[..., 0, 0], bad_gt[..., 0, 1], bad_pred[..., 0, 2] = float("inf"), float("nan"), float("nan")
+    bad_pred.requires_grad_()
+    out = depth_z_loss(bad_pred, bad_gt, mask)["total"]
+    assert torch.equal(out, ref)
+    out.backward()
+    assert torch.isfinite(bad_pred.grad).all()
+    # an unmasked infinite ground truth (sky stored as inf) is invalid too, not an infinite loss
+    sky = gt.clone()
+    sky[..., 0, :3] = float("inf")
+    assert torch.equal(depth_z_loss(pred, sky)["total"], ref)
+
+
+def test_normal_loss_skips_masked_pixels():
+    depth, K = _plane_render(tilt=0.5)
+    n = torch.tensor([0.0, 0.3, -1.0]).view(1, 1, 3, 1, 1).expand(1, 1, 3, 12, 12)  # off the plane's normal
+    image = torch.rand(1, 1, 3, 12, 12, generator=torch.Generator().manual_seed(0))
+    free = normal_loss(depth, n, K, image=image)
+    assert free["normal"].item() > 1e-3
+    every = normal_loss(depth, n, K, image=image, mask=torch.ones(1, 1, 1, 12, 12, dtype=torch.bool))
+    assert torch.equal(every["normal"], free["normal"])
+    sky = normal_loss(depth, n, K, image=image, mask=torch.zeros(1, 1, 1, 12, 12, dtype=torch.bool))
+    assert sky["normal"].item() == 0.0
+
+
+def test_flatness_prior_is_gated_like_the_normal_term():
+    """Pixel-aligned Gaussians (one per pixel): sky pixels and pixels without a normal add no flatness pressure, and
+    the structure weight relaxes it where the normal term is relaxed."""
+    depth, K = _plane_render()
+    n = torch.tensor([0.0, 0.0, -1.0]).view(1, 1, 3, 1, 1).expand(1, 1, 3, 12, 12)
+    s_min = torch.full((1, 1, 1, 12, 12), 0.1)
+    s_min[..., :6, :] = 1.0  # the sky's Gaussians: large
+    scales = torch.cat([s_min, 2 * s_min, 3 * s_min], 2).permute(0, 1, 3, 4, 2).reshape(1, 144, 3)
+    mask = torch.ones(1, 1, 1, 12, 12, dtype=torch.bool)
+    mask[..., :6, :] = False
+    out = normal_loss(depth, n, K, scales=scales, mask=mask, flat_weight=2.0)
+    assert out["flat"].item() == pytest.approx(0.1)  # the 1-pixel border has no normal: left out too
+    assert out["total"].item() == pytest.approx(out["normal"].item() + 0.2, abs=1e-6)
+    image = torch.rand(1, 1, 3, 12, 12, generator=torch.Generator().manual_seed(0))
+    from anycity.losses import structure_weight
+
+    weighted = normal_loss(depth, n, K, image=image, scales=scales, mask=mask)["flat"]
+    valid = torch.zeros(12, 12, dtype=torch.bool)
+    valid[6:11, 1:11] = True
+    expected = (0.1 * structure_weight(image)[0, 0, 0][valid]).sum() / valid.sum()
+    assert weighted.item() == pytest.approx(expected.item(), rel=1e-5)
