@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import shutil
 import sys
 import time
@@ -121,7 +122,7 @@ def main(argv: list[str] | None = None) -> int:
     m = {k[len("test/"):]: float(v) for k, v in cli.trainer.callback_metrics.items() if k.startswith("test/")}
     metrics = quickstart_metrics(m, (time.monotonic() - t0) / 60)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
+    (out / "metrics.json").write_text(json.dumps(json_safe(metrics), indent=2, allow_nan=False) + "\n")
     previews = sorted((out / "test" / "previews").glob("test_*.png"))
     if previews:
         shutil.copy(previews[-1], out / "preview.png")
@@ -152,6 +153,8 @@ def quickstart_metrics(m: dict[str, float], minutes: float) -> dict:
         for v in ("scaffold", "refined"):
             out[f"{v}_psnr{sfx}"] = m.get(f"psnr_{v}{sfx}", nan)
             out[f"{v}_ssim{sfx}"] = m.get(f"ssim_{v}{sfx}", nan)
+            if f"lpips_{v}{sfx}" in m:  # only where LPIPS's backbone weights are on the machine
+                out[f"{v}_lpips{sfx}"] = m[f"lpips_{v}{sfx}"]
             if sfx != "_targetalign":
                 for r in ("obs", "weak"):
                     out[f"psnr_{r}_{v}{sfx}"] = m.get(f"psnr_{r}_{v}{sfx}", nan)
@@ -168,6 +171,14 @@ def quickstart_metrics(m: dict[str, float], minutes: float) -> dict:
         "protocols": {sfx.lstrip("_") or "feedforward": text for sfx, text in PROTOCOLS.items()},
     })
     return out
+
+
+def json_safe(x):
+    """``x`` with every non-finite float (a figure its protocol or data did not give) as None: strict JSON
+    (``null``), which jq and ``JSON.parse`` read; Python's ``NaN`` token they refuse."""
+    if isinstance(x, dict):
+        return {k: json_safe(v) for k, v in x.items()}
+    return None if isinstance(x, float) and not math.isfinite(x) else x
 
 
 def markdown_table(header: list[str], rows: list[list[str]]) -> str:

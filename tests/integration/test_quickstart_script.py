@@ -67,3 +67,14 @@ def test_an_option_it_does_not_know_stops_in_one_line_naming_its_own(tmp_path, c
         assert "LightningCLI" in message[0] and len(err.splitlines()) < 8, err
         for flag in set(re.findall(r"--\w+", usage)):  # every flag of the parser is named in the message
             assert flag in message[0], (flag, message[0])
+
+
+def test_metrics_json_is_strict_json_when_a_protocol_gave_no_figure():
+    """A figure its protocol did not give (e.g. ``eval_pose_align_steps 0``) is ``null``, not Python's ``NaN``
+    token, which jq and ``JSON.parse`` refuse."""
+    qs = _quickstart()
+    metrics = qs.quickstart_metrics({"psnr_baseline": 18.0, "psnr_scaffold": 19.5, "psnr_refined": float("nan")}, 1.0)
+    text = json.dumps(qs.json_safe(metrics), allow_nan=False)
+    back = json.loads(text, parse_constant=lambda c: (_ for _ in ()).throw(ValueError(c)))
+    assert back["scaffold_psnr"] == 19.5 and back["refined_psnr"] is None and back["scaffold_psnr_camrefine"] is None
+    assert back["protocols"]["feedforward"].startswith("feed-forward")

@@ -11,10 +11,11 @@ import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 from torch import Tensor, nn
 from torchmetrics import MeanMetric
-from torchmetrics.image import PeakSignalNoiseRatio, StructuralSimilarityIndexMeasure
+from torchmetrics.image import PeakSignalNoiseRatio
 
 from anycity.geometry import camera_centers, invert_rigid, transform_points, umeyama
 from anycity.geometry.rotations import quat_multiply, rotmat_to_quat
+from anycity.metrics.image import ssim
 from anycity.metrics.pose import pose_auc, relative_pose_errors
 from anycity.render.sh import sh_rotation
 from anycity.structures import Gaussians
@@ -254,8 +255,9 @@ class EvalMetrics(nn.Module):
     ``_targetalign``, ``_joint``):
     ``psnr_<v><p>``, ``ssim_<v><p>``; ``psnr_obs_<v><p>``, ``psnr_weak_<v><p>``, ``ssim_obs_<v><p>``,
     ``ssim_weak_<v><p>`` (mean over images of the PSNR / SSIM inside the observation-supported / weak pixels of
-    :func:`anycity.metrics.regions.region_masks`; images where a region is empty are skipped), ``lpips_obs_*`` and
-    ``lpips_weak_*`` when an offline LPIPS is given (:func:`anycity.metrics.regions.masked_lpips`); ``region_obs``,
+    :func:`anycity.metrics.regions.region_masks`; images where a region is empty are skipped; SSIM as
+    :mod:`anycity.metrics.image` defines it), ``lpips_<v><p>``, ``lpips_obs_*`` and ``lpips_weak_*`` when an
+    offline LPIPS is given (one spatial map per image, :func:`anycity.metrics.regions.lpips_map`); ``region_obs``,
     ``region_weak`` (the regions' share of target pixels); ``psnr_baseline`` and ``psnr_nearest`` (+ ``_obs`` /
     ``_weak``) of the reference renders; ``abs_rel_<v>``, ``delta1_<v>`` (feed-forward depth); ``rre``, ``rte``,
     ``pose_auc30`` of the network's context cameras over all view pairs (degrees; AUC@30 in [0, 1]) and
@@ -280,7 +282,9 @@ class EvalMetrics(nn.Module):
             for r in REGIONS:
                 m[f"psnr_{r}_{n}"] = MeanMetric()
             if n not in ("baseline", "nearest"):
-                m[f"ssim_{n}"] = StructuralSimilarityIndexMeasure(data_range=1.0)
+                m[f"ssim_{n}"] = MeanMetric()
+                if lpips is not None:
+                    m[f"lpips_{n}"] = MeanMetric()
                 for r in REGIONS:
                     m[f"ssim_{r}_{n}"] = MeanMetric()
                     if lpips is not None:
@@ -302,21 +306,25 @@ class EvalMetrics(nn.Module):
         p, t = pred.float().clamp(0, 1), target.float()
         if keep is not None:
             p, t = p[keep], t[keep]
+        from anycity.metrics.regions import lpips_map, masked_mean, masked_psnr, masked_ssim
+
         self.metrics[f"psnr_{name}"].update(p, t)
         has_ssim = f"ssim_{name}" in self.metrics
         if has_ssim:
-            self.metrics[f"ssim_{name}"].update(p, t)
+            _update_defined(self.metrics[f"ssim_{name}"], ssim(p, t))
+        lmap = None
+        if has_ssim and self.lpips is not None:
+            lmap = lpips_map(self.lpips.to(p.device), p, t)  # [M, 1, H, W], once for the image and its regions
+            self.metrics[f"lpips_{name}"].update(lmap.mean(dim=(1, 2, 3)))
         if regions is None:
             return
-        from anycity.metrics.regions import masked_lpips, masked_psnr, masked_ssim
-
         for r, mask in zip(REGIONS, regions):
             mk = mask.flatten(0, 1) if keep is None else mask.flatten(0, 1)[keep]
             _update_defined(self.metrics[f"psnr_{r}_{name}"], masked_psnr(p, t, mk))
             if has_ssim:
                 _update_defined(self.metrics[f"ssim_{r}_{name}"], masked_ssim(p, t, mk))
-            if has_ssim and self.lpips is not None:
-                _update_defined(self.metrics[f"lpips_{r}_{name}"], masked_lpips(self.lpips.to(p.device), p, t, mk))
+            if lmap is not None:
+                _update_defined(self.metrics[f"lpips_{r}_{name}"], masked_mean(lmap, mk))
 
     def update_regions(self, regions: tuple[Tensor, Tensor] | None, keep: Tensor | None = None) -> None:
         """The share of target pixels in each region, per image (``keep`` as in :meth:`update`)."""

@@ -1,5 +1,11 @@
 """Image quality: per-image PSNR and SSIM (torchmetrics functional), the mean-colour baseline and the nearest-view
-reference."""
+reference.
+
+SSIM is Wang et al.'s: Gaussian window 11, sigma 1.5, averaged over the pixels whose whole window lies inside the
+image (5 px in from each edge), as skimage's ``structural_similarity(gaussian_weights=True)`` and the feed-forward
+papers' evaluation code (pixelSplat's ``compute_ssim``, used by NoPoSplat and AnySplat) average it. torchmetrics'
+own mean also counts the border pixels, whose windows read a reflected image: at 48 px that is 38 % of the pixels.
+"""
 
 from __future__ import annotations
 
@@ -20,10 +26,27 @@ def psnr(pred: Tensor, target: Tensor) -> Tensor:
     return peak_signal_noise_ratio(p, t, data_range=1.0, dim=(1, 2, 3), reduction="none")
 
 
-def ssim(pred: Tensor, target: Tensor) -> Tensor:
-    """Per-image SSIM (Gaussian window 11, sigma 1.5) of ``[..., 3, H, W]`` images -> ``[M]``."""
+SSIM_BORDER = 5  # the 11-px window's half width: pixels nearer the edge than this are not averaged
+
+
+def ssim_map(pred: Tensor, target: Tensor) -> Tensor:
+    """SSIM of each pixel whose whole window lies inside the image (Gaussian window 11, sigma 1.5) of
+    ``[..., 3, H, W]`` images in [0, 1] -> ``[M, 3, H - 10, W - 10]``."""
     p, t = _flat(pred).clamp(0, 1), _flat(target)
-    return structural_similarity_index_measure(p, t, data_range=1.0, reduction="none")
+    b = SSIM_BORDER
+    if min(p.shape[-2:]) <= 2 * b:
+        raise ValueError(f"ssim: images of {tuple(p.shape[-2:])} px have no pixel whose 11-px window fits; "
+                         f"score images larger than {2 * b} px on each side")
+    _, full = structural_similarity_index_measure(p, t, data_range=1.0, reduction="none", return_full_image=True)
+    return full[..., b:-b, b:-b]
+
+
+def ssim(pred: Tensor, target: Tensor) -> Tensor:
+    """Per-image SSIM (module docstring: the window's interior pixels) of ``[..., 3, H, W]`` images -> ``[M]``;
+    NaN for images of 10 px or less on a side, where no window fits (skimage refuses them)."""
+    if min(pred.shape[-2:]) <= 2 * SSIM_BORDER:
+        return torch.full((_flat(pred).shape[0],), float("nan"), device=pred.device)
+    return ssim_map(pred, target).mean(dim=(1, 2, 3))
 
 
 def mean_colour_baseline(context: Tensor, target_shape: tuple[int, ...]) -> Tensor:

@@ -52,9 +52,9 @@ from pathlib import Path
 import torch
 import torchmetrics
 from torch import Tensor
-from torchmetrics.functional.image import structural_similarity_index_measure
 
 from anycity.geometry import camera_centers, unproject_depth, visible_views
+from anycity.metrics.image import SSIM_BORDER, ssim_map
 
 DEFAULT_MIN_VIEWS = 2
 DEFAULT_PARALLAX_DEG = 2.0
@@ -171,25 +171,35 @@ def masked_psnr(pred: Tensor, target: Tensor, mask: Tensor) -> Tensor:
     return torch.where(n > 0, out, torch.full_like(out, float("nan")))
 
 
-def masked_ssim(pred: Tensor, target: Tensor, mask: Tensor) -> Tensor:
-    """Per-image mean of the full SSIM map (torchmetrics, Gaussian window 11, sigma 1.5) over the masked pixels
-    and channels -> ``[M]``; NaN where the mask is empty. The window still reads unmasked neighbours."""
-    p, g = _flat(pred, 3, "masked_ssim").float().clamp(0, 1), _flat(target, 3, "masked_ssim").float()
-    m = _flat(mask, 1, "masked_ssim").to(p.dtype)
-    _, smap = structural_similarity_index_measure(p, g, data_range=1.0, reduction="none", return_full_image=True)
+def masked_mean(values: Tensor, mask: Tensor) -> Tensor:
+    """Per-image mean of ``values [M, C, h, w]`` over the pixels of ``mask [M, 1, h, w]`` (all channels) -> ``[M]``;
+    NaN where the mask is empty."""
+    m = mask.to(values.dtype)
     n = m.sum(dim=(1, 2, 3))
-    out = (smap * m).sum(dim=(1, 2, 3)) / (n * smap.shape[1]).clamp_min(1)
+    out = (values * m).sum(dim=(1, 2, 3)) / (n * values.shape[1]).clamp_min(1)
     return torch.where(n > 0, out, torch.full_like(out, float("nan")))
+
+
+def masked_ssim(pred: Tensor, target: Tensor, mask: Tensor) -> Tensor:
+    """Per-image mean of the SSIM map (:func:`anycity.metrics.image.ssim_map`: the pixels 5 px and more inside the
+    image) over the masked pixels and channels -> ``[M]``; NaN where the mask is empty there. The window still
+    reads unmasked neighbours. NaN for images of 10 px or less on a side (no window fits)."""
+    if min(pred.shape[-2:]) <= 2 * SSIM_BORDER:
+        return torch.full((_flat(pred, 3, "masked_ssim").shape[0],), float("nan"), device=pred.device)
+    smap = ssim_map(_flat(pred, 3, "masked_ssim"), _flat(target, 3, "masked_ssim"))
+    b = SSIM_BORDER
+    return masked_mean(smap, _flat(mask, 1, "masked_ssim")[..., b:-b, b:-b])
+
+
+def lpips_map(net: torch.nn.Module, pred: Tensor, target: Tensor) -> Tensor:
+    """Spatial LPIPS (from :func:`lpips_or_none`) of ``[..., 3, H, W]`` images in [0, 1] -> ``[M, 1, H, W]``."""
+    p, g = _flat(pred, 3, "lpips").float().clamp(0, 1), _flat(target, 3, "lpips").float()
+    return net(p, g, normalize=True)
 
 
 def masked_lpips(net: torch.nn.Module, pred: Tensor, target: Tensor, mask: Tensor) -> Tensor:
     """Per-image mean of a spatial LPIPS map (from :func:`lpips_or_none`) over the mask -> ``[M]`` (NaN if empty)."""
-    p, g = _flat(pred, 3, "masked_lpips").float().clamp(0, 1), _flat(target, 3, "masked_lpips").float()
-    m = _flat(mask, 1, "masked_lpips").to(p.dtype)
-    lmap = net(p, g, normalize=True)  # [M, 1, H, W]
-    n = m.sum(dim=(1, 2, 3))
-    out = (lmap * m).sum(dim=(1, 2, 3)) / n.clamp_min(1)
-    return torch.where(n > 0, out, torch.full_like(out, float("nan")))
+    return masked_mean(lpips_map(net, pred, target), _flat(mask, 1, "masked_lpips"))
 
 
 @contextmanager

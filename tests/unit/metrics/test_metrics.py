@@ -22,6 +22,39 @@ def test_ssim_identity_and_range():
     assert (ssim(img, torch.rand_like(img)) < 0.5).all()
 
 
+def _ssim_reference(x, y):
+    """Wang et al.'s SSIM in float64 numpy (Gaussian window 11, sigma 1.5, population variances), averaged over the
+    pixels whose whole window lies inside the image, as skimage's structural_similarity(gaussian_weights=True,
+    use_sample_covariance=False) averages it."""
+    import numpy as np
+
+    g = np.exp(-((np.arange(11) - 5) ** 2) / (2 * 1.5**2))
+    w = np.outer(g, g) / np.outer(g, g).sum()
+    c1, c2 = 0.01**2, 0.03**2
+    vals = []
+    for c in range(x.shape[0]):
+        for i in range(5, x.shape[1] - 5):
+            for j in range(5, x.shape[2] - 5):
+                a, b = x[c, i - 5:i + 6, j - 5:j + 6], y[c, i - 5:i + 6, j - 5:j + 6]
+                ma, mb = (w * a).sum(), (w * b).sum()
+                va, vb = (w * a * a).sum() - ma**2, (w * b * b).sum() - mb**2
+                cov = (w * a * b).sum() - ma * mb
+                vals.append((2 * ma * mb + c1) * (2 * cov + c2) / ((ma**2 + mb**2 + c1) * (va + vb + c2)))
+    return float(np.mean(vals))
+
+
+def test_ssim_is_wang_et_al_over_the_windows_inside_the_image():
+    """The feed-forward papers' SSIM (skimage; pixelSplat's compute_ssim): border pixels, whose windows would read
+    a padded image, are not averaged. A defect in the border ring changes it only through the windows it reaches."""
+    gen = torch.Generator().manual_seed(0)
+    gt = torch.rand(3, 24, 20, generator=gen)
+    pred = (gt + 0.2 * torch.randn(3, 24, 20, generator=gen)).clamp(0, 1)
+    got = ssim(pred[None], gt[None])
+    assert got.shape == (1,)
+    assert got.item() == pytest.approx(_ssim_reference(pred.double().numpy(), gt.double().numpy()), abs=1e-5)
+    assert ssim(torch.rand(2, 3, 10, 32), torch.rand(2, 3, 10, 32)).isnan().all()  # no window fits: undefined
+
+
 def test_mean_colour_baseline():
     ctx = torch.zeros(1, 2, 3, 4, 4)
     ctx[:, 0, 0] = 1.0  # red channel mean = 0.5

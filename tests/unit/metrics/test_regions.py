@@ -215,6 +215,31 @@ def test_masked_lpips_averages_the_spatial_map_over_the_mask():
     assert torch.isnan(out[1])
 
 
+def test_eval_metrics_score_lpips_on_the_whole_image_and_its_regions_from_one_map():
+    """With an LPIPS net, ``lpips_<v>`` (the whole image, sky included) sits beside the per-region figures, and the
+    net runs once per image batch, not once per region."""
+    from anycity.lit.evaluation import EvalMetrics
+
+    calls = []
+
+    class AbsDiff(torch.nn.Module):
+        def forward(self, a, b, normalize=False):
+            calls.append(a.shape[0])
+            return (a - b).abs().mean(1, keepdim=True)
+
+    p, t = _images(2)
+    observed = torch.zeros(1, 2, 1, H, W, dtype=torch.bool)
+    observed[..., : H // 2, :] = True
+    m = EvalMetrics(("refined",), lpips=AbsDiff())
+    m.update("refined", p, t, (observed, ~observed))
+    assert calls == [2]
+    scores = {k: v.compute() for k, v in m.items() if v.update_called}
+    diff = (p - t).abs().mean(1)  # [2, H, W]
+    torch.testing.assert_close(scores["lpips_refined"], diff.mean())
+    torch.testing.assert_close(scores["lpips_obs_refined"], diff[:, : H // 2].mean())
+    torch.testing.assert_close(scores["lpips_weak_refined"], diff[:, H // 2:].mean())
+
+
 def test_lpips_absent_is_one_line_without_download(monkeypatch, capfd, tmp_path):
     import torch.hub
 
