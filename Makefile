@@ -12,8 +12,11 @@ setup:
 	@$(PY) -c "import torch" 2>/dev/null || $(PIP) install -q torch==2.13.0
 	$(PIP) install -q -e ".[dev,wan,cpu]"
 
+# One pytest worker per CPU core (pytest-xdist), each test process on one thread (tests/conftest.py): on 2 cores
+# the suite takes about two thirds of the time one process on both cores does.
+PYTEST_WORKERS ?= auto
 test:
-	$(PY) -m pytest -m "not slow" tests
+	$(PY) -m pytest -m "not slow" -n $(PYTEST_WORKERS) --dist worksteal tests
 
 # The suite on the oldest dependencies pyproject.toml allows (.ci/floors.txt), in its own venv; not in CI (~10 min).
 # The oldest Python too: make test-floors FLOORS_PYTHON=python3.10 FLOORS_VENV=.venv-floors310 (torch 2.13 for 3.10
@@ -28,7 +31,7 @@ test-floors:
 	@$(FLOORS_VENV)/bin/python -c "import sys, torch; sys.exit(torch.__version__.split('+')[0] != '$(FLOORS_TORCH)')" \
 		2>/dev/null || $(FLOORS_VENV)/bin/python -m pip install -q torch==$(FLOORS_TORCH)
 	$(FLOORS_VENV)/bin/python -m pip install -q -e ".[dev,wan,cpu]" -c .ci/floors.txt
-	$(FLOORS_VENV)/bin/python -m pytest -m "not slow" tests
+	$(FLOORS_VENV)/bin/python -m pytest -m "not slow" -n $(PYTEST_WORKERS) --dist worksteal tests
 
 test-all:
 	$(PY) -m pytest tests

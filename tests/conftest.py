@@ -1,6 +1,16 @@
-"""Fixtures shared by the integration and reliability tests: tiny synthetic shards, built once per session."""
+"""Fixtures shared by the integration and reliability tests: tiny synthetic shards, built once per session (per
+pytest-xdist worker)."""
+
+import os
 
 import pytest
+
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    # `make test` runs one worker per core: one torch thread each (and in the processes the tests start, which
+    # inherit this), or torch's pool would put two threads on every core. The fused CPU kernels follow torch's
+    # count; NUMBA_NUM_THREADS stays as it is, so tests that set 2 threads still get them. Set before torch loads.
+    for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(_var, "1")
 
 
 @pytest.fixture(scope="session")

@@ -54,9 +54,18 @@ def _test_floors_recipe() -> str:
     return make.split("\ntest-floors:\n", 1)[1].split("\n\n", 1)[0]
 
 
+def _suite_line(recipe: str) -> str:
+    return next(line.strip() for line in recipe.splitlines() if "-m pytest" in line)
+
+
 def test_make_test_floors_installs_the_pins_and_runs_the_suite():
+    """The floors run is `make test`'s pytest command (one worker per core) in the floors venv."""
     recipe = _test_floors_recipe()
-    assert '-c .ci/floors.txt' in recipe and 'pytest -m "not slow" tests' in recipe
+    make = (ROOT / "Makefile").read_text()
+    test = _suite_line(make.split("\ntest:\n", 1)[1].split("\n\n", 1)[0])
+    assert '-c .ci/floors.txt' in recipe
+    assert test.startswith('$(PY) -m pytest -m "not slow" -n ') and test.endswith(" tests")
+    assert _suite_line(recipe) == test.replace("$(PY)", "$(FLOORS_VENV)/bin/python")
 
 
 def test_the_torch_floor_run_the_readme_gives_installs_that_floor():
