@@ -48,7 +48,7 @@ stage2-prior: runs/pose_prior.pt
 	$(PY) scripts/stage2_tables.py --rows prior_mix,prior_mix_unordered --pose_prior runs/pose_prior.pt --out runs/stage2_prior
 
 bench:
-	@for f in benchmarks/*.py; do echo "== $$f"; $(PY) $$f || exit 1; done
+	@for f in benchmarks/[!_]*.py; do echo "== $$f"; $(PY) $$f || exit 1; done
 
 lint:
 	$(VENV)/bin/ruff check src tests benchmarks

@@ -29,11 +29,12 @@ import argparse
 import json
 import math
 import resource
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+
+from _bench import positive_int, run_child
 
 
 def run_one(views: int, size: int, chunk: int, overlap: int, threads: int) -> dict:
@@ -158,17 +159,17 @@ def loop_check() -> None:
                   f"{errors(chunks, S, n, w2c)} | {errors(chunks[:-1], S_open, n, w2c)} |", flush=True)
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--views", type=int, nargs="+", default=[48, 96, 192, 384])
-    ap.add_argument("--size", type=int, default=48)
-    ap.add_argument("--chunk", type=int, default=32)
+    ap.add_argument("--views", type=positive_int, nargs="+", default=[48, 96, 192, 384])
+    ap.add_argument("--size", type=positive_int, default=48)
+    ap.add_argument("--chunk", type=positive_int, default=32)
     ap.add_argument("--overlap", type=int, default=8)
-    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--threads", type=positive_int, default=2)
     ap.add_argument("--align", action="store_true", help="the alignment alone on oracle chunks")
     ap.add_argument("--loop-check", action="store_true", help="the pose graph's cycle check on oracle loops")
     ap.add_argument("--one", action="store_true", help=argparse.SUPPRESS)
-    a = ap.parse_args()
+    a = ap.parse_args(argv)
     if a.loop_check:
         loop_check()
         return
@@ -180,7 +181,7 @@ def main() -> None:
         for v in a.views:
             cmd = [sys.executable, __file__, "--one", "--align", "--views", str(v), "--chunk", str(a.chunk),
                    "--overlap", str(a.overlap)]
-            r = json.loads(subprocess.run(cmd, capture_output=True, text=True, check=True).stdout.splitlines()[-1])
+            r = json.loads(run_child(cmd, f"city.py --align, {v} photos").splitlines()[-1])
             print(f"{r['views']:5d} photos  {r['chunks']:4d} chunks  {r['edges']:4d} edges  align {r['time_s']:6.2f} s"
                   f"  +{r['added_rss_mb']} MB peak RSS", flush=True)
         return
@@ -188,8 +189,7 @@ def main() -> None:
     for v in a.views:
         cmd = [sys.executable, __file__, "--one", "--views", str(v), "--size", str(a.size), "--chunk", str(a.chunk),
                "--overlap", str(a.overlap), "--threads", str(a.threads)]
-        res = subprocess.run(cmd, capture_output=True, text=True, check=True)
-        rows.append(json.loads(res.stdout.strip().splitlines()[-1]))
+        rows.append(json.loads(run_child(cmd, f"city.py, {v} photos").strip().splitlines()[-1]))
         r = rows[-1]
         print(f"{r['views']:5d} views  {r['chunks']:3d} chunks  {r['time_s']:7.2f} s (network {r['network_s']:.2f}, "
               f"align+merge {r['align_merge_s']:.2f})  {r['time_s'] / r['views'] * 1000:6.1f} ms/view  "

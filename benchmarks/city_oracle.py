@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import argparse
 
+from _bench import positive_int
+
 from anycity.city import align_chunks, plan_chunks
 from anycity.city.oracle import camera_errors, oracle_chunks, orbit_scene
 from anycity.city.plan import owners
@@ -26,12 +28,12 @@ def merged(chunks, S, plan):
     return torch.stack([w2c_to_world(chunks[k].w2c[chunks[k].views.index(v)], S[k]) for v, k in sorted(own.items())])
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--views", type=int, default=120)
-    ap.add_argument("--chunk", type=int, default=16)
+    ap.add_argument("--views", type=positive_int, default=120)
+    ap.add_argument("--chunk", type=positive_int, default=16)
     ap.add_argument("--overlap", type=int, nargs="+", default=[4, 10])
-    a = ap.parse_args()
+    a = ap.parse_args(argv)
     w2c, pts = orbit_scene(a.views, points_per_view=64)
     print("overlap  noise    chain: rot deg  pos/extent   graph: rot deg  pos/extent")
     for ov in a.overlap:

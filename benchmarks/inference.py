@@ -13,6 +13,7 @@ import argparse
 import time
 
 import torch
+from _bench import positive_int
 
 TARGET_S = {"tiny": 1.0}
 
@@ -27,14 +28,15 @@ def best_time(fn, repeats: int) -> float:
     return min(times)
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--preset", default="tiny")
-    ap.add_argument("--views", type=int, default=4)
-    ap.add_argument("--size", type=int, default=112, help="square side in pixels (a multiple of the patch size)")
-    ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--repeats", type=int, default=5)
-    args = ap.parse_args()
+    ap.add_argument("--views", type=positive_int, default=4)
+    ap.add_argument("--size", type=positive_int, default=112,
+                    help="square side in pixels (a multiple of the patch size)")
+    ap.add_argument("--threads", type=positive_int, default=2)
+    ap.add_argument("--repeats", type=positive_int, default=5)
+    args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     from anycity.models import build_network
 

@@ -31,6 +31,17 @@ WAN22_VAE = dict(base_dim=160, decoder_base_dim=256, z_dim=48, dim_mult=[1, 2, 4
                  in_channels=12, out_channels=12, patch_size=2, scale_factor_spatial=16, scale_factor_temporal=4)
 
 
+def keep_fp32_modules(model):
+    """Put the parameters of ``model._keep_in_fp32_modules`` back to float32 after a cast, as diffusers'
+    ``from_pretrained(torch_dtype=...)`` keeps them (its rule: a listed name is one of the parameter name's
+    dot-separated parts); ``.to(dtype)`` alone casts them too."""
+    keep = set(getattr(model, "_keep_in_fp32_modules", None) or ())
+    for name, p in model.named_parameters():
+        if keep & set(name.split(".")):
+            p.data = p.data.float()
+    return model
+
+
 def _meta_wan(block=None, lora_rank=16):
     import diffusers
 
@@ -38,7 +49,7 @@ def _meta_wan(block=None, lora_rank=16):
 
     diffusers.utils.logging.set_verbosity_error()  # .to(bf16) on meta: its "keep some modules in fp32" notice
     with torch.device("meta"):
-        tr = diffusers.WanTransformer3DModel(**WAN22_5B_TRANSFORMER).to(torch.bfloat16)
+        tr = keep_fp32_modules(diffusers.WanTransformer3DModel(**WAN22_5B_TRANSFORMER).to(torch.bfloat16))
         vae = diffusers.AutoencoderKLWan(**WAN22_VAE, latents_mean=[0.0] * 48, latents_std=[1.0] * 48)
         full = sum(p.numel() for p in tr.parameters())
         prior = WanVideoPrior(vae, tr, block=block)

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import torch
 import yaml
+from _bench import positive_int
 
 from anycity.geometry import make_intrinsics
 from anycity.lit.base import make_adamw
@@ -72,17 +73,17 @@ def _accepted(cls, kw: dict) -> dict:
     return {k: v for k, v in kw.items() if k in names}
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--preset", default="tiny")
-    p.add_argument("--size", type=int, default=48)
-    p.add_argument("--context", type=int, default=4)
-    p.add_argument("--targets", type=int, default=2)
+    p.add_argument("--size", type=positive_int, default=48)
+    p.add_argument("--context", type=positive_int, default=4)
+    p.add_argument("--targets", type=positive_int, default=2)
     p.add_argument("--dense", type=int, default=6)
     p.add_argument("--backend", default="auto")
-    p.add_argument("--steps", type=int, default=5)
-    p.add_argument("--threads", type=int, default=2)
-    a = p.parse_args()
+    p.add_argument("--steps", type=positive_int, default=5)
+    p.add_argument("--threads", type=positive_int, default=2)
+    a = p.parse_args(argv)
     torch.set_num_threads(a.threads)
     torch.manual_seed(0)
     from anycity.lit import RefinementModule, ScaffoldModule
