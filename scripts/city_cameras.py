@@ -39,6 +39,18 @@ def compare(pred: dict[str, torch.Tensor], ref: dict[str, torch.Tensor]) -> dict
     return {"photos": len(names), **{k: round(v, 5) for k, v in err.items()}}
 
 
+def _reference(a: argparse.Namespace, ap: argparse.ArgumentParser) -> dict[str, torch.Tensor]:
+    if a.colmap:
+        try:
+            return load_colmap(a.colmap)
+        except (FileNotFoundError, NotADirectoryError) as e:
+            why = str(e).split("; point --src")[0]  # the parser's advice names anycity data convert's flag
+            ap.error(f"--colmap {a.colmap}: cannot read its cameras ({why}); pass a COLMAP scene folder")
+    if not a.cameras.is_file():
+        ap.error(f"--cameras {a.cameras}: no such file; pass the reference cameras.json")
+    return load_cameras_json(a.cameras)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0], allow_abbrev=False)
     ap.add_argument("pred", type=Path, help="predict output folder (holding cameras.json)")
@@ -49,8 +61,10 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"{a.pred}: no cameras.json; pass the scene folder anycity predict wrote (<out_dir>/<scene>)")
     if not (a.colmap or a.cameras):
         ap.error("pass the reference cameras: --colmap SCENE or --cameras cameras.json")
-    ref = load_colmap(a.colmap) if a.colmap else load_cameras_json(a.cameras)
-    print(json.dumps(compare(load_cameras_json(a.pred / "cameras.json"), ref)))
+    try:
+        print(json.dumps(compare(load_cameras_json(a.pred / "cameras.json"), _reference(a, ap))))
+    except ValueError as e:  # too few photo names in common
+        ap.error(str(e))
     return 0
 
 

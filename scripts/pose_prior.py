@@ -6,7 +6,9 @@ It trains :class:`anycity.lit.pose_prior.PosePriorModule` (a Lightning ``Trainer
 ``--devices``) on the context views of the training split and their ground-truth poses, prints the mean relative
 rotation error on the validation split every ``--val-every`` steps and on the test split once at the end (no
 checkpoint is chosen by it), and writes ``OUT``: ``{"state_dict", "channels", "grid", "image_size", "num_context",
-"data", "steps", "rre_val", "rre_test"}``. Then, in Stage II:
+"data", "steps", "rre_val", "rre_test"}`` (``rre_val`` null with ``--val-batches 0``; the weights are written before
+the test, so a failed test keeps them). Missing splits and an ``--out`` that cannot be written stop it before
+training. Then, in Stage II:
 
     anycity fit -c configs/quickstart.yaml -c configs/quickstart_stage2.yaml --model.init_args.init_from STAGE1 \\
         --model.init_args.net.refine_cameras true --model.init_args.net.camera_video true \\
@@ -20,6 +22,33 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+
+
+def _before_training(args: argparse.Namespace, out: Path) -> str | None:
+    """What would stop the run only after training: a split it reads missing, an --out it cannot write."""
+    from anycity.atomic import check_writable_folder
+    from anycity.data.writer import read_index
+
+    has = {k: len(v) for k, v in read_index(args.data).get("splits", {}).items() if v}
+    for split, fix in (("train", ""), ("val", ", or pass --val-batches 0"), ("test", "")):
+        if split not in has and (split != "val" or args.val_batches > 0):
+            return (f"--data {args.data}: index.json lists no {split} shards (it has "
+                    f"{', '.join(f'{k}: {n}' for k, n in has.items()) or 'none'}; the 8:1:1 scene split puts a set of "
+                    f"few scenes in train alone): pass a shard set with more scenes{fix}")
+    try:
+        check_writable_folder(out.parent, "--out")
+    except OSError as e:
+        return str(e)
+    return None
+
+
+def _save(out: Path, payload: dict) -> None:
+    import torch
+
+    from anycity.atomic import atomic_path
+
+    with atomic_path(out) as tmp:
+        torch.save(payload, tmp)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -47,9 +76,12 @@ def main(argv: list[str] | None = None) -> int:
     if out.exists():
         print(f"error: --out {out} exists; delete it or pass another path", file=sys.stderr)
         return 2
+    problem = _before_training(args, out)  # found now, not after the last step
+    if problem:
+        print(f"error: {problem}", file=sys.stderr)
+        return 2
 
     import lightning.pytorch as pl
-    import torch
 
     from anycity.cli import quiet_third_party_noise
     from anycity.lit.datamodule import AerialDataModule
@@ -77,15 +109,16 @@ def main(argv: list[str] | None = None) -> int:
                         limit_val_batches=args.val_batches,
                         check_val_every_n_epoch=None, callbacks=[Report()])
     trainer.fit(module, datamodule=dm)
-    rre_val = float(trainer.callback_metrics["val/rre"])
+    rre_val = trainer.callback_metrics.get("val/rre")  # none with --val-batches 0
+    saved = {"state_dict": module.net.state_dict(), "channels": module.hparams.channels, "grid": module.hparams.grid,
+             "image_size": list(args.image_size), "num_context": args.num_context, "data": str(args.data),
+             "steps": args.steps, "rre_val": None if rre_val is None else float(rre_val), "rre_test": None}
+    if trainer.is_global_zero:  # the weights are kept even if the test below fails
+        _save(out, saved)
     rre_test = float(trainer.test(module, datamodule=dm, verbose=False)[0]["test/rre"])
     print(f"test cities, mean relative rotation error {rre_test:.2f} deg (read once, after training)")
     if trainer.is_global_zero:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        torch.save({"state_dict": module.net.state_dict(), "channels": module.hparams.channels,
-                    "grid": module.hparams.grid, "image_size": list(args.image_size),
-                    "num_context": args.num_context, "data": str(args.data), "steps": args.steps,
-                    "rre_val": rre_val, "rre_test": rre_test}, out)
+        _save(out, {**saved, "rre_test": rre_test})
         print(f"wrote {out}")
     return 0
 

@@ -30,8 +30,10 @@ model cannot resolve (median relative-rotation error 32 deg against 9 deg on orb
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import math
+import os
 import shutil
 import sys
 import time
@@ -40,6 +42,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 STAGE1 = ROOT / "configs" / "quickstart.yaml"
 STAGE2 = ROOT / "configs" / "quickstart_stage2.yaml"
+USER_ERRORS = (ValueError, FileNotFoundError, FileExistsError, NotADirectoryError, IsADirectoryError, PermissionError)
 
 
 def _run_args(out: Path, name: str) -> list[str]:
@@ -56,8 +59,63 @@ def _forwardable(arg: str) -> bool:
     return name == "--seed_everything" or (name.startswith("--") and "." in name and not name.startswith("--."))
 
 
+def _index_sha256(data: Path) -> str:
+    return hashlib.sha256((data / "index.json").read_bytes()).hexdigest()
+
+
+def write_stamp(data: Path, synth_args: list[str]) -> None:
+    """``quickstart_data.json``: the synth arguments and the sha256 of the ``index.json`` they made (a folder
+    regenerated with ``anycity data synth --overwrite`` keeps the stamp but not the index)."""
+    from anycity.atomic import atomic_write_bytes
+
+    stamp, text = data / "quickstart_data.json", json.dumps({"synth": synth_args, "index_sha256": _index_sha256(data)})
+    if not stamp.is_file() or stamp.read_text().strip() != text:  # an earlier format's stamp is upgraded
+        atomic_write_bytes(stamp, (text + "\n").encode())
+
+
+def stamp_mismatch(data: Path, synth_args: list[str], scenes: int, views: int) -> str | None:
+    """Why the shards in ``data`` are not the quickstart's (None when they are)."""
+    stamp = data / "quickstart_data.json"
+    made = json.loads(stamp.read_text()) if stamp.is_file() else None
+    if isinstance(made, dict):
+        if made.get("synth") != synth_args:
+            return f"{' '.join(made.get('synth') or ['unknown'])}"
+        return None if made.get("index_sha256") == _index_sha256(data) else "index.json changed since its stamp"
+    if made != synth_args:
+        return f"{' '.join(made) if made else 'unknown'}"
+    # a stamp of the earlier format (the synth arguments only): the index must still say what they asked for
+    index = json.loads((data / "index.json").read_text())
+    found = index.get("scenes") or []
+    if len(found) != scenes or any(sc.get("num_views") != views for sc in found):
+        return f"index.json lists {len(found)} scenes, not {scenes} of {views} views"
+    return None
+
+
 def _banner(text: str, t0: float) -> None:
     print(f"\n=== {text}  [{(time.monotonic() - t0) / 60:.1f} min]", flush=True)
+
+
+def _train_and_test(out: Path, common: list[str], args: argparse.Namespace, t0: float):
+    """Stage I, Stage II, then ``anycity test`` of Stage II on the test split; returns the test's CLI."""
+    from anycity.cli import build_cli
+
+
+    _banner("Stage I: scaffold (tiny preset)", t0)
+    steps1 = ["--trainer.max_steps", str(args.stage1_steps)] if args.stage1_steps else []
+    build_cli(["fit", "-c", str(STAGE1), *common, *_run_args(out, "stage1"), *steps1])
+    ckpt1 = out / "stage1" / "checkpoints" / "last.ckpt"
+
+    _banner("Stage II: completion branch + video prior on the frozen scaffold", t0)
+    steps2 = ["--trainer.max_steps", str(args.stage2_steps)] if args.stage2_steps else []
+    stage2 = ["-c", str(STAGE1), "-c", str(STAGE2), *common]
+    build_cli(["fit", *stage2, *_run_args(out, "stage2"), "--model.init_args.init_from", str(ckpt1), *steps2])
+    ckpt2 = out / "stage2" / "checkpoints" / "last.ckpt"
+
+    _banner("evaluation on held-out views of unseen (test) scenes", t0)
+    # 4 test samples per step: a quarter faster, and the same figures as one at a time (each sample's test-time
+    # fits ignore its batch-mates; only the metric means' float summation order differs, ~1e-6 dB)
+    return build_cli(["test", "--data.eval_batch_size", "4", *stage2, *_run_args(out, "test"), "--ckpt_path",
+                     str(ckpt2)])
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -81,18 +139,16 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.monotonic()
     data, out = Path(args.data), Path(args.out)
 
-    from anycity.cli import build_cli
+    from anycity.cli import Stopped
     from anycity.data.cli import data_main
 
     synth_args = ["--scenes", str(args.scenes), "--views", str(args.views), "--size", "48x48",
                   "--trajectory", args.trajectory, "--supersample", "2"]
-    stamp = data / "quickstart_data.json"  # the synth arguments these shards were made with
     if (data / "index.json").is_file():
-        made_with = json.loads(stamp.read_text()) if stamp.is_file() else None
-        if made_with != synth_args:
-            print(f"error: {data} holds shards made with other settings ({made_with or 'unknown'}; the quickstart "
-                  f"needs {' '.join(synth_args)}): delete {data} to regenerate it, or pass --data NEW_DIR",
-                  file=sys.stderr)
+        why = stamp_mismatch(data, synth_args, args.scenes, args.views)
+        if why:
+            print(f"error: {data} holds shards made with other settings ({why}; the quickstart needs "
+                  f"{' '.join(synth_args)}): delete {data} to regenerate it, or pass --data NEW_DIR", file=sys.stderr)
             return 2
     else:
         _banner(f"generating {args.scenes} synthetic cities x {args.views} {args.trajectory} views at 48x48 -> {data}",
@@ -100,25 +156,21 @@ def main(argv: list[str] | None = None) -> int:
         rc = data_main(["synth", "--out", str(data), *synth_args, "--preview"])
         if rc:
             return rc
-        stamp.write_text(json.dumps(synth_args) + "\n")
+    write_stamp(data, synth_args)
     common = ["--data.root", str(data), *extra]
+    try:
+        cli = _train_and_test(out, common, args, t0)
+    except USER_ERRORS as e:  # what `anycity fit|test` prints as one line (anycity.cli.main)
+        if os.environ.get("ANYCITY_DEBUG", "") not in ("", "0"):
+            raise
+        from anycity.cli import _one_line
 
-    _banner("Stage I: scaffold (tiny preset)", t0)
-    steps1 = ["--trainer.max_steps", str(args.stage1_steps)] if args.stage1_steps else []
-    build_cli(["fit", "-c", str(STAGE1), *common, *_run_args(out, "stage1"), *steps1])
-    ckpt1 = out / "stage1" / "checkpoints" / "last.ckpt"
-
-    _banner("Stage II: completion branch + video prior on the frozen scaffold", t0)
-    steps2 = ["--trainer.max_steps", str(args.stage2_steps)] if args.stage2_steps else []
-    stage2 = ["-c", str(STAGE1), "-c", str(STAGE2), *common]
-    build_cli(["fit", *stage2, *_run_args(out, "stage2"), "--model.init_args.init_from", str(ckpt1), *steps2])
-    ckpt2 = out / "stage2" / "checkpoints" / "last.ckpt"
-
-    _banner("evaluation on held-out views of unseen (test) scenes", t0)
-    # 4 test samples per step: a quarter faster, and the same figures as one at a time (each sample's test-time
-    # fits ignore its batch-mates; only the metric means' float summation order differs, ~1e-6 dB)
-    cli = build_cli(["test", "--data.eval_batch_size", "4", *stage2, *_run_args(out, "test"), "--ckpt_path",
-                     str(ckpt2)])
+        print(f"quickstart: error: {_one_line(e)}  (ANYCITY_DEBUG=1 for the traceback)", file=sys.stderr)
+        return 2
+    except Stopped as e:  # SIGTERM: exit 143 and the line saying where it stopped
+        if e.message:
+            print(f"quickstart: {e.message}", file=sys.stderr)
+        return e.code
     m = {k[len("test/"):]: float(v) for k, v in cli.trainer.callback_metrics.items() if k.startswith("test/")}
     metrics = quickstart_metrics(m, (time.monotonic() - t0) / 60)
     out.mkdir(parents=True, exist_ok=True)

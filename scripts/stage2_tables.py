@@ -8,7 +8,8 @@
 Each row is its own Stage II run (``anycity fit`` from ``--stage1`` with the row's overrides, then ``anycity test``
 on the test split, each in its own process, so ``--trainer.devices 8`` runs DDP), so every figure is scored on unseen
 scenes; each run logs to CSV in its directory. Rows write ``OUT/ROW/{fit,test}`` and
-``OUT/ROW/metrics.json``; a finished row is reused when it was made with the same settings and refused otherwise.
+``OUT/ROW/metrics.json``; a finished row is reused when it was made with the same settings (the Stage I and pose
+prior files' size and time, the config files' contents included) and refused otherwise.
 The tables go to stdout, ``OUT/tables.md`` and ``OUT/tables.json``.
 
 Figures are observed / weak PSNR (``anycity.metrics.regions``) in two protocols that read no target image:
@@ -26,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import hashlib
 import json
 import math
 import subprocess
@@ -104,13 +106,26 @@ def _test_metrics(csv_path: Path) -> dict[str, float]:
     return {k[len("test/"):]: float(v) for k, v in rows[-1].items() if k.startswith("test/") and v != ""}
 
 
-def run_row(row: Row, ckpt: Path, out: Path, common: list[str], steps: int, pose_prior: str | None = None) -> dict:
+def _file_id(path: str | Path) -> list[int]:
+    """[size, mtime_ns]: a file rewritten at the same path (Stage I or a pose prior trained again) makes rows stale."""
+    st = Path(path).stat()
+    return [st.st_size, st.st_mtime_ns]
+
+
+def config_digests(configs: list[str]) -> list[str]:
+    """The sha256 of each config file's contents: a row's args name the files only."""
+    return [hashlib.sha256(Path(c).read_bytes()).hexdigest() for c in configs]
+
+
+def run_row(row: Row, ckpt: Path, out: Path, common: list[str], steps: int, pose_prior: str | None = None,
+            configs_sha256: list[str] | None = None) -> dict:
     """Fit and test one row (or reuse its finished run). Returns ``{"settings", "refined", "scaffold"}``."""
     d = out / row.name
     overrides = [*row.overrides, *(["--model.init_args.net.pose_prior", pose_prior] if row.pose_prior else [])]
-    st = ckpt.stat()  # the file's identity too: a rerun of Stage I to the same path makes earlier rows stale
-    settings = {"stage1": str(ckpt), "stage1_file": [st.st_size, st.st_mtime_ns], "steps": steps,
-                "args": [*common, *overrides]}
+    settings = {"stage1": str(ckpt), "stage1_file": _file_id(ckpt), "steps": steps, "args": [*common, *overrides],
+                "configs_sha256": configs_sha256 or []}
+    if row.pose_prior:
+        settings["pose_prior_file"] = _file_id(pose_prior)
     done = d / "metrics.json"
     if done.is_file():
         saved = json.loads(done.read_text())
@@ -240,7 +255,9 @@ def main(argv: list[str] | None = None) -> int:
             args.configs[i] = str(ROOT / c)  # a repository config, run from another directory
     common = [a for c in args.configs for a in ("-c", c)] + ["--data.root", args.data, *extra]
     out = Path(args.out)
-    results = {n: run_row(ROWS[n], ckpts[ROWS[n].stage1], out, common, args.steps, args.pose_prior) for n in names}
+    digests = config_digests(args.configs)
+    results = {n: run_row(ROWS[n], ckpts[ROWS[n].stage1], out, common, args.steps, args.pose_prior, digests)
+               for n in names}
     scaffolds = [r["scaffold"] for n, r in results.items() if ROWS[n].stage1 == "stage1"]
     text, as_json = tables(results, scaffolds[0] if scaffolds else _figures({}, "scaffold"), missing)
     if scaffolds:  # the scaffold is frozen in Stage II, so every row from --stage1 must score it the same

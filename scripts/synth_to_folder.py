@@ -5,31 +5,48 @@
 
 Shards hold overlapping trajectory windows; each view is written once, named by its index along the trajectory.
 The shards are those the set's ``index.json`` lists (never other ``*.tar`` files in the folder). ``--seed 1``: the
-quickstart's cities are seed 0's scenes 0 to 79, so seed 0's scene 0 is one it trained on.
+quickstart's cities are seed 0's scenes 0 to 79, so seed 0's scene 0 is one it trained on. A set of several scenes
+needs ``--scene KEY`` (a key of its ``index.json``'s scenes); a non-empty ``OUT/photos`` is refused.
 """
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 import tarfile
 from pathlib import Path
 
 
+def _scene_keys(index: dict, scene: str | None, ap: argparse.ArgumentParser) -> set[str]:
+    """The sample keys of the one scene to write (views of two scenes share their indices)."""
+    scenes = [sc["key"] for sc in index.get("scenes", [])]
+    if scene is None and len(scenes) > 1:
+        ap.error(f"{len(scenes)} scenes in the set; pass --scene KEY, one of {', '.join(scenes)}")
+    if scene is not None and scene not in scenes:
+        ap.error(f"--scene {scene}: not in the set; pass one of {', '.join(scenes)}")
+    scene = scene or (scenes[0] if scenes else None)
+    return {sm["key"] for sm in index.get("samples", []) if scene is None or sm.get("scene") == scene}
+
+
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
-    if len(argv) != 2:
-        print(__doc__)
-        return 2
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("src", help="an anycity data synth folder (its index.json)")
+    ap.add_argument("out", help="writes OUT/photos/*.jpg and OUT/cameras_gt.json")
+    ap.add_argument("--scene", default=None, help="the scene's key (index.json's scenes), where the set has several")
+    args = ap.parse_args(argv)
     from anycity.data.writer import read_index
 
-    src, out = Path(argv[0]), Path(argv[1])
+    src, out = Path(args.src), Path(args.out)
     try:
         index = read_index(src)  # its shards only: not other *.tar files that may lie in the folder
     except (FileNotFoundError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    keys = _scene_keys(index, args.scene, ap)
     photos = out / "photos"
+    if photos.is_dir() and any(photos.iterdir()):  # an earlier run's photos would mix with these
+        ap.error(f"{photos} is not empty; delete it or pass another OUT")
     photos.mkdir(parents=True, exist_ok=True)
     cams: dict[int, dict] = {}
     for shard in [src / e["path"] for e in index["shards"]]:
@@ -38,6 +55,8 @@ def main(argv: list[str] | None = None) -> int:
             for name in sorted(n for n in members if n.endswith(".cameras.json")):
                 meta = json.loads(tar.extractfile(members[name]).read())
                 key = name.removesuffix(".cameras.json")
+                if keys and key not in keys:
+                    continue
                 for v in meta["views"]:
                     g = int(v["index"])  # along the whole trajectory
                     if g in cams:

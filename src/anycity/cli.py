@@ -22,17 +22,21 @@ TEST_TIME_KEYS = ("eval_align", "eval_pose_align_steps", "eval_pose_align_lr", "
 # model.net keys the weights do not depend on (machine-local paths, the inference-time voxel merge): a value given in
 # the config files or on the command line wins over the checkpoint's. Any other net key comes from the checkpoint,
 # with a warning when the config asked for another value.
-NET_TEST_TIME_KEYS = ("voxel_size", "wan_dir", "wan_empty_prompt", "pose_prior")
+NET_TEST_TIME_KEYS = ("voxel_size", "wan_dir", "wan_empty_prompt")
+# model.net paths whose presence the weights depend on (pose_prior adds completion.camera_pose.* and pose_prior.*):
+# the config's path wins only where the checkpoint has one too (a moved file); None on either side keeps the stored.
+NET_MOVED_PATH_KEYS = ("pose_prior",)
 
 
 def merge_ckpt_net(asked: dict | None, stored: dict | None, preset: str) -> tuple[dict, list[str]]:
     """The ``model.net`` overrides to build a checkpoint's network with: the checkpoint's (``stored``), and the
-    :data:`NET_TEST_TIME_KEYS` the config ``asked`` for. Also ``"key is used, not asked"`` for each other key asked
-    for that the checkpoint's network does not have."""
+    :data:`NET_TEST_TIME_KEYS` the config ``asked`` for (and :data:`NET_MOVED_PATH_KEYS` where both name a file).
+    Also ``"key is used, not asked"`` for each other key asked for that the checkpoint's network does not have."""
     from anycity.models.presets import preset_config
 
     asked, merged = dict(asked or {}), dict(stored or {})
     merged.update({k: v for k, v in asked.items() if k in NET_TEST_TIME_KEYS})
+    merged.update({k: asked[k] for k in NET_MOVED_PATH_KEYS if asked.get(k) is not None and merged.get(k) is not None})
     try:
         used = preset_config(preset, **merged)
     except ValueError:
@@ -190,7 +194,7 @@ def _cli_class():
 
                 rank_zero_warn(f"--ckpt_path {ckpt}: its network is built as it was trained, so model.net "
                                f"{'; '.join(ignored)} (only {', '.join(NET_TEST_TIME_KEYS)} may differ from the "
-                               "checkpoint's)")
+                               f"checkpoint's, and {', '.join(NET_MOVED_PATH_KEYS)} only as a moved file)")
             if sub != "fit":  # the checkpoint holds the weights: the pretrained file is neither read nor needed (a
                 # resumed fit keeps it, so that the checkpoints it writes still say what the run started from)
                 self.config[f"{sub}.model.init_args.pretrained"] = None

@@ -301,3 +301,24 @@ def test_a_predict_that_receives_sigterm_stops_with_143_and_writes_nothing_unfin
     assert stop.value.message == ("stopped by SIGTERM during predict after 0 exported scene(s); the city flight was "
                                   "not finished, so nothing was written for it; rerun the command to predict them all")
     assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
+
+
+def test_a_pose_prior_the_checkpoint_was_trained_without_is_ignored_naming_it(tiny_shards, fitted, tmp_path):
+    """net.pose_prior adds weights (completion.camera_pose.*, pose_prior.*): asked for on a checkpoint trained
+    without one, it used to fail strict loading with a traceback of missing keys. Only a moved file is taken."""
+    from anycity.cli import merge_ckpt_net
+    from anycity.models.pose_prior import PairFlowPose
+
+    net, ignored = merge_ckpt_net({"pose_prior": "here/p.pt"}, {"pose_prior": "there/p.pt"}, "tiny")
+    assert net["pose_prior"] == "here/p.pt" and not ignored  # the same prior, moved
+    s2 = tmp_path / "s2"
+    stage2 = ["-c", "configs/quickstart_stage2.yaml", "--model.init_args.net.refine_cameras", "true"]
+    build_cli(["fit", *_tiny_args(tiny_shards, s2, steps=1, configs=stage2[:2], extra=[
+        *stage2[2:], "--model.init_args.init_from", str(fitted / "checkpoints" / "last.ckpt"),
+        "--trainer.limit_val_batches", "0"])])
+    prior = tmp_path / "prior.pt"
+    torch.save({"state_dict": PairFlowPose().state_dict(), "channels": 48, "grid": 12, "image_size": [32, 32]}, prior)
+    with pytest.warns(UserWarning, match="pose_prior is None, not"):
+        build_cli(["test", *_tiny_args(tiny_shards, tmp_path / "t", configs=stage2[:2], extra=[
+            *stage2[2:], *FAST_EVAL, "--model.init_args.net.pose_prior", str(prior),
+            "--ckpt_path", str(s2 / "checkpoints" / "last.ckpt")])])

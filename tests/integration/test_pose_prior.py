@@ -78,3 +78,44 @@ def test_pretrain_then_stage2_row(tiny_shards, tmp_path, capsys, monkeypatch):
     row = tables._test_metrics(out / "prior_mix" / "test" / "metrics.csv")
     assert again["psnr_refined"] == pytest.approx(row["psnr_refined"], abs=1e-6)
     assert again["rre"] == pytest.approx(row["rre"], abs=1e-6)
+
+
+def _tiny_args(data, out):
+    return ["--data", str(data), "--out", str(out), "--steps", "2", "--batch", "1", "--image-size", "32", "32",
+            "--num-context", "2", "--accelerator", "cpu"]
+
+
+def test_problems_stop_it_before_training_and_a_failed_test_keeps_the_weights(tiny_shards, tmp_path, capsys,
+                                                                             monkeypatch):
+    """A missing test split and an --out under a file used to stop it after the last step, losing the run;
+    --val-batches 0 ended in KeyError 'val/rre'."""
+    import shutil
+
+    import lightning.pytorch as pl
+
+    pretrain = load_script("pose_prior")
+    notest = tmp_path / "notest"
+    shutil.copytree(tiny_shards, notest)
+    index = json.loads((notest / "index.json").read_text())
+    index["splits"]["test"] = []
+    (notest / "index.json").write_text(json.dumps(index))
+    fit = []
+    monkeypatch.setattr(pl.Trainer, "fit", lambda *a, **k: fit.append(1) or pytest.fail("trained"))
+    assert pretrain.main(_tiny_args(notest, tmp_path / "p.pt")) == 2
+    err = capsys.readouterr().err
+    assert "no test shards" in err and "--data.test_shards" not in err and len(err.splitlines()) == 1, err
+    (tmp_path / "file").write_text("")
+    assert pretrain.main(_tiny_args(tiny_shards, tmp_path / "file" / "p.pt")) == 2
+    assert "is a file, not a folder" in capsys.readouterr().err and not fit
+    monkeypatch.undo()
+    monkeypatch.setattr("sys.argv", ["script.py"])
+
+    def broken_test(*a, **k):
+        raise RuntimeError("the test run failed")
+
+    monkeypatch.setattr(pl.Trainer, "test", broken_test)
+    out = tmp_path / "p.pt"
+    with pytest.raises(RuntimeError, match="the test run failed"):
+        pretrain.main([*_tiny_args(tiny_shards, out), "--val-batches", "0"])
+    saved = torch.load(out, weights_only=True)  # the trained weights are kept
+    assert saved["rre_val"] is None and saved["rre_test"] is None and saved["state_dict"]

@@ -78,3 +78,60 @@ def test_metrics_json_is_strict_json_when_a_protocol_gave_no_figure():
     back = json.loads(text, parse_constant=lambda c: (_ for _ in ()).throw(ValueError(c)))
     assert back["scaffold_psnr"] == 19.5 and back["refined_psnr"] is None and back["scaffold_psnr_camrefine"] is None
     assert back["protocols"]["feedforward"].startswith("feed-forward")
+
+
+class _Trained(Exception):
+    """Raised by the stand-in for build_cli: the quickstart went on to train on the folder."""
+
+
+def _stop_at_training(monkeypatch):
+    import anycity.cli
+
+    def build_cli(args, **kw):
+        raise _Trained(args[args.index("--data.root") + 1])
+
+    monkeypatch.setattr(anycity.cli, "build_cli", build_cli)
+
+
+def test_the_stamp_is_tied_to_the_shards_it_was_made_with(tmp_path, capsys, monkeypatch):
+    """`anycity data synth --overwrite` with other settings keeps quickstart_data.json; the quickstart used to train
+    on the new shards. A stamp of the earlier format (the synth arguments only) is still accepted while index.json
+    lists what they asked for, and upgraded."""
+    import pytest
+
+    from anycity.data.cli import data_main
+
+    monkeypatch.setattr("sys.argv", ["quickstart.py"])
+    _stop_at_training(monkeypatch)
+    data = tmp_path / "qs"
+    argv = ["--data", str(data), "--out", str(tmp_path / "runs"), "--scenes", "3", "--views", "8"]
+    with pytest.raises(_Trained):  # generated, stamped, trained on
+        _quickstart().main(argv)
+    stamp = data / "quickstart_data.json"
+    synth_args = ["--scenes", "3", "--views", "8", "--size", "48x48", "--trajectory", "orbit", "--supersample", "2"]
+    stamp.write_text(json.dumps(synth_args) + "\n")  # what the earlier quickstart wrote: still good
+    with pytest.raises(_Trained):
+        _quickstart().main(argv)
+    assert json.loads(stamp.read_text()) != synth_args  # upgraded
+    assert data_main(["synth", "--out", str(data), "--overwrite", "--scenes", "4", "--views", "8", "--size", "32x32",
+                      "--workers", "1"]) in (0, None)
+    capsys.readouterr()
+    assert _quickstart().main(argv) == 2
+    err = capsys.readouterr().err
+    assert "index.json changed" in err and "delete" in err and len(err.splitlines()) == 1, err
+    stamp.write_text(json.dumps(synth_args) + "\n")  # an earlier-format stamp over foreign shards
+    assert _quickstart().main(argv) == 2
+    assert "index.json lists 4 scenes, not 3" in capsys.readouterr().err
+
+
+def test_a_bad_override_stops_in_one_line(tmp_path, capsys, monkeypatch):
+    """A value `anycity fit` refuses in one line (exit 2) used to reach the user as a 51-line traceback."""
+    monkeypatch.setattr("sys.argv", ["quickstart.py"])
+    monkeypatch.delenv("ANYCITY_DEBUG", raising=False)
+    argv = ["--data", str(tmp_path / "qs"), "--out", str(tmp_path / "runs"), "--scenes", "3", "--views", "8",
+            "--data.num_context", "12"]
+    capsys.readouterr()
+    assert _quickstart().main(argv) == 2
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.splitlines() if "error" in ln.lower()]  # Lightning's INFO lines come before it
+    assert len(lines) == 1 and "num_context" in lines[0] and "Traceback" not in err, err

@@ -4,7 +4,9 @@ figures, finished rows are reused and foreign ones refused."""
 import json
 import math
 import os
+import shutil
 import sys
+from pathlib import Path
 
 import pytest
 from helpers.scripts import anycity_in_process, load_script
@@ -128,3 +130,38 @@ def test_goal_and_own_scaffold_lines():
     assert "| full | 18.850 / 18.600 | 19.850 / 19.600 |" in md  # Table 3 names the full model "full"
     assert "| scaffold only | 19.000 / 18.000 | 20.000 / 19.000 |" in md
     assert "- goal, the full model, camrefine: weak +0.60 dB" in md and "NOT reached" in md
+
+
+def _fake_anycity(cmd, args, row):
+    """A stand-in launch: no training; the test run leaves a CSV log with one figure."""
+    if cmd == "test":
+        d = Path(args[args.index("--trainer.default_root_dir") + 1])
+        d.mkdir(parents=True, exist_ok=True)
+        (d / "metrics.csv").write_text("test/psnr_refined,test/psnr_obs_refined\n20.0,19.0\n")
+
+
+def test_a_changed_pose_prior_or_config_file_makes_the_row_stale(tmp_path):
+    """The rows' settings name the --pose_prior and --configs files by path only; one rewritten in place (a prior
+    trained again, an edited config) used to have the row reused."""
+    mod = _script()
+    mod._anycity = _fake_anycity
+    (tmp_path / "stage1.ckpt").write_bytes(b"x")
+    prior, cfg = tmp_path / "prior.pt", tmp_path / "extra.yaml"
+    prior.write_bytes(b"6000-step prior")
+    cfg.write_text("seed_everything: 1\n")
+    out = tmp_path / "o"
+    argv = ["--stage1", str(tmp_path / "stage1.ckpt"), "--rows", "prior_mix", "--pose_prior", str(prior),
+            "--out", str(out), "--configs", "configs/quickstart.yaml", str(cfg)]
+    assert mod.main(argv) == 0
+    assert mod.main(argv) == 0  # unchanged: reused
+    stale = f"{out / 'prior_mix'} holds a run made with other settings.*delete"
+    prior.write_bytes(b"12000-step prior, trained again")
+    with pytest.raises(SystemExit, match=stale):
+        mod.main(argv)
+    shutil.rmtree(out)
+    assert mod.main(argv) == 0
+    cfg.write_text("seed_everything: 2\n")
+    st = cfg.stat()
+    os.utime(cfg, ns=(st.st_atime_ns, st.st_mtime_ns))
+    with pytest.raises(SystemExit, match=stale):
+        mod.main(argv)

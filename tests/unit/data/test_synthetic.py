@@ -1,5 +1,6 @@
 import json
 import math
+import tarfile
 
 import numpy as np
 import pytest
@@ -235,3 +236,26 @@ def test_split_assignment_is_pinned():
     assert [i for i, x in enumerate(s) if x == "val"] == [5, 9, 19, 36, 50, 53, 64, 66]
     assert [i for i, x in enumerate(s) if x == "test"] == [8, 11, 13, 16, 20, 52, 65, 74]
     assert split_scenes(1, 0) == ["train"] and split_scenes(80, 0)[0] == "train"
+
+
+def test_synth_to_folder_writes_one_named_scene_and_refuses_old_photos(tmp_path, capsys):
+    """A set of several scenes used to give the first scene's views (the others' dropped: they share the indices)
+    and a rerun mixed in an earlier run's photos."""
+    from helpers.scripts import load_script
+
+    synth(tmp_path / "a", scenes=2, views=3, size="16x16", workers=1, trajectory="orbit", seed=1)
+    run = load_script("synth_to_folder").main
+    index = json.loads((tmp_path / "a" / "index.json").read_text())
+    keys = [sc["key"] for sc in index["scenes"]]
+    with pytest.raises(SystemExit) as e:
+        run([str(tmp_path / "a"), str(tmp_path / "p")])
+    assert e.value.code == 2 and f"pass --scene KEY, one of {', '.join(keys)}" in capsys.readouterr().err
+    assert run([str(tmp_path / "a"), str(tmp_path / "p"), "--scene", keys[1]]) == 0
+    views = json.loads((tmp_path / "p" / "cameras_gt.json").read_text())["views"]
+    sample = next(s for s in index["samples"] if s["scene"] == keys[1])
+    with tarfile.open(tmp_path / "a" / sample["shard"]) as tar:
+        meta = json.loads(tar.extractfile(f"{sample['key']}.cameras.json").read())
+    assert [v["w2c"] for v in views] == [v["w2c"] for v in meta["views"]]
+    with pytest.raises(SystemExit):
+        run([str(tmp_path / "a"), str(tmp_path / "p"), "--scene", keys[0]])
+    assert f"{tmp_path / 'p' / 'photos'} is not empty" in capsys.readouterr().err
