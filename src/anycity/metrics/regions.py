@@ -235,23 +235,23 @@ def lpips_or_none(net: str = "alex") -> tuple[torch.nn.Module | None, str]:
     offline, or ``(None, reason)`` with one line saying why and how to enable it. Never downloads anything."""
     cached = Path(torch.hub.get_dir()) / "checkpoints" / _LPIPS_BACKBONE_FILES.get(net, f"{net}.pth")
     how = (f"install torchvision matching your torch and put its ImageNet {net} weights at {cached} "
-           "to score LPIPS per region")
+           "to score LPIPS (whole image and per region)")
     try:
         from torchmetrics.functional.image.lpips import _LPIPS
         from torchmetrics.utilities.imports import _TORCHVISION_AVAILABLE
     except Exception as e:  # noqa: BLE001 - any import failure means "absent"
-        return None, f"LPIPS per region left out: torchmetrics LPIPS unavailable ({type(e).__name__}); {how}"
+        return None, f"LPIPS left out: torchmetrics LPIPS unavailable ({type(e).__name__}); {how}"
     if not _TORCHVISION_AVAILABLE:
-        return None, f"LPIPS per region left out: torchvision is not installed; {how}"
+        return None, f"LPIPS left out: torchvision is not installed; {how}"
     if not cached.is_file():  # checked first: torch.hub would print "Downloading: ..." before _no_downloads refuses
-        return None, f"LPIPS per region left out: {net} backbone weights are not in the torch hub cache; {how}"
+        return None, f"LPIPS left out: {net} backbone weights are not in the torch hub cache; {how}"
     try:
         with _no_downloads():
             model = _LPIPS(pretrained=True, net=net, spatial=True).eval()
     except Exception as e:  # noqa: BLE001 - missing weights or any backbone failure
         msg = " ".join(str(e).split())[:120]
-        return None, f"LPIPS per region left out: {net} backbone weights not found offline ({msg}); {how}"
-    return model, f"LPIPS per region: torchmetrics {net} backbone, loaded offline"
+        return None, f"LPIPS left out: {net} backbone weights not found offline ({msg}); {how}"
+    return model, f"LPIPS (whole image and per region): torchmetrics {net} backbone, loaded offline"
 
 
 class RegionMetric(torchmetrics.Metric):
