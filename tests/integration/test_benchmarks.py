@@ -97,24 +97,18 @@ def _failing_run(line: str):
     return run
 
 
-def test_city_child_error_is_shown(bench, monkeypatch, capsys):
-    m = bench("city", "--views", "40", "--chunk", "8", "--overlap", "8", "--threads", "1")
-    line = "ValueError: overlap 8 must be smaller than chunk 8; lower --overlap"
+@pytest.mark.parametrize("script, argv, line, named", [
+    ("city", ["--views", "40", "--chunk", "8", "--overlap", "8", "--threads", "1"],
+     "ValueError: overlap 8 must be smaller than chunk 8; lower --overlap", "40 photos"),
+    ("render", ["--cold-compile"], "ModuleNotFoundError: No module named 'numba'", "--cold-compile"),
+])
+def test_a_child_process_error_is_shown_in_one_line(bench, monkeypatch, capsys, script, argv, line, named):
+    m = bench(script, *argv)
     monkeypatch.setattr(subprocess, "run", _failing_run(line))
     with pytest.raises(SystemExit) as exc:
         m.main()
     msg = _one_line_error(capsys, exc)
-    assert "40 photos" in msg and msg.endswith(line)
-
-
-def test_render_cold_compile_child_error_is_shown(bench, monkeypatch, capsys):
-    m = bench("render", "--cold-compile")
-    line = "ModuleNotFoundError: No module named 'numba'"
-    monkeypatch.setattr(subprocess, "run", _failing_run(line))
-    with pytest.raises(SystemExit) as exc:
-        m.main()
-    msg = _one_line_error(capsys, exc)
-    assert "--cold-compile" in msg and msg.endswith(line)
+    assert named in msg and msg.endswith(line)
 
 
 # 3. and 4. argument validation
