@@ -99,7 +99,6 @@ def _train_and_test(out: Path, common: list[str], args: argparse.Namespace, t0: 
     """Stage I, Stage II, then ``anycity test`` of Stage II on the test split; returns the test's CLI."""
     from anycity.cli import build_cli
 
-
     _banner("Stage I: scaffold (tiny preset)", t0)
     steps1 = ["--trainer.max_steps", str(args.stage1_steps)] if args.stage1_steps else []
     build_cli(["fit", "-c", str(STAGE1), *common, *_run_args(out, "stage1"), *steps1])
