@@ -129,7 +129,8 @@ class AnyCityModule(pl.LightningModule):
             mean colour of the scene's context images (a prediction from the inputs alone).
         eval_align: how target cameras enter the predicted frame at evaluation (and when rendering targets in
             training): "sim3" fits the predicted context cameras to the ground truth; "none" uses the shared
-            convention (first context camera at the origin) as is.
+            convention, unscaled: the targets' ground-truth poses relative to the first context camera, applied
+            to the network's first camera as predicted (at evaluation) or to the origin, where training pins it.
         eval_pose_align_steps: ``test`` only, the ``targetalign`` protocol (:mod:`anycity.lit.protocols`): each
             placed target camera refined photometrically against its own target image before it is scored (Adam
             steps on a rotation and translation delta with the Gaussians frozen, AnySplat's ``test.align_pose``,
@@ -220,9 +221,11 @@ class AnyCityModule(pl.LightningModule):
         return render(gaussians, w2c, K, hw[1], hw[0], background=bg, render_normals=normals,
                       backend=self.hparams.render_backend)
 
-    def target_cameras(self, pred_w2c: Tensor, context: Views, query: Views) -> tuple[Tensor, Tensor]:
-        """Ground-truth ``query`` cameras in the predicted frame and the depth scale ``s [B]`` (pred = s * gt)."""
-        s, R, t = fit_gt_to_pred(pred_w2c.detach(), context.w2c, self.hparams.eval_align)
+    def target_cameras(self, pred_w2c: Tensor, context: Views, query: Views,
+                       anchor_first: bool = False) -> tuple[Tensor, Tensor]:
+        """Ground-truth ``query`` cameras in the predicted frame and the depth scale ``s [B]`` (pred = s * gt);
+        ``anchor_first``: see :func:`~anycity.lit.evaluation.fit_gt_to_pred` (evaluation's placement)."""
+        s, R, t = fit_gt_to_pred(pred_w2c.detach(), context.w2c, self.hparams.eval_align, anchor_first)
         return cameras_in_pred_frame(query.w2c, s, R, t), s
 
     # ----------------------------------------------------------------------------------------- optimiser

@@ -61,8 +61,9 @@ class Scene:
 
 def place(module, scene: Scene, context: Views, targets: TargetCameras) -> tuple[Tensor, Tensor]:
     """Ground-truth target cameras in the scene's predicted frame (``module.target_cameras``: the Sim(3) fit of
-    the predicted to the ground-truth context poses, or the first-camera convention) and the depth scale ``s [B]``."""
-    return module.target_cameras(scene.w2c, context, Views(context.images, targets.w2c, targets.K))
+    the predicted to the ground-truth context poses, or the first-camera convention anchored at the scene's first
+    camera as predicted) and the depth scale ``s [B]``."""
+    return module.target_cameras(scene.w2c, context, Views(context.images, targets.w2c, targets.K), anchor_first=True)
 
 
 def feedforward(module, scene: Scene, context: Views, targets: TargetCameras) -> tuple[RenderOutput, Tensor]:

@@ -56,6 +56,26 @@ def test_alignment_none_and_single_view_put_the_first_ground_truth_camera_at_the
         fit_gt_to_pred(gt, gt, "affine")
 
 
+def test_evaluation_places_targets_relative_to_the_first_camera_as_the_network_predicted_it():
+    """``"none"`` at evaluation (``anchor_first``): a network whose whole frame sits a rigid motion off the
+    convention (its first camera not at the origin) gets its targets where its own frame has them, relative to its
+    first camera; the training placement (at the origin) is off by that motion."""
+    from anycity.geometry import invert_rigid
+
+    gt = _rand_w2c(2, 5, seed=3)
+    gt = gt @ invert_rigid(gt[:, :1])  # a sample's frame: the first context camera at the origin
+    off = _rand_w2c(2, 1, seed=4)[:, 0]  # the network's frame: the ground truth's moved by a rigid motion
+    pred = gt @ invert_rigid(off)[:, None]  # so its first camera is `off`, not the identity
+    ctx, targets = pred[:, :3], gt[:, 3:]
+    placed = cameras_in_pred_frame(targets, *fit_gt_to_pred(ctx, gt[:, :3], "none", anchor_first=True))
+    torch.testing.assert_close(placed, pred[:, 3:], atol=1e-5, rtol=1e-5)
+    at_origin = cameras_in_pred_frame(targets, *fit_gt_to_pred(ctx, gt[:, :3], "none"))
+    assert (at_origin - pred[:, 3:]).abs().max() > 0.1
+    # a network that does put its first camera at the origin places them the same either way
+    torch.testing.assert_close(cameras_in_pred_frame(targets, *fit_gt_to_pred(gt[:, :3], gt[:, :3], "none", True)),
+                               targets, atol=1e-5, rtol=1e-5)
+
+
 def test_warmup_cosine_shape():
     assert warmup_cosine(0, 10, 100, 0.1) == pytest.approx(0.1)
     assert warmup_cosine(9, 10, 100, 0.1) == pytest.approx(1.0)
