@@ -43,10 +43,14 @@ def drop_frozen_prior(net: nn.Module, checkpoint: dict) -> None:
 def forget_dropped_vae(net: nn.Module, checkpoint: dict) -> None:
     """Remove the Wan VAE decoder keys that checkpoints saved before it was dropped carry (a ``wan-tiny`` prior is
     saved whole), so strict loading still passes."""
-    own = net.state_dict(prefix="net.", keep_vars=True)
     sd = checkpoint.get("state_dict", {})
-    for k in [k for k in sd if k.startswith(DROPPED) and k not in own]:
-        del sd[k]
+    dropped = [k for k in sd if k.startswith(DROPPED)]
+    if not dropped:  # every checkpoint saved since: no state dict of the network to build
+        return
+    own = net.state_dict(prefix="net.", keep_vars=True)
+    for k in dropped:
+        if k not in own:
+            del sd[k]
 
 
 def restore_frozen_prior(net: nn.Module, checkpoint: dict) -> None:

@@ -160,17 +160,6 @@ def _flat(x: Tensor, c: int | None, name: str) -> Tensor:
     return x.reshape(-1, *x.shape[-3:])
 
 
-def masked_psnr(pred: Tensor, target: Tensor, mask: Tensor) -> Tensor:
-    """Per-image PSNR (dB, images in [0, 1]) over the masked pixels and all channels: ``[..., 3, H, W]`` images,
-    ``[..., 1, H, W]`` bool mask -> ``[M]``; NaN where the mask is empty."""
-    p, g = _flat(pred, 3, "masked_psnr").float().clamp(0, 1), _flat(target, 3, "masked_psnr").float()
-    m = _flat(mask, 1, "masked_psnr").to(p.dtype)
-    n = m.sum(dim=(1, 2, 3)) * p.shape[1]
-    mse = ((p - g) ** 2 * m).sum(dim=(1, 2, 3)) / n.clamp_min(1)
-    out = -10 * torch.log10(mse)
-    return torch.where(n > 0, out, torch.full_like(out, float("nan")))
-
-
 def masked_mean(values: Tensor, mask: Tensor) -> Tensor:
     """Per-image mean of ``values [M, C, h, w]`` over the pixels of ``mask [M, 1, h, w]`` (all channels) -> ``[M]``;
     NaN where the mask is empty."""
@@ -178,6 +167,13 @@ def masked_mean(values: Tensor, mask: Tensor) -> Tensor:
     n = m.sum(dim=(1, 2, 3))
     out = (values * m).sum(dim=(1, 2, 3)) / (n * values.shape[1]).clamp_min(1)
     return torch.where(n > 0, out, torch.full_like(out, float("nan")))
+
+
+def masked_psnr(pred: Tensor, target: Tensor, mask: Tensor) -> Tensor:
+    """Per-image PSNR (dB, images in [0, 1]) over the masked pixels and all channels: ``[..., 3, H, W]`` images,
+    ``[..., 1, H, W]`` bool mask -> ``[M]``; NaN where the mask is empty."""
+    p, g = _flat(pred, 3, "masked_psnr").float().clamp(0, 1), _flat(target, 3, "masked_psnr").float()
+    return -10 * torch.log10(masked_mean((p - g) ** 2, _flat(mask, 1, "masked_psnr")))
 
 
 def masked_ssim(pred: Tensor, target: Tensor, mask: Tensor) -> Tensor:
