@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Iterator
 
 import torch
@@ -18,6 +19,17 @@ from anycity.models.video_prior import WanVideoPrior, build_video_prior
 
 SCAFFOLD_PREFIXES = ("aggregator.", "camera_head.", "depth_head.", "gaussian_head.")
 REFINEMENT_PREFIXES = ("completion.", "video_prior.")
+IMAGE_DTYPES = (torch.float32, torch.bfloat16, torch.float16)
+IMAGE_MAX = 1.0 + 1e-3  # [0, 1] images, with room for a resize's rounding
+
+
+def _float32_region(device: torch.device) -> contextlib.AbstractContextManager:
+    """Autocast off on ``device`` (heads and geometry run in float32); nothing to switch off where the device has no
+    autocast (``meta``, whose ``torch.autocast`` raises)."""
+    available = getattr(torch.amp, "is_autocast_available", None)  # torch >= 2.4
+    if available(device.type) if available is not None else device.type != "meta":
+        return torch.autocast(device.type, enabled=False)
+    return contextlib.nullcontext()
 
 
 class AnyCityNet(nn.Module):
@@ -101,6 +113,8 @@ class AnyCityNet(nn.Module):
 
     # -- forward ---------------------------------------------------------------------------------------------
     def check_images(self, images: Tensor) -> None:
+        """One-line errors for what the network cannot read: ``images`` not ``[B, V, 3, H, W]`` float32/bf16/fp16
+        in [0, 1] with H, W multiples of the patch size, or the network's weights cast away from float32."""
         p = self.cfg.patch_size
         if not isinstance(images, Tensor) or images.dim() != 5 or images.shape[2] != 3:
             got = tuple(images.shape) if isinstance(images, Tensor) else type(images).__name__
@@ -114,6 +128,18 @@ class AnyCityNet(nn.Module):
                              f"{14 * p}), got {h}x{w}; resize or crop the views to a multiple of {p}")
         if not images.is_floating_point():
             raise ValueError(f"images: expected a float tensor in [0, 1], got {images.dtype}; divide uint8 by 255")
+        if images.dtype not in IMAGE_DTYPES:
+            raise ValueError(f"images: {str(images.dtype).removeprefix('torch.')}; pass images.float()")
+        weights = self.aggregator.camera_token.dtype
+        if weights != torch.float32:  # the float32 heads and geometry would meet bf16/fp16 weights
+            raise ValueError(f"network: weights are {str(weights).removeprefix('torch.')} (net.bfloat16()/.half()); "
+                             "keep float32 weights and run under torch.autocast (Lightning: trainer.precision "
+                             "bf16-mixed, not bf16-true)")
+        if not images.is_meta:
+            top = float(images.detach().amax())  # one reduction: cheap next to the network
+            if top > IMAGE_MAX:
+                fix = "images look like 0-255; divide by 255" if top > 2 else "clamp them to [0, 1]"
+                raise ValueError(f"images: expected values in [0, 1], got a maximum of {top:.4g}; {fix}")
 
     def forward(self, images: Tensor, refine: bool = True) -> dict:
         self.check_images(images)
@@ -124,7 +150,7 @@ class AnyCityNet(nn.Module):
         if refine:
             layers |= set(self.completion.inject_layers)
         tokens = self.aggregator(images, keep=layers)
-        with torch.autocast(images.device.type, enabled=False):  # heads and geometry in float32
+        with _float32_region(images.device):  # heads and geometry in float32
             tokens = [None if t is None else t.float() for t in tokens]
             images = images.float()
             pose_enc_list = self.camera_head(tokens, self.cfg.camera_iterations)
@@ -173,7 +199,7 @@ class AnyCityNet(nn.Module):
         """The Gaussians of one decoding (``raw`` from the Gaussian head, ``depth [B, V, 1, H, W]``, ``offset``)
         placed with the cameras ``w2c [B, V, 4, 4]``, ``K [B, V, 3, 3]``: e.g. the scaffold's decoding at Stage
         II's re-placed cameras, so the two differ only by what Stage II changed in the content."""
-        with torch.autocast(images.device.type, enabled=False):  # float32, as in forward
+        with _float32_region(images.device):  # float32, as in forward
             return self._gaussians(raw.float(), pixel_centres(depth, K, w2c, offset), depth.float(), K.float(),
                                    images.float())
 

@@ -11,11 +11,22 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, fields, replace
+from numbers import Integral
 
 from anycity.models.completion import scale_layers
 
 VGGT_HEAD_LAYERS = (4, 11, 17, 23)
 PAPER_INJECT_LAYERS = (4, 7, 11, 23)
+# integer options: (lowest, highest or None, what the bound means)
+INT_RANGES: dict[str, tuple[int, int | None, str]] = {
+    "sh_degree": (0, 4, "the renderer's SH degrees; AnySplat's weights use 4"),
+    "camera_iterations": (1, None, "the camera head's refinement steps; VGGT uses 4"),
+    **{name: (1, None, "a size") for name in ("embed_dim", "num_heads", "patch_size", "img_size", "camera_num_heads",
+                                              "dpt_features", "completion_dim", "completion_tokens",
+                                              "completion_heads", "prior_dim")},
+    **{name: (0, None, "a count; 0 = none") for name in ("num_register_tokens", "camera_trunk_depth", "prior_depth",
+                                                        "wan_lora_rank")},
+}
 
 
 @dataclass(frozen=True)
@@ -124,6 +135,7 @@ def preset_config(preset: str, **overrides) -> NetConfig:
     if unknown:
         raise ValueError(f"build_network: unknown option(s) {unknown}; valid options are {sorted(names)}")
     cfg = replace(PRESETS[preset], **overrides)
+    check_int_options(cfg)
     for name, allowed in (("color_mode", ("head", "pixel")), ("scale_mode", ("absolute", "pixel"))):
         if getattr(cfg, name) not in allowed:
             raise ValueError(f"{name}: expected one of {list(allowed)}, got {getattr(cfg, name)!r}")
@@ -137,6 +149,15 @@ def preset_config(preset: str, **overrides) -> NetConfig:
                          f"preset (depth {cfg.depth}), got {list(inject)}; set net.inject_layers: null (the paper's "
                          f"{list(PAPER_INJECT_LAYERS)} scaled to the depth) or give indices below {cfg.depth}")
     return cfg
+
+
+def check_int_options(cfg: NetConfig) -> None:
+    """One line naming ``net.<option>`` for an integer option out of its range (:data:`INT_RANGES`)."""
+    for name, (lo, hi, why) in INT_RANGES.items():
+        v = getattr(cfg, name)
+        if not isinstance(v, Integral) or isinstance(v, bool) or v < lo or (hi is not None and v > hi):
+            span = f"{lo}..{hi}" if hi is not None else f">= {lo}"
+            raise ValueError(f"net.{name}: expected an integer {span} ({why}), got {v!r}")
 
 
 def build_network(preset: str = "tiny", **overrides):

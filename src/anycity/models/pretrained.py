@@ -7,14 +7,19 @@ Key map (documented, nothing else is renamed):
   reported as unexpected.
 * ``kind="anysplat"``: optional Lightning ``state_dict`` nesting and ``model.`` prefix, then ``encoder.`` is
   stripped and ``gaussian_param_head.`` becomes ``gaussian_head.``; ``distill_*`` teacher copies are
-  reported as unexpected. bf16 tensors are cast to the network's dtype.
+  reported as unexpected. bf16 tensors are cast to the network's dtype. Only a file that has AnySplat's keys
+  switches the network to AnySplat's focal decode; a VGGT-layout file (``aggregator.*`` at the top) is refused.
 
+``path`` may be a folder holding one weights file (e.g. a downloaded snapshot with its ``model.safetensors``).
 Tensors whose shape differs from the network's are skipped and listed (a mismatch never breaks the net).
-:meth:`LoadReport.require_backbone` (which the Lightning modules call) then insists on the whole aggregator.
+:meth:`LoadReport.require_backbone` (which the Lightning modules call) then insists on the whole aggregator, and
+names the real cause when the file has another layout (AnySplat's ``encoder.*`` read as VGGT, or an anycity
+checkpoint's ``net.*``).
 """
 
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -23,6 +28,15 @@ from torch import Tensor, nn
 from anycity.safe_load import safe_torch_load
 
 KINDS = ("vggt", "anysplat")
+WEIGHT_SUFFIXES = (".safetensors", ".pt", ".pth", ".ckpt", ".bin")
+PREFERRED_NAMES = ("model.safetensors", "model.pt")  # what a VGGT / AnySplat download folder holds
+ANYSPLAT_PREFIXES = ("encoder.", "gaussian_param_head.")
+# the first name part most keys the network has no place for share -> what the file really is
+LAYOUT_HINTS = {
+    "encoder": "this is an AnySplat checkpoint: set model.init_args.pretrained_kind: anysplat",
+    "net": "this is an anycity checkpoint: pass it as --ckpt_path (resume/test) or model.init_args.init_from "
+           "(Stage II)",
+}
 
 
 @dataclass
@@ -35,6 +49,7 @@ class LoadReport:
     missing: list[str] = field(default_factory=list)
     unexpected: list[str] = field(default_factory=list)
     mismatched: list[tuple[str, tuple, tuple]] = field(default_factory=list)
+    picked: str | None = None  # the weights file read when a folder was given
 
     def summary(self) -> str:
         def top(keys: list[str]) -> str:
@@ -43,7 +58,8 @@ class LoadReport:
                 groups[k.split(".")[0]] = groups.get(k.split(".")[0], 0) + 1
             return ", ".join(f"{g}.* x{n}" for g, n in sorted(groups.items())) or "none"
 
-        return (f"loaded {len(self.loaded)} tensors; missing: {top(self.missing)}; unexpected: "
+        read = f"read {self.picked}; " if self.picked else ""
+        return (f"{read}loaded {len(self.loaded)} tensors; missing: {top(self.missing)}; unexpected: "
                 f"{top(self.unexpected)}; shape mismatches: {len(self.mismatched)}")
 
     __str__ = summary
@@ -62,28 +78,69 @@ class LoadReport:
         if shapes:
             k, theirs, ours = shapes[0]
             parts.append(f"{len(shapes)} aggregator shapes differ (e.g. {k}: {list(theirs)} there, {list(ours)} here)")
+        fix = "build the preset the weights were made for (model.preset: vggt-1b for VGGT-1B and AnySplat)"
+        top, n = Counter(k.split(".")[0] for k in self.unexpected).most_common(1)[0] if self.unexpected else ("", 0)
+        if top in LAYOUT_HINTS and 2 * n > len(self.unexpected):
+            parts.append(f"{n} of its keys start with '{top}.'")
+            fix = LAYOUT_HINTS[top]
         raise ValueError(f"model.pretrained: {source} does not fit this network's backbone: {'; '.join(parts)}; "
-                         "build the preset the weights were made for (model.preset: vggt-1b for VGGT-1B and AnySplat)")
+                         f"{fix}")
+
+
+def weights_file(path: str | Path) -> Path:
+    """``path`` itself, or the one weights file in the folder ``path`` (``model.safetensors`` / ``model.pt`` when
+    the folder holds several files and exactly one of those). Raises one line when there is none or no one."""
+    path = Path(path)
+    if not path.is_dir():
+        return path
+    found = sorted(p for p in path.iterdir() if p.is_file() and p.name.endswith(WEIGHT_SUFFIXES))
+    named = [p for p in found if p.name in PREFERRED_NAMES]
+    pick = named if len(named) == 1 else found
+    if len(pick) == 1:
+        return pick[0]
+    if not found:
+        raise FileNotFoundError(f"pretrained weights: {path} is a folder with no weights file "
+                                f"({', '.join('*' + s for s in WEIGHT_SUFFIXES)}) in it; pass the weights file")
+    names = ", ".join(p.name for p in found[:8]) + (f", ... ({len(found)} in all)" if len(found) > 8 else "")
+    raise ValueError(f"pretrained weights: {path} is a folder; pass the weights file inside it (candidates: {names})")
 
 
 def read_state_dict(path: str | Path) -> dict[str, Tensor]:
-    """A ``.pt``/``.pth``/``.ckpt`` (torch) or ``.safetensors`` file -> flat state dict (CPU)."""
-    path = Path(path)
+    """A ``.pt``/``.pth``/``.ckpt`` (torch) or ``.safetensors`` file, or a folder holding one (:func:`weights_file`)
+    -> flat state dict (CPU)."""
+    path = weights_file(path)
     if not path.is_file():
         raise FileNotFoundError(f"pretrained weights: {path} not found; download VGGT-1B model.pt or an AnySplat "
                                 "checkpoint to a local path first (this loader never downloads)")
     if path.suffix == ".safetensors":
+        from safetensors import SafetensorError
         from safetensors.torch import load_file
 
-        return load_file(str(path))
+        try:
+            return load_file(str(path))
+        except SafetensorError as e:
+            why = (str(e).strip().splitlines() or [type(e).__name__])[0]
+            raise ValueError(f"cannot read pretrained weights {path}: {why}; the file looks truncated or corrupt "
+                             "(re-download it)") from None
     obj = safe_torch_load(path, mmap=True, what="pretrained weights")  # mmap keeps a 5 GB file out of RAM
+    return _state_dict_of(obj, path)
+
+
+def _state_dict_of(obj, source: str | Path) -> dict[str, Tensor]:
+    """The flat state dict in ``obj``: itself, or under a Lightning ``state_dict`` / a ``model`` key."""
     if isinstance(obj, dict) and isinstance(obj.get("state_dict"), dict):
         obj = obj["state_dict"]
     elif isinstance(obj, dict) and isinstance(obj.get("model"), dict):
         obj = obj["model"]
     if not isinstance(obj, dict):
-        raise ValueError(f"pretrained weights: {path} holds a {type(obj).__name__}, expected a state dict")
+        raise ValueError(f"pretrained weights: {source} holds a {type(obj).__name__}, expected a state dict")
     return obj
+
+
+def _strip_wrappers(k: str) -> str:
+    for prefix in ("module.", "model."):
+        k = k[len(prefix):] if k.startswith(prefix) else k
+    return k
 
 
 def remap_keys(sd: dict[str, Tensor], kind: str) -> dict[str, Tensor]:
@@ -92,8 +149,7 @@ def remap_keys(sd: dict[str, Tensor], kind: str) -> dict[str, Tensor]:
         raise ValueError(f"kind: expected one of {KINDS}, got {kind!r}")
     out = {}
     for k, v in sd.items():
-        for prefix in ("module.", "model."):
-            k = k[len(prefix):] if k.startswith(prefix) else k
+        k = _strip_wrappers(k)
         if kind == "anysplat":
             k = k[len("encoder."):] if k.startswith("encoder.") else k
             k = "gaussian_head." + k[len("gaussian_param_head."):] if k.startswith("gaussian_param_head.") else k
@@ -102,12 +158,25 @@ def remap_keys(sd: dict[str, Tensor], kind: str) -> dict[str, Tensor]:
 
 
 def load_pretrained(net: nn.Module, path: str | Path | dict, kind: str = "vggt") -> LoadReport:
-    """Copy the matching tensors of ``path`` (a file, or an already-read state dict) into ``net``."""
+    """Copy the matching tensors of ``path`` (a file, a folder holding one, or an already-read state dict) into
+    ``net``, which must live on a real device (a network built on ``meta`` has no storage to copy into)."""
     if kind not in KINDS:
         raise ValueError(f"kind: expected one of {KINDS}, got {kind!r}")
-    sd = remap_keys(path if isinstance(path, dict) else read_state_dict(path), kind)
-    own = net.state_dict()
     report = LoadReport()
+    if isinstance(path, dict):
+        source, raw = "the state dict", _state_dict_of(path, "the state dict")
+    else:
+        source = weights_file(path)
+        report.picked = str(source) if source != Path(path) else None
+        raw = read_state_dict(source)
+    stripped = [_strip_wrappers(k) for k in raw]
+    is_anysplat = any(k.startswith(ANYSPLAT_PREFIXES) for k in stripped)
+    if kind == "anysplat" and not is_anysplat and any(k.startswith("aggregator.") for k in stripped):
+        # AnySplat's focal decode would silently shift every focal length of a VGGT-trained camera head
+        raise ValueError(f"pretrained weights: {source} is a VGGT file (aggregator.* keys, no encoder.* or "
+                         "gaussian_param_head.*), not AnySplat; use model.init_args.pretrained_kind: vggt")
+    sd = remap_keys(raw, kind)
+    own = net.state_dict()
     usable = {}
     for k, v in sd.items():
         if k not in own:
@@ -116,8 +185,12 @@ def load_pretrained(net: nn.Module, path: str | Path | dict, kind: str = "vggt")
             report.mismatched.append((k, tuple(v.shape), tuple(own[k].shape)))
         else:
             usable[k] = v
+    meta = [k for k in usable if own[k].is_meta]
+    if meta:  # load_state_dict would copy nothing and report success
+        raise ValueError(f"pretrained weights: the network is on the meta device (e.g. {meta[0]}), where loading "
+                         "copies nothing; build the network on a real device (cpu/cuda) first")
     net.load_state_dict(usable, strict=False)
-    if kind == "anysplat" and hasattr(net, "cfg"):  # decode the cameras the way the checkpoint was trained
+    if kind == "anysplat" and is_anysplat and hasattr(net, "cfg"):  # decode the cameras as the checkpoint trained
         net.cfg = replace(net.cfg, focal_decode="anysplat")
     report.loaded = sorted(usable)
     report.missing = sorted(k for k in own if k not in usable)

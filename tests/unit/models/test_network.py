@@ -5,7 +5,7 @@ import torch
 
 from anycity.models import build_network
 from anycity.models.completion import scale_layers
-from anycity.models.presets import PAPER_INJECT_LAYERS, VGGT_HEAD_LAYERS, preset_config
+from anycity.models.presets import INT_RANGES, PAPER_INJECT_LAYERS, VGGT_HEAD_LAYERS, preset_config
 from anycity.structures import Gaussians
 
 
@@ -336,3 +336,59 @@ def test_camera_video_gives_each_view_a_residual_that_knows_its_place_in_the_cli
     for bad in ({"camera_video": True}, {"camera_video": True, "refine_cameras": True, "video_prior": "none"}):
         with pytest.raises(ValueError, match="camera_video"):
             build_network("tiny", **bad)
+
+
+@pytest.mark.parametrize("bad, match", [
+    (torch.rand(1, 2, 3, 32, 32, dtype=torch.float64), r"^images: float64; pass images.float\(\)$"),
+    (torch.rand(1, 2, 3, 32, 32) * 255, r"^images: expected values in \[0, 1\], got a maximum of .*; images look like "
+                                        r"0-255; divide by 255$"),
+    (torch.rand(1, 2, 3, 32, 32) + 0.2, r"maximum of 1\.\d+; clamp them to \[0, 1\]$"),
+])
+def test_images_of_another_dtype_or_range_are_one_line(tiny, bad, match):
+    """float64 images were a conv dtype error, 0-255 floats ran on silently into a garbage reconstruction."""
+    with pytest.raises(ValueError, match=match):
+        tiny(bad)
+
+
+def test_images_just_above_one_and_half_precision_images_still_run(tiny):
+    x = torch.rand(1, 2, 3, 32, 32)
+    x[0, 0, 0, 0, 0] = 1.0005  # a resize's rounding
+    with torch.no_grad():
+        for images in (x, x.bfloat16(), x.half()):
+            assert tiny(images, refine=False)["depth"].dtype == torch.float32
+
+
+def test_a_network_cast_to_half_precision_names_autocast():
+    """net.bfloat16() failed deep inside a layer norm ('mixed dtype'); the heads and geometry need float32 weights."""
+    net = build_network("tiny", completion=False).bfloat16()
+    with pytest.raises(ValueError, match=r"^network: weights are bfloat16 .*keep float32 weights and run under "
+                                         r"torch.autocast \(Lightning: trainer.precision bf16-mixed"):
+        net(torch.rand(1, 2, 3, 32, 32).bfloat16())
+
+
+@pytest.mark.parametrize("option, value, match", [
+    ("sh_degree", 5, r"^net.sh_degree: expected an integer 0\.\.4 .*got 5$"),
+    ("sh_degree", -1, r"^net.sh_degree: expected an integer 0\.\.4"),
+    ("sh_degree", 1.5, r"^net.sh_degree: .*got 1.5$"),
+    ("camera_iterations", 0, r"^net.camera_iterations: expected an integer >= 1 .*got 0$"),
+    ("num_heads", 0, r"^net.num_heads: expected an integer >= 1"),
+    ("completion_tokens", 0, r"^net.completion_tokens: expected an integer >= 1"),
+    ("num_register_tokens", -1, r"^net.num_register_tokens: expected an integer >= 0"),
+])
+def test_integer_options_out_of_range_are_one_line(option, value, match):
+    """sh_degree 5 built a network whose Gaussians no renderer takes, camera_iterations 0 was an IndexError in
+    forward, a 0 head count a ZeroDivisionError."""
+    with pytest.raises(ValueError, match=match):
+        preset_config("tiny", **{option: value})
+    lowest = INT_RANGES[option][0]
+    assert getattr(preset_config("tiny", **{option: lowest}), option) == lowest  # the bound itself is allowed
+
+
+def test_forward_on_the_meta_device():
+    """torch.autocast('meta', enabled=False) raised 'unsupported scalarType': shapes could not be traced on meta."""
+    with torch.device("meta"):
+        net = build_network("tiny")
+    with torch.no_grad():
+        out = net(torch.empty(1, 2, 3, 32, 48, device="meta"))
+    assert out["depth"].is_meta and tuple(out["depth"].shape) == (1, 2, 1, 32, 48)
+    assert tuple(out["gaussians"].means.shape) == (1, 2 * 32 * 48, 3)

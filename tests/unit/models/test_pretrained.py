@@ -136,3 +136,94 @@ def test_weights_for_another_preset_are_one_line_not_a_random_backbone(tmp_path,
         m = ScaffoldModule(preset="tiny", pretrained=str(path))
     assert torch.equal(m.net.aggregator.camera_token, src.aggregator.camera_token)
     assert "shape mismatches: 2" in caplog.text and str(path) in caplog.text
+
+
+def _anysplat_layout(sd: dict) -> dict:
+    """Our scaffold's tensors under AnySplat's names (``encoder.``, ``gaussian_param_head.``)."""
+    out = {f"encoder.{k}": v for k, v in sd.items() if k.startswith(("aggregator.", "camera_head.", "depth_head."))}
+    out.update({f"encoder.gaussian_param_head.{k[len('gaussian_head.'):]}": v for k, v in sd.items()
+                if k.startswith("gaussian_head.") and k not in OURS_ONLY})
+    return out
+
+
+def test_a_file_of_another_layout_names_the_real_cause(tmp_path):
+    """An AnySplat file read as VGGT, or our own Lightning checkpoint passed as pretrained, was told to 'build the
+    preset the weights were made for', which cannot help."""
+    src = build_network("tiny").state_dict()
+    path = tmp_path / "anysplat.pt"
+    torch.save(_anysplat_layout(src), path)
+    rep = load_pretrained(build_network("tiny"), path, kind="vggt")
+    with pytest.raises(ValueError, match=r"^model.pretrained: .*anysplat.pt does not fit .*of its keys start with "
+                                         r"'encoder.'; this is an AnySplat checkpoint: set "
+                                         r"model.init_args.pretrained_kind: anysplat$"):
+        rep.require_backbone(path)
+    lit = {"state_dict": {f"net.{k}": v for k, v in src.items()}, "hyper_parameters": {}}
+    torch.save(lit, path := tmp_path / "last.ckpt")
+    for given in (path, lit):  # from a file, and the checkpoint dict already read
+        rep = load_pretrained(build_network("tiny"), given, kind="vggt")
+        with pytest.raises(ValueError, match=r"this is an anycity checkpoint: pass it as --ckpt_path \(resume/test\) "
+                                             r"or model.init_args.init_from \(Stage II\)$"):
+            rep.require_backbone(path)
+    vggt = build_network("tiny", embed_dim=32, num_heads=2).state_dict()
+    with pytest.raises(ValueError, match=r"build the preset the weights were made for"):  # another preset: as before
+        load_pretrained(build_network("tiny"), vggt).require_backbone("model.pt")
+
+
+def test_anysplat_kind_on_a_vggt_file_is_refused_not_a_silent_decode_switch(tmp_path):
+    """kind='anysplat' on a plain VGGT file loaded it and switched the focal decode to AnySplat's (fx off by 0.2 %)."""
+    src = build_network("tiny").state_dict()
+    vggt = {k: v for k, v in src.items() if k.startswith(("aggregator.", "camera_head.", "depth_head."))}
+    torch.save(vggt, path := tmp_path / "model.pt")
+    net = build_network("tiny")
+    with pytest.raises(ValueError, match=r"^pretrained weights: .*model.pt is a VGGT file .*; use "
+                                         r"model.init_args.pretrained_kind: vggt$"):
+        load_pretrained(net, path, kind="anysplat")
+    assert net.cfg.focal_decode == "vggt"
+    load_pretrained(net, _anysplat_layout(src), kind="anysplat").require_backbone("anysplat")
+    assert net.cfg.focal_decode == "anysplat"  # a real AnySplat file still switches
+
+
+def test_a_truncated_safetensors_file_is_one_line(tmp_path):
+    """An interrupted download raised safetensors' own SafetensorError: a traceback in the CLI."""
+    from safetensors.torch import save_file
+
+    path = tmp_path / "model.safetensors"
+    save_file({"aggregator.camera_token": torch.zeros(1, 2, 1, 64)}, str(path))
+    path.write_bytes(path.read_bytes()[:-64])
+    with pytest.raises(ValueError, match=r"^cannot read pretrained weights .*model.safetensors: .*; the file looks "
+                                         r"truncated or corrupt \(re-download it\)$") as e:
+        load_pretrained(build_network("tiny"), path)
+    assert "\n" not in str(e.value)
+
+
+def test_a_folder_reads_its_one_weights_file(tmp_path):
+    """A downloaded snapshot folder was reported as 'not found'."""
+    from safetensors.torch import save_file
+
+    src = build_network("tiny", completion=False)
+    save_file({k: v.contiguous() for k, v in src.state_dict().items()}, str(tmp_path / "model.safetensors"))
+    (tmp_path / "config.json").write_text("{}")
+    net = build_network("tiny")
+    rep = load_pretrained(net, tmp_path)
+    rep.require_backbone(tmp_path)
+    assert torch.equal(net.aggregator.camera_token, src.aggregator.camera_token)
+    assert f"read {tmp_path / 'model.safetensors'}; loaded" in str(rep)
+    torch.save({"step": torch.zeros(1)}, tmp_path / "optimizer.pt")  # model.safetensors is still the one
+    assert load_pretrained(build_network("tiny"), tmp_path).loaded == rep.loaded
+    (tmp_path / "model.safetensors").rename(tmp_path / "a.safetensors")
+    with pytest.raises(ValueError, match=r"^pretrained weights: .* is a folder; pass the weights file inside it "
+                                         r"\(candidates: a.safetensors, optimizer.pt\)$"):
+        load_pretrained(build_network("tiny"), tmp_path)
+    (empty := tmp_path / "empty").mkdir()
+    with pytest.raises(FileNotFoundError, match=r"is a folder with no weights file .* in it"):
+        load_pretrained(build_network("tiny"), empty)
+
+
+def test_loading_into_a_network_on_the_meta_device_is_refused():
+    """It reported every tensor loaded and left them all on meta (load_state_dict copies nothing there)."""
+    sd = build_network("tiny", completion=False).state_dict()
+    with torch.device("meta"):
+        net = build_network("tiny")
+    with pytest.raises(ValueError, match=r"^pretrained weights: the network is on the meta device .*; build the "
+                                         r"network on a real device \(cpu/cuda\) first$"):
+        load_pretrained(net, sd)
