@@ -5,6 +5,10 @@ others wait in a collective. Before each optimiser step every rank reduces one f
 non-finite loss or gradient); if any did, every rank drops its gradients (``zero_grad(set_to_none=True)``:
 AdamW then leaves those parameters and their moments untouched) and counts the skip. The count is logged as
 ``train/nonfinite_skipped`` and each skip prints one line on rank 0. The LR schedule still advances.
+
+Under ``16-mixed`` the precision plugin's GradScaler checks the gradients itself and skips a step with an inf or
+a NaN: it overflows them on purpose about once per ``growth_interval`` steps to find its scale. There the guard
+leaves gradients to the scaler (those steps are not counted against ``max_skips``) and checks the loss only.
 """
 
 from __future__ import annotations
@@ -56,8 +60,11 @@ class NonFiniteGuard(Callback):
         self._loss = loss  # read after backward, in on_before_optimizer_step
 
     def _bad_ranks(self, trainer: pl.Trainer, pl_module: pl.LightningModule, optimizer) -> int:
+        # under a GradScaler this loss is the scaled one, which scaling does not overflow in float32
         bad = self._loss is not None and not bool(torch.isfinite(self._loss.detach()).all())
-        if not bad:  # the gradients this step applies (read from the optimiser: 0.04 ms, walking the modules 0.6)
+        scaler = getattr(trainer.precision_plugin, "scaler", None)  # 16-mixed: checks the gradients itself
+        if not bad and scaler is None:
+            # the gradients this step applies (read from the optimiser: 0.04 ms, walking the modules 0.6)
             bad = not all_finite([p.grad for g in optimizer.param_groups for p in g["params"] if p.grad is not None])
         flag = torch.tensor(float(bad), device=pl_module.device)
         if trainer.world_size > 1 and torch.distributed.is_available() and torch.distributed.is_initialized():

@@ -70,7 +70,15 @@ NetOverrides = TypedDict("NetOverrides", {f.name: _NET_HINTS[f.name] for f in fi
 
 # Lightning refuses gradient clipping under mixed precision with an optimiser that unscales inside its own step, as
 # torch's fused AdamW does: those runs keep foreach
-FUSED_ADAMW_PRECISIONS = ("32-true", "64-true")
+FUSED_ADAMW_PRECISIONS = ("32-true",)
+
+
+def check_precision(precision: str) -> None:
+    """Refuse a ``trainer.precision`` that casts the whole module (``64-true``, ``bf16-true``, ``16-true``): the
+    heads, losses and renderer run in float32, so those fail with a dtype error in the first step."""
+    if precision.endswith("-true") and precision != "32-true":
+        raise ValueError(f"trainer.precision {precision}: the heads, losses and renderer run in float32; use "
+                         "bf16-mixed (GPU) or 32-true")
 
 
 def make_adamw(param_groups: list[dict], lr: float, fused: bool) -> torch.optim.AdamW:
@@ -200,6 +208,20 @@ class AnyCityModule(pl.LightningModule):
         self.save_hyperparameters()
         if self.net.cfg.focal_decode != (net or {}).get("focal_decode", "vggt"):  # set by an AnySplat checkpoint
             self.hparams.net = {**(net or {}), "focal_decode": self.net.cfg.focal_decode}
+
+    def setup(self, stage: str) -> None:
+        # here, before the strategy casts the module to the precision's dtype
+        precision = getattr(self._trainer, "precision", None)
+        if precision is not None:
+            check_precision(str(precision))
+
+    def freeze_unsupervised_pose_token(self, camera_weight: float) -> None:
+        """Freeze ``net.camera_head.empty_pose_tokens`` when ``camera_weight`` is 0: it feeds only the camera head's
+        first iteration, whose encoding only the camera loss reads (later iterations detach it), so it would get no
+        gradient, and DDP with ``find_unused_parameters: false`` stops at the second step. With one iteration the
+        final cameras read it, and it trains through them."""
+        if camera_weight == 0 and self.net.cfg.camera_iterations > 1:
+            self.net.camera_head.empty_pose_tokens.requires_grad_(False)
 
     # ----------------------------------------------------------------------------------------- rendering
     def render(self, gaussians: Gaussians, w2c: Tensor, K: Tensor, hw: tuple[int, int], context: Tensor,

@@ -116,7 +116,8 @@ class RefinementModule(AnyCityModule):
         camera_weight: beyond the paper (whose Stage II keeps the scaffold's cameras): weight of Stage I's
             pose-encoding loss on the cameras Stage II re-places (``net.refine_cameras``); 0 = off, the paper's.
         camera_loss_type: "l1" or "huber", as in Stage I.
-        freeze_scaffold: freeze ``net.scaffold_parameters()`` (Stage II default).
+        freeze_scaffold: freeze ``net.scaffold_parameters()`` (Stage II default); without it, ``camera_weight: 0``
+            still freezes ``net.camera_head.empty_pose_tokens``, which only the camera loss trains.
         **base: see :class:`anycity.lit.base.AnyCityModule`.
     """
 
@@ -147,22 +148,25 @@ class RefinementModule(AnyCityModule):
         if camera_weight > 0 and not self.net.cfg.refine_cameras:
             raise ValueError("model.camera_weight: Stage II keeps the scaffold's cameras unless "
                              "model.net.refine_cameras is true; set it, or camera_weight: 0")
-        if reg_weight > 0 and self.net.cfg.voxel_size is not None:
-            raise ValueError("model.reg_weight: the stability term compares the scaffold's and the final Gaussians one "
-                             "to one, which a voxel merge (model.net.voxel_size) pairs arbitrarily; train with "
-                             "net.voxel_size: null, or set reg_weight: 0")
         if freeze_scaffold:
             for p in self.net.scaffold_parameters():
                 p.requires_grad_(False)
+        self.freeze_unsupervised_pose_token(camera_weight)  # matters with freeze_scaffold: false
 
     # ----------------------------------------------------------------------------------------- init
     def setup(self, stage: str) -> None:
+        super().setup(stage)
         # A resumed fit (--ckpt_path) needs neither the Stage I file nor the pose prior's: its checkpoint holds both.
         # Lightning restores it after this hook and says so (trainer.ckpt_path) only then, so a missing file is
         # reported in _check_fresh_fit, once it is known whether this fit resumes. test/predict never need them.
         self._fresh_fit_problems: list[Exception] = []
         if stage != "fit":
             return
+        # training only: test/predict may merge voxels (net.voxel_size is a test-time key, cli.NET_TEST_TIME_KEYS)
+        if self.hparams.reg_weight > 0 and self.net.cfg.voxel_size is not None:
+            raise ValueError("model.reg_weight: the stability term compares the scaffold's and the final Gaussians one "
+                             "to one, which a voxel merge (model.net.voxel_size) pairs arbitrarily; train with "
+                             "net.voxel_size: null, or set reg_weight: 0")
         try:
             if self.net.pose_prior is not None:
                 self.net.pose_prior.check_loaded()

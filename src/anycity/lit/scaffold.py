@@ -24,7 +24,8 @@ class ScaffoldModule(AnyCityModule):
     Args:
         depth_weight: weight of ``L_depth = L_z + L_xy`` (paper: 0.1).
         normal_weight: weight of ``L_normal`` (paper: 0.1).
-        camera_weight: weight of the pose-encoding loss.
+        camera_weight: weight of the pose-encoding loss; 0 freezes ``net.camera_head.empty_pose_tokens``, which
+            nothing else trains (:meth:`~anycity.lit.base.AnyCityModule.freeze_unsupervised_pose_token`).
         camera_loss_type: "l1" (VGGT's default) or "huber" on the pose encoding.
         ssim_weight: weight of ``1 - SSIM`` inside ``L_rgb`` (0 = MSE only).
         context_rgb_weight: weight of the context-view photometric term relative to the target views.
@@ -64,6 +65,7 @@ class ScaffoldModule(AnyCityModule):
                              "completion=true; drop it (Stage II, RefinementModule, builds the completion branch)")
         base["net"] = {**(base.get("net") or {}), "completion": False}
         super().__init__(**base)  # also records every argument, these and the base's, as hparams
+        self.freeze_unsupervised_pose_token(camera_weight)
         self._told_no_depth = False
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:

@@ -84,3 +84,55 @@ def test_a_run_whose_every_step_was_skipped_fails_at_its_end():
                          enable_progress_bar=False, enable_model_summary=False, callbacks=[guard])
     with pytest.raises(RuntimeError, match="all 3 optimiser steps of this run were skipped"):
         trainer.fit(_AlwaysInf(poison_step=-1))
+
+
+class _Fp16(pl.LightningModule):
+    """A finite loss whose float16 backward overflows at large loss scales; a NaN loss at ``nan_step``."""
+
+    def __init__(self, nan_step: int = -1):
+        super().__init__()
+        torch.manual_seed(0)
+        self.layer, self.nan_step = nn.Linear(16, 16), nan_step
+
+    def training_step(self, batch, batch_idx):
+        loss = (self.layer(batch[0]).float() * 30.0).pow(2).mean()  # the layer runs in float16 under autocast
+        return loss * float("nan") if self.global_step == self.nan_step else loss
+
+    def configure_optimizers(self):
+        return torch.optim.SGD(self.parameters(), lr=1e-6)
+
+    def train_dataloader(self):
+        x = torch.randn(64, 16, generator=torch.Generator().manual_seed(0))
+        return torch.utils.data.DataLoader(torch.utils.data.TensorDataset(x), batch_size=8)
+
+
+def _fit_16_mixed(model, steps):
+    from lightning.pytorch.plugins import MixedPrecision
+
+    # growth_interval 2 stands in for the default 2000: the scaler doubles its scale until the gradients overflow
+    scaler = torch.amp.GradScaler("cpu", init_scale=2.0 ** 4, growth_interval=2)
+    scales = [scaler.get_scale()]  # after each step: the scaler halves its scale on a step it skipped
+
+    class _Scales(pl.Callback):
+        def on_train_batch_end(self, *args):
+            scales.append(scaler.get_scale())
+
+    guard = NonFiniteGuard(max_skips=1)
+    trainer = pl.Trainer(max_steps=steps, accelerator="cpu", plugins=[MixedPrecision("16-mixed", "cpu", scaler=scaler)],
+                         logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                         enable_model_summary=False, callbacks=[guard, _Scales()])
+    trainer.fit(model)
+    return guard, sum(b < a for a, b in zip(scales, scales[1:]))
+
+
+def test_the_grad_scalers_overflow_steps_are_left_to_it_under_16_mixed():
+    """16-mixed's GradScaler overflows the gradients on purpose about once per growth_interval and skips those steps
+    itself; the guard counted each as a non-finite skip, warned, and stopped healthy long runs at max_skips."""
+    guard, overflows = _fit_16_mixed(_Fp16(), steps=24)
+    assert overflows >= 3  # more than max_skips
+    assert guard.skipped == 0
+
+
+def test_a_nan_loss_is_still_skipped_under_16_mixed():
+    guard, _ = _fit_16_mixed(_Fp16(nan_step=1), steps=3)
+    assert guard.skipped == 1

@@ -280,3 +280,27 @@ def test_adamw_is_fused_in_full_precision_and_foreach_under_mixed_precision():
     for p in m.parameters():
         p.grad = torch.ones_like(p)
     mixed.step()  # the flipped groups step with foreach
+
+
+@pytest.mark.parametrize("cls, precision", [(ScaffoldModule, "64"), (ScaffoldModule, "bf16-true"),
+                                            (RefinementModule, "16-true")])
+def test_a_precision_that_casts_the_whole_module_is_refused_in_one_line(cls, precision):
+    """Lightning's "*-true" precisions other than 32-true cast every weight and input; the heads, losses and
+    renderer run in float32, so the first step failed with a dtype traceback (and 64-true was listed as a fused
+    AdamW precision). Refused when the trainer sets the module up, before it is cast."""
+    import lightning.pytorch as pl
+
+    from anycity.lit.base import FUSED_ADAMW_PRECISIONS
+
+    trainer = pl.Trainer(precision=precision, accelerator="cpu", max_steps=1, logger=False, enable_checkpointing=False,
+                         enable_progress_bar=False, enable_model_summary=False)
+    name = trainer.precision  # "64" reads "64-true"
+    with pytest.raises(ValueError, match=f"^trainer.precision {name}: the heads, losses and renderer run in float32; "
+                                         "use bf16-mixed \\(GPU\\) or 32-true$"):
+        trainer.fit(cls(preset="tiny"), train_dataloaders=torch.utils.data.DataLoader([0]))
+    assert "64-true" not in FUSED_ADAMW_PRECISIONS
+    m = cls(preset="tiny")
+    for ok in ("32-true", "bf16-mixed", "16-mixed"):
+        m._trainer = SimpleNamespace(precision=ok, ckpt_path=None,
+                                     strategy=SimpleNamespace(restore_checkpoint_after_setup=False))
+        m.setup("test")

@@ -108,9 +108,6 @@ def test_refinement_rejects_missing_init_and_bad_gate_mode(tmp_path):
     _start_fit(RefinementModule(init_from=None, freeze_scaffold=False))  # everything trains: nothing stays random
     with pytest.raises(ValueError, match="gate_mode"):
         RefinementModule(gate_mode="max")
-    with pytest.raises(ValueError, match="model.reg_weight: .*voxel merge"):  # it would pair unrelated Gaussians
-        RefinementModule(net={"voxel_size": 0.1})
-    RefinementModule(net={"voxel_size": 0.1}, reg_weight=0.0)
     with pytest.raises(ValueError, match="d2s_depth_scale"):
         RefinementModule(d2s_depth_scale="gt")
 
@@ -122,6 +119,46 @@ def _scaffold_file(path, prefixes, rename=lambda k: k):
     sd = {rename(k): v.contiguous() for k, v in ScaffoldModule().net.state_dict().items() if k.startswith(prefixes)}
     save_file(sd, str(path)) if path.suffix == ".safetensors" else torch.save(sd, path)
     return str(path)
+
+
+def test_reg_weight_with_a_voxel_merge_is_refused_when_fitting_only():
+    """L_reg pairs the scaffold's and the final Gaussians one to one, which a voxel merge breaks: a training rule.
+    net.voxel_size is a test-time key (cli.NET_TEST_TIME_KEYS), and `anycity test`/`predict` of a Stage II
+    checkpoint with it were refused at construction."""
+    from types import SimpleNamespace
+
+    m = RefinementModule(net={"voxel_size": 0.1})  # reg_weight 0.01
+    m._trainer = SimpleNamespace(ckpt_path=None, strategy=SimpleNamespace(restore_checkpoint_after_setup=False))
+    m.setup("test")
+    m.setup("predict")
+    with pytest.raises(ValueError, match="model.reg_weight: .*voxel merge"):  # it would pair unrelated Gaussians
+        m.setup("fit")
+    ok = RefinementModule(net={"voxel_size": 0.1}, reg_weight=0.0)
+    ok._trainer = m._trainer
+    ok.setup("fit")
+
+
+@pytest.mark.parametrize("cls, kw", [
+    (ScaffoldModule, dict(camera_weight=0.0)),
+    (ScaffoldModule, dict(camera_weight=0.0, depth_weight=0.0, normal_weight=0.0, context_rgb_weight=0.0,
+                          depth_warmup_steps=0, render_pose_grad=False)),
+    (RefinementModule, dict(freeze_scaffold=False)),  # Stage II's camera_weight is 0 by default
+], ids=["stage1", "stage1_rgb_only", "stage2_unfrozen"])
+def test_every_trainable_parameter_gets_a_gradient_when_a_loss_weight_is_0(batch, cls, kw):
+    """DDP with find_unused_parameters: false (stage1.yaml) stops at the second step when a trainable parameter
+    got no gradient: with camera_weight 0, camera_head.empty_pose_tokens fed only the camera loss."""
+    torch.manual_seed(0)
+    m = _no_log(cls(render_backend="torch", **kw))
+    m.training_step(batch, 0).backward()
+    assert [n for n, p in m.named_parameters() if p.requires_grad and p.grad is None] == []
+    assert not m.net.camera_head.empty_pose_tokens.requires_grad  # frozen, not trained by something else
+
+
+def test_the_pose_token_keeps_training_where_something_reaches_it():
+    assert ScaffoldModule(camera_weight=1.0).net.camera_head.empty_pose_tokens.requires_grad
+    # one camera iteration: the final cameras, which place the Gaussians, read it
+    one = ScaffoldModule(camera_weight=0.0, net={"camera_iterations": 1})
+    assert one.net.camera_head.empty_pose_tokens.requires_grad
 
 
 def test_refinement_rejects_a_pretrained_file_that_leaves_the_frozen_scaffold_random(tmp_path):
