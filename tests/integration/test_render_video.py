@@ -63,3 +63,41 @@ def test_a_render_that_fails_midway_keeps_the_earlier_video_and_leaves_no_part(t
     monkeypatch.setattr(video, "render_frames", frames)
     assert video.render_video(folder, out, per_segment=2, width=16, progress=False) > 0
     assert out.stat().st_size > 100 and sorted(p.name for p in tmp_path.iterdir()) == ["fly.mp4", "s"]
+
+
+def _empty_scene(tmp_path):
+    """A predict folder whose scene.ply has 0 Gaussians (predict dropped every one as NaN)."""
+    import torch
+
+    from anycity.export import save_ply
+    from anycity.structures import Gaussians
+
+    (tmp_path / "s").mkdir()
+    folder = tiny_predict_folder(tmp_path / "s", n=10, with_prov=False)
+    save_ply(Gaussians(means=torch.full((1, 10, 3), float("nan")), quats=torch.ones(1, 10, 4),
+                       scales=torch.ones(1, 10, 3), opacities=torch.ones(1, 10), sh=torch.zeros(1, 10, 1, 3)),
+             folder / "scene.ply")
+    return folder
+
+
+def test_an_empty_scene_is_one_line(tmp_path, capsys):
+    """render-video --orbit on 0 Gaussians ended in an IndexError traceback (the median of nothing)."""
+    pytest.importorskip("imageio_ffmpeg")
+    folder = _empty_scene(tmp_path)
+    out = tmp_path / "fly.mp4"
+    assert main(["render-video", str(folder), "--out", str(out), "--orbit", "4", "--width", "16"]) == 2
+    err = capsys.readouterr().err
+    assert "scene.ply: 0 Gaussians" in err and "nothing to view" in err and len(err.strip().splitlines()) == 1
+    assert not out.exists()
+
+
+def test_without_the_viewer_extra_render_video_is_one_line(tmp_path, capsys, monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "imageio_ffmpeg", None)  # `import imageio_ffmpeg` raises ModuleNotFoundError
+    (tmp_path / "s").mkdir()
+    folder = tiny_predict_folder(tmp_path / "s", n=10, with_prov=False)
+    assert main(["render-video", str(folder), "--out", str(tmp_path / "fly.mp4")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "render-video needs the viewer extra" in err and "pip install -e '.[viewer]'" in err
+    assert len(err.splitlines()) == 1

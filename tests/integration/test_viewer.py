@@ -86,3 +86,27 @@ def test_view_page_draws_splats_in_chromium(tmp_path):
         server.stop()
     share = drawn_share(img)
     assert share > 0.05, f"viewer canvas looks blank: {share:.3f} of the centre drawn"
+
+
+def test_view_refuses_an_empty_scene_and_a_missing_extra_in_one_line(tmp_path, capsys, monkeypatch):
+    """0 Gaussians: an IndexError traceback; no viser: an uncaught ModuleNotFoundError. Both are one line now."""
+    import sys
+
+    from anycity.cli import main
+    from anycity.export import save_ply
+    from anycity.structures import Gaussians
+
+    pytest.importorskip("viser")
+    (tmp_path / "empty").mkdir()
+    folder = tiny_predict_folder(tmp_path / "empty", n=10)
+    save_ply(Gaussians(means=torch.full((1, 10, 3), float("nan")), quats=torch.ones(1, 10, 4),
+                       scales=torch.ones(1, 10, 3), opacities=torch.ones(1, 10), sh=torch.zeros(1, 10, 1, 3)),
+             folder / "scene.ply")
+    assert main(["view", str(folder), "--port", "0"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "scene.ply: 0 Gaussians" in err and len(err.splitlines()) == 1
+    monkeypatch.setitem(sys.modules, "viser", None)
+    (tmp_path / "full").mkdir()
+    assert main(["view", str(tiny_predict_folder(tmp_path / "full", n=10)), "--port", "0"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "anycity view needs the viewer extra" in err and len(err.splitlines()) == 1

@@ -27,7 +27,7 @@ class PredictionExport(BasePredictionWriter):
 
     Files: ``scene.ply`` (standard 3DGS PLY plus the provenance columns ``obs_views`` and ``completion`` when
     the prediction carries ``scaffold`` and ``depth``; see :mod:`anycity.export.provenance`), ``cameras.json``
-    (predicted OpenCV w2c + K),
+    (predicted OpenCV w2c + K; ``metres_per_unit`` null: the network's frame has no known metric scale),
     ``renders/NNN.png`` (the Gaussians re-rendered at the predicted context cameras) and
     ``inputs/NNN.png`` (the context images, for side-by-side comparison).
 
@@ -53,12 +53,16 @@ class PredictionExport(BasePredictionWriter):
         out_dir: output folder; None = ``<log_dir>/predictions``.
         save_renders: also write the PNG renders and inputs.
         smooth_3d: Mip-Splatting 3-D filter variance in px² of the input cameras, baked into the PLY's scales and
-            opacities so that other viewers (and zoomed-in views) show no holes; 0 writes the raw Gaussians.
+            opacities so that other viewers (and zoomed-in views) show no holes; 0 writes the raw Gaussians (a
+            negative value is refused).
     """
 
     def __init__(self, out_dir: str | None = None, save_renders: bool = True,
                  smooth_3d: float = VARIANCE_PX) -> None:
         super().__init__(write_interval="batch")
+        if not smooth_3d >= 0:  # NaN too: a negative variance turned the filter off without a word
+            raise ValueError(f"--export.smooth_3d: expected a variance in px² >= 0 (0 turns the filter off), got "
+                             f"{smooth_3d}")
         self.out_dir = out_dir
         self.save_renders = save_renders
         self.smooth_3d = smooth_3d
@@ -268,5 +272,14 @@ def _shares(prov: dict, valid, scene: slice, rows) -> tuple[dict[str, float], in
 
 
 def _print_shares(name: str, share: dict[str, float], views: str = "") -> None:
+    """One line of :func:`anycity.export.provenance.summary` shares; a voxel-merged prediction (completion NaN:
+    the scaffold's rows do not pair with the final ones) says "completion n/a" instead of a share."""
+    few = f"{share['unsupported']:.0%} seen by < 2 views{views}"
+    unknown = share.get("unknown", 0.0)
+    if unknown >= 1 - 1e-9:
+        print(f"{name}: completion n/a (voxel-merged), {1 - share['unsupported']:.0%} of Gaussians seen by >= 2 "
+              f"views{views}, {few}")
+        return
+    tail = f", completion n/a (voxel-merged) for {unknown:.0%}" if unknown > 0 else ""
     print(f"{name}: {share['supported']:.0%} of Gaussians observation-supported (>= 2 views{views}, kept), "
-          f"{share['completed']:.0%} completed by Stage II, {share['unsupported']:.0%} seen by < 2 views{views}")
+          f"{share['completed']:.0%} completed by Stage II, {few}{tail}")

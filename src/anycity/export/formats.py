@@ -1,8 +1,9 @@
 """Exports for other tools: antimatter15 ``.splat``, a COLMAP text model and a nerfstudio ``transforms.json``.
 
-All of them stay in the predicted world frame (OpenCV axes, the network's normalised units); ``metres_per_unit``
-is written beside them (``scale.json``) so a user can map back to metres when the input gave a scale. Every file is
-written through :mod:`anycity.atomic`: a killed export leaves no partial file under a final name.
+All of them stay in the predicted world frame (OpenCV axes, the network's normalised units); ``scale.json`` beside
+them copies ``metres_per_unit`` from ``cameras.json`` (null as ``predict`` writes it: the network's frame has no known
+metric scale; a number when the user set one there). Every file is written through :mod:`anycity.atomic`: a killed
+export leaves no partial file under a final name.
 """
 
 from __future__ import annotations
@@ -11,10 +12,10 @@ import json
 from pathlib import Path
 
 import numpy as np
-import torch
 from torch import Tensor
 
 from anycity.atomic import atomic_write_bytes
+from anycity.export.ply import keep_mask, write_vertices
 from anycity.geometry import rotmat_to_quat
 from anycity.structures import Gaussians
 
@@ -28,11 +29,9 @@ def _dc_rgb(g: Gaussians, index: int) -> np.ndarray:
 
 
 def _keep(g: Gaussians, index: int) -> np.ndarray:
-    keep = torch.isfinite(g.means[index]).all(-1) & torch.isfinite(g.scales[index]).all(-1)
-    keep &= torch.isfinite(g.opacities[index]) & (g.quats[index].norm(dim=-1) > 0)
-    if g.valid is not None:
-        keep &= g.valid[index]
-    return keep.cpu().numpy()
+    """``[N]`` bool: the rows the PLY writer keeps (:func:`anycity.export.ply.keep_mask`: valid, finite SH
+    included, positive scales), so every format holds the same Gaussians."""
+    return keep_mask(g, index).cpu().numpy()
 
 
 def splat_bytes(g: Gaussians, index: int = 0) -> bytes:
@@ -107,8 +106,6 @@ def save_points_ply(path: str | Path, g: Gaussians, index: int = 0, max_points: 
     """The Gaussian centres of scene ``index`` as a coloured point cloud (``x y z`` float, ``red green blue``
     uchar), the seed layout nerfstudio's ``ply_file_path`` and graphdeco's ``fetchPly`` read; returns ``path``.
     Points as in :func:`save_colmap`."""
-    from anycity.export.ply import write_vertices
-
     xyz, rgb = _coloured_points(g, index, max_points)
     data = np.empty(len(xyz), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
                                      ("red", "u1"), ("green", "u1"), ("blue", "u1")])

@@ -3,90 +3,148 @@
 
 from __future__ import annotations
 
-import io
 from pathlib import Path
 
 import numpy as np
 import torch
-from plyfile import PlyData, PlyElement
+from plyfile import PlyData
 from torch import Tensor
 
-from anycity.atomic import atomic_write_bytes
+from anycity.atomic import atomic_open
 from anycity.structures import Gaussians
 
+ROWS = 1 << 16  # Gaussians per step of the PLY writer: temporaries of a few MB, not copies of the scene
 
-def gaussians_to_ply_arrays(g: Gaussians, index: int = 0, max_degree: int = 3,
-                            extra: dict[str, Tensor] | None = None,
-                            pad_degree: int | None = None) -> tuple[dict[str, np.ndarray], int]:
-    """Columns of scene ``index`` of ``g`` as float32 arrays; returns ``(columns, dropped)``.
+
+def keep_mask(g: Gaussians, index: int = 0, max_degree: int = 3) -> Tensor:
+    """``[N]`` bool: the rows of scene ``index`` every export writes: valid, every field finite (SH up to
+    ``max_degree``, the bands written), a non-zero rotation and positive scales."""
+    k = (min(g.sh_degree, max_degree) + 1) ** 2
+    n = g.num_gaussians
+    keep = torch.ones(n, dtype=torch.bool, device=g.means.device)
+    if g.valid is not None:
+        keep &= g.valid[index]
+    for s in range(0, n, ROWS):
+        rows = slice(s, s + ROWS)
+        quats, scales = g.quats[index, rows], g.scales[index, rows]
+        for t in (g.means[index, rows], quats, scales, g.opacities[index, rows, None],
+                  g.sh[index, rows, :k].flatten(1)):
+            keep[rows] &= torch.isfinite(t).all(-1)
+        keep[rows] &= (quats.float().norm(dim=-1) > 0) & (scales.float().min(-1).values > 0)
+    return keep
+
+
+def ply_columns(g: Gaussians, max_degree: int = 3, extra: dict[str, Tensor] | None = None,
+                pad_degree: int | None = None) -> list[str]:
+    """The property names :func:`gaussians_to_ply_records` writes, in order."""
+    k = (max(min(g.sh_degree, max_degree), pad_degree or 0) + 1) ** 2
+    return ["x", "y", "z", "nx", "ny", "nz", *(f"f_dc_{i}" for i in range(3)),
+            *(f"f_rest_{i}" for i in range(3 * (k - 1))), "opacity", *(f"scale_{i}" for i in range(3)),
+            *(f"rot_{i}" for i in range(4)), *(extra or {})]
+
+
+def gaussians_to_ply_records(g: Gaussians, index: int = 0, max_degree: int = 3,
+                             extra: dict[str, Tensor] | None = None,
+                             pad_degree: int | None = None) -> tuple[np.ndarray, int]:
+    """Scene ``index`` of ``g`` as one structured array ``[M]`` (one little-endian float32 field per PLY property,
+    :func:`ply_columns`), filled :data:`ROWS` Gaussians at a time (no whole-scene copies besides it); returns
+    ``(records, dropped)``.
 
     ``extra``: more per-Gaussian columns ``{name: [B, N]}`` (e.g. provenance) appended after the standard ones;
     readers that find columns by name in the header ignore them (SuperSplat, gsplat, graphdeco's Python loader);
     fixed-record readers such as SIBR's gaussianViewer do not. ``pad_degree`` zero-pads the SH up to that degree,
     for readers that expect one (SIBR and graphdeco's loader: 3, 45 ``f_rest``).
 
-    Invalid, non-finite and zero-norm-rotation Gaussians are dropped (their count is returned). SH above
-    ``max_degree`` (at most 3, the format's limit) are cut per band, then written channel-major.
+    Rows outside :func:`keep_mask` (invalid, non-finite, zero-norm rotation, non-positive scale) are dropped (their
+    count is returned). SH above ``max_degree`` (at most 3, the format's limit) are cut per band, then written
+    channel-major.
     """
     if not 0 <= max_degree <= 3 or not 0 <= (pad_degree or 0) <= 3:
         raise ValueError(f"max_degree, pad_degree: the PLY format holds SH degree 0..3, got {max_degree}, {pad_degree}")
-    means, quats = g.means[index].float(), g.quats[index].float()
-    scales, opac, sh = g.scales[index].float(), g.opacities[index].float(), g.sh[index].float()
-    deg = min(g.sh_degree, max_degree)
-    sh = sh[:, : (deg + 1) ** 2]  # bands are stored in order, so cutting keeps the lower degrees intact
-    if pad_degree is not None and pad_degree > deg:
-        sh = torch.cat([sh, sh.new_zeros(sh.shape[0], (pad_degree + 1) ** 2 - sh.shape[1], 3)], 1)
-    keep = torch.ones(means.shape[0], dtype=torch.bool, device=means.device)
-    if g.valid is not None:
-        keep &= g.valid[index]
-    for t in (means, quats, scales, opac[:, None], sh.flatten(1)):
-        keep &= torch.isfinite(t).all(-1)
-    keep &= quats.norm(dim=-1) > 0
-    keep &= scales.min(-1).values > 0
+    keep = keep_mask(g, index, max_degree)
     dropped = int((~keep).sum())
-    means, quats, scales, opac, sh = means[keep], quats[keep], scales[keep], opac[keep], sh[keep]
-    quats = quats / quats.norm(dim=-1, keepdim=True)
-    p = opac.clamp(1e-6, 1 - 1e-6)
-    cols: dict[str, Tensor] = {"x": means[:, 0], "y": means[:, 1], "z": means[:, 2]}
-    for c in "xyz":
-        cols[f"n{c}"] = torch.zeros_like(means[:, 0])
-    for i in range(3):
-        cols[f"f_dc_{i}"] = sh[:, 0, i]
-    rest = sh[:, 1:, :].transpose(1, 2).reshape(sh.shape[0], 3 * (sh.shape[1] - 1))  # [N, 3*(K-1)] channel-major
-    for i in range(rest.shape[1]):
-        cols[f"f_rest_{i}"] = rest[:, i]
-    cols["opacity"] = torch.log(p / (1 - p))
-    for i in range(3):
-        cols[f"scale_{i}"] = scales[:, i].log()
-    for i in range(4):
-        cols[f"rot_{i}"] = quats[:, i]
-    for name, t in (extra or {}).items():
-        cols[name] = t[index].to(keep.device).float()[keep]
-    return {k: v.detach().cpu().numpy().astype(np.float32) for k, v in cols.items()}, dropped
+    names = ply_columns(g, max_degree, extra, pad_degree)
+    rec = np.empty(g.num_gaussians - dropped, dtype=[(k, "<f4") for k in names])
+    table = rec.view("<f4").reshape(len(rec), len(names))  # the same memory, one float32 row per Gaussian
+    done = 0
+    for s in range(0, g.num_gaussians, ROWS):
+        rows = slice(s, s + ROWS)
+        block = _ply_rows(g, index, rows, keep[rows] if dropped else None, max_degree, pad_degree, extra)
+        table[done:done + len(block)] = block.detach().cpu().numpy()
+        done += len(block)
+    return rec, dropped
+
+
+def _ply_rows(g: Gaussians, index: int, rows: slice, keep: Tensor | None, max_degree: int, pad_degree: int | None,
+              extra: dict[str, Tensor] | None) -> Tensor:
+    """``[n, P]`` float32: the PLY properties of Gaussians ``rows`` of scene ``index`` (those ``keep`` marks)."""
+    def take(t: Tensor) -> Tensor:
+        return (t[keep] if keep is not None else t).float()
+
+    k = (min(g.sh_degree, max_degree) + 1) ** 2
+    sh = take(g.sh[index, rows, :k])  # bands are stored in order, so cutting keeps the lower degrees intact
+    n = sh.shape[0]
+    rest = sh[:, 1:, :].transpose(1, 2)  # [n, 3, k-1]: channel-major
+    if pad_degree is not None and (pad_degree + 1) ** 2 > k:
+        rest = torch.cat([rest, rest.new_zeros(n, 3, (pad_degree + 1) ** 2 - k)], -1)
+    p = take(g.opacities[index, rows]).clamp(1e-6, 1 - 1e-6)
+    quats = take(g.quats[index, rows])
+    cols = [take(g.means[index, rows]), sh.new_zeros(n, 3), sh[:, 0, :], rest.reshape(n, 3 * rest.shape[-1]),
+            torch.log(p / (1 - p))[:, None], take(g.scales[index, rows]).log(),
+            quats / quats.norm(dim=-1, keepdim=True)]
+    cols += [take(t[index, rows].to(sh.device))[:, None] for t in (extra or {}).values()]
+    return torch.cat(cols, -1)
+
+
+def gaussians_to_ply_arrays(g: Gaussians, index: int = 0, max_degree: int = 3,
+                            extra: dict[str, Tensor] | None = None,
+                            pad_degree: int | None = None) -> tuple[dict[str, np.ndarray], int]:
+    """:func:`gaussians_to_ply_records` as ``({name: float32 [M]}, dropped)`` (views of one structured array)."""
+    rec, dropped = gaussians_to_ply_records(g, index, max_degree, extra, pad_degree)
+    return {k: rec[k] for k in rec.dtype.names}, dropped
 
 
 def save_ply(g: Gaussians, path: str | Path, index: int = 0, max_degree: int = 3,
              extra: dict[str, Tensor] | None = None, pad_degree: int | None = None) -> int:
     """Write scene ``index`` of ``g`` to ``path`` as a binary little-endian 3DGS PLY; returns rows dropped.
-    ``extra`` and ``pad_degree`` as in :func:`gaussians_to_ply_arrays`."""
-    cols, dropped = gaussians_to_ply_arrays(g, index, max_degree, extra, pad_degree)
-    n = len(cols["x"])
-    data = np.empty(n, dtype=[(k, "f4") for k in cols])
-    for k, v in cols.items():
-        data[k] = v
-    write_vertices(path, data)
+    ``extra`` and ``pad_degree`` as in :func:`gaussians_to_ply_records`."""
+    rec, dropped = gaussians_to_ply_records(g, index, max_degree, extra, pad_degree)
+    write_vertices(path, rec)
     return dropped
+
+
+PLY_TYPES = {"i1": "char", "u1": "uchar", "i2": "short", "u2": "ushort", "i4": "int", "u4": "uint", "f4": "float",
+             "f8": "double"}  # plyfile's names, so the header is the one it writes
+WRITE_STEP = 1 << 26  # bytes per write call
+
+
+def vertex_header(data: np.ndarray) -> bytes:
+    """The binary little-endian PLY header of one ``vertex`` element holding the structured array ``data``."""
+    lines = ["ply", "format binary_little_endian 1.0", f"element vertex {len(data)}"]
+    for name in data.dtype.names:
+        kind = data.dtype.fields[name][0]
+        if kind.str[1:] not in PLY_TYPES or kind.shape:
+            raise ValueError(f"write_vertices: field {name!r} is {kind}, not a scalar PLY type "
+                             f"({', '.join(PLY_TYPES)})")
+        lines.append(f"property {PLY_TYPES[kind.str[1:]]} {name}")
+    return ("\n".join([*lines, "end_header"]) + "\n").encode("ascii")
 
 
 def write_vertices(path: str | Path, data: np.ndarray) -> None:
     """A binary little-endian PLY of one ``vertex`` element (a structured array, one field per property) at
-    ``path``, written whole then renamed: a killed export leaves no file that looks complete."""
+    ``path``, byte for byte what plyfile writes: the header, then the array's bytes streamed in slices through
+    :func:`anycity.atomic.atomic_open` (temp file, rename), so a killed export leaves no file that looks complete
+    and no second copy of the scene is held in memory."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    buf = io.BytesIO()
-    PlyData([PlyElement.describe(data, "vertex")], text=False, byte_order="<").write(buf)
-    with buf.getbuffer() as view:  # released even on an error (see lit/checkpoint_io.py)
-        atomic_write_bytes(path, view)
+    packed = np.dtype([(k, data.dtype.fields[k][0].newbyteorder("<")) for k in data.dtype.names])
+    data = np.ascontiguousarray(data.astype(packed, copy=False))  # what plyfile writes; no copy for ours
+    head = vertex_header(data)
+    body = data.reshape(-1).view(np.uint8)
+    with atomic_open(path, size=len(head) + body.nbytes) as f:
+        f.write(head)
+        for s in range(0, body.nbytes, WRITE_STEP):
+            f.write(memoryview(body[s:s + WRITE_STEP]))
 
 
 def load_ply(path: str | Path) -> Gaussians:

@@ -8,7 +8,9 @@
   the DC colour change (RGB distance / sqrt 3), each clipped to 1. The size is the scaffold's mean std, but at
   least one input pixel at the Gaussian (``1 / ν``, ν the highest sampling rate of a context camera): most
   predicted Gaussians are far below a pixel, and a shift no photo could resolve is not a completion. 0 for a
-  Stage I model.
+  Stage I model. NaN (unknown) when the two sets are not pixel-aligned one to one: a test-time voxel merge
+  (``net.voxel_size``) merges the scaffold and the refined Gaussians separately, so their rows do not pair up even
+  when the counts agree. NaN Gaussians count neither as supported nor as completed.
 """
 
 from __future__ import annotations
@@ -26,12 +28,13 @@ COMPLETED = 0.25  # completion above this: Stage II moved/recoloured it noticeab
 
 
 def completion_score(refined: Gaussians, scaffold: Gaussians, pixel: Tensor | None = None) -> Tensor:
-    """``[B, N]`` in [0, 1]; zeros when the two are the same object, NaN when their Gaussians do not pair up
-    (a voxel merge changed N). ``pixel [B, N]``: the world size of one input pixel at each scaffold centre (the
-    smallest shift that counts; None = the std alone)."""
+    """``[B, N]`` in [0, 1]; zeros when the two are the same object, NaN when their Gaussians do not pair up one
+    to one: a voxel merge made them (it alone sets ``valid``; merged separately, row i of one is not row i of the
+    other even at the same N) or N differs. ``pixel [B, N]``: the world size of one input pixel at each scaffold
+    centre (the smallest shift that counts; None = the std alone)."""
     if refined is scaffold:
         return torch.zeros_like(refined.opacities)
-    if refined.means.shape != scaffold.means.shape:
+    if not pixel_aligned_pair(refined, scaffold):
         return torch.full_like(refined.opacities, float("nan"))
     size = scaffold.scales.mean(-1)
     if pixel is not None:
@@ -42,6 +45,12 @@ def completion_score(refined: Gaussians, scaffold: Gaussians, pixel: Tensor | No
     rgb = lambda g: (0.5 + SH_C0 * g.sh[..., 0, :]).clamp(0, 1)  # noqa: E731
     col = (rgb(refined) - rgb(scaffold)).norm(dim=-1) / 3 ** 0.5
     return torch.stack([pos, opa, col], -1).clamp(0, 1).amax(-1)
+
+
+def pixel_aligned_pair(refined: Gaussians, scaffold: Gaussians) -> bool:
+    """Whether row i of ``refined`` and of ``scaffold`` decode the same pixel: the same shape and no ``valid`` mask
+    (:func:`anycity.models.gaussians.raw_to_gaussians` sets one exactly when it voxel-merges)."""
+    return refined.means.shape == scaffold.means.shape and refined.valid is None and scaffold.valid is None
 
 
 def provenance(refined: Gaussians, scaffold: Gaussians, depth: Tensor, w2c: Tensor, K: Tensor,
@@ -55,12 +64,15 @@ def provenance(refined: Gaussians, scaffold: Gaussians, depth: Tensor, w2c: Tens
 
 
 def summary(prov: dict[str, Tensor], valid: Tensor | None = None) -> dict[str, float]:
-    """Shares over (valid) Gaussians: ``supported`` (>= 2 views and not completed), ``completed`` (completion >
-    :data:`COMPLETED`), ``unsupported`` (fewer than 2 views see it)."""
-    obs, comp = prov["obs_views"], prov["completion"].nan_to_num(0.0)
+    """Shares over (valid) Gaussians: ``supported`` (>= 2 views and known not completed), ``completed``
+    (completion > :data:`COMPLETED`), ``unsupported`` (fewer than 2 views see it), ``unknown`` (completion NaN:
+    voxel-merged, see :func:`completion_score`; counted as neither supported nor completed)."""
+    obs, comp = prov["obs_views"], prov["completion"]
     keep = torch.ones_like(obs, dtype=torch.bool) if valid is None else valid
     n = keep.sum().clamp_min(1).item()
-    completed = comp > COMPLETED
+    unknown = comp.isnan()
+    completed = comp > COMPLETED  # False for NaN
     few = obs < SUPPORT_VIEWS
-    return {"supported": ((~completed & ~few) & keep).sum().item() / n,
-            "completed": (completed & keep).sum().item() / n, "unsupported": (few & keep).sum().item() / n}
+    return {"supported": ((~completed & ~unknown & ~few) & keep).sum().item() / n,
+            "completed": (completed & keep).sum().item() / n, "unsupported": (few & keep).sum().item() / n,
+            "unknown": (unknown & keep).sum().item() / n}

@@ -26,7 +26,7 @@ from anycity.render.projection import EPS2D
 from anycity.structures import Gaussians
 
 VARIANCE_PX = 0.2  # Mip-Splatting's 3D filter variance in pixels² of the input cameras
-CHUNK = 1 << 20  # Gaussians per step of the opacity computation
+CHUNK = 1 << 16  # Gaussians per step: ~10 [B, V, CHUNK] float32 tensors, ~0.2 GB at 64 views
 
 
 def _best_camera(means: Tensor, w2c: Tensor, K: Tensor, width: int, height: int) -> tuple[Tensor, Tensor]:
@@ -47,11 +47,20 @@ def _best_camera(means: Tensor, w2c: Tensor, K: Tensor, width: int, height: int)
     return torch.where(framed, best, best_front), torch.where(framed, cam, cam_front)
 
 
+def best_camera(means: Tensor, w2c: Tensor, K: Tensor, width: int, height: int) -> tuple[Tensor, Tensor]:
+    """:func:`_best_camera` over slices of :data:`CHUNK` Gaussians, so its ``[B, V, N]`` intermediates stay
+    ``[B, V, CHUNK]`` (a 64-view scene of millions of Gaussians would otherwise need gigabytes)."""
+    parts = [_best_camera(means[:, s:s + CHUNK], w2c, K, width, height) for s in range(0, means.shape[1], CHUNK)]
+    if not parts:
+        return _best_camera(means, w2c, K, width, height)
+    return torch.cat([p[0] for p in parts], 1), torch.cat([p[1] for p in parts], 1)
+
+
 def sampling_rate(means: Tensor, w2c: Tensor, K: Tensor, width: int, height: int) -> Tensor:
     """``[B, N]`` highest ``f / z`` (pixels per world unit) over the cameras that see each centre in frame; for a
     centre no camera frames, the highest over the cameras it is in front of; 0 when behind all of them.
     ``means [B, N, 3]``, ``w2c [B, V, 4, 4]``, ``K [B, V, 3, 3]`` for ``width x height`` images."""
-    return _best_camera(means, w2c, K, width, height)[0]
+    return best_camera(means, w2c, K, width, height)[0]
 
 
 def footprint_jacobian(means: Tensor, w2c: Tensor, K: Tensor) -> Tensor:
@@ -73,20 +82,23 @@ def smooth_3d(g: Gaussians, w2c: Tensor, K: Tensor, width: int, height: int,
 
     ``g`` holds B scenes of N Gaussians, ``w2c [B, V, 4, 4]`` and ``K [B, V, 3, 3]`` their input cameras for
     ``width x height`` images; ``variance_px`` is the filter in px² of those images."""
-    means = g.means.float()
-    nu, cam = _best_camera(means, w2c.float(), K.float(), width, height)
-    filt = torch.where(nu > 0, variance_px / nu.clamp_min(1e-12) ** 2, torch.zeros_like(nu))  # [B, N] world²
+    means, w2c, K = g.means.float(), w2c.float(), K.float()
     var = g.scales.float() ** 2
     eye = torch.eye(2, dtype=means.dtype, device=means.device)
-    gains = []
-    for s in range(0, means.shape[1], CHUNK):  # a few 3x3 matrices per Gaussian: bounded for 64-view scenes
+    filts, gains = [], []
+    for s in range(0, means.shape[1], CHUNK):  # [B, V, CHUNK] and a few 3x3 matrices per Gaussian at a time
         sl = slice(s, s + CHUNK)
-        take = cam[:, sl, None, None].expand(-1, -1, 4, 4)
-        T = footprint_jacobian(means[:, sl], w2c.float().gather(1, take), K.float().gather(1, take[..., :3, :3]))
+        nu, cam = _best_camera(means[:, sl], w2c, K, width, height)
+        filt = torch.where(nu > 0, variance_px / nu.clamp_min(1e-12) ** 2, torch.zeros_like(nu))  # [B, n] world²
+        take = cam[..., None, None].expand(-1, -1, 4, 4)
+        T = footprint_jacobian(means[:, sl], w2c.gather(1, take), K.gather(1, take[..., :3, :3]))
         R = quat_to_rotmat(g.quats[:, sl].float())
         before = T @ (R * var[:, sl, None, :]) @ R.transpose(-1, -2) @ T.transpose(-1, -2) + EPS2D * eye
-        after = before + filt[:, sl, None, None] * (T @ T.transpose(-1, -2))
-        gains.append(torch.sqrt(torch.linalg.det(before) / torch.linalg.det(after)).clamp(max=1.0))
-    gain = torch.where(nu > 0, torch.cat(gains, 1), 1.0)  # behind every camera: no footprint, no filter (inf/inf)
+        after = before + filt[..., None, None] * (T @ T.transpose(-1, -2))
+        gain = torch.sqrt(torch.linalg.det(before) / torch.linalg.det(after)).clamp(max=1.0)
+        filts.append(filt)
+        gains.append(torch.where(nu > 0, gain, 1.0))  # behind every camera: no footprint, no filter (inf/inf)
+    filt = torch.cat(filts, 1) if filts else var[..., 0]
+    gain = torch.cat(gains, 1) if gains else var[..., 0]
     return Gaussians(means=g.means, quats=g.quats, scales=(var + filt[..., None]).sqrt().to(g.scales.dtype),
                      opacities=(g.opacities * gain.to(g.opacities.dtype)), sh=g.sh, valid=g.valid)

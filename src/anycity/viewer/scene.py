@@ -16,6 +16,7 @@ from anycity.export.views import view_png
 from anycity.structures import Gaussians
 
 SH_C0 = 0.28209479177387814
+GREY = np.array([0.5, 0.5, 0.5])  # an unknown value in :func:`ramp`
 
 
 @dataclass
@@ -35,10 +36,14 @@ class ViewScene:
 
 
 def load_view_scene(path: str | Path, thumb_side: int = 128) -> ViewScene:
+    """The scene at ``path`` (a predict folder or a ``scene.ply``); one line for a scene with no Gaussians."""
     path = Path(path)
     g, cams = load_scene(path)
     folder = path if path.is_dir() else path.parent
     ply = folder / "scene.ply" if path.is_dir() else path
+    if g.num_gaussians == 0:
+        raise ValueError(f"{ply}: 0 Gaussians (predict writes only valid, finite ones and this scene had none); "
+                         "nothing to view, re-run predict with a checkpoint that gives finite Gaussians")
     extras = load_ply_extras(ply)
     if cams is None:
         return ViewScene(g, extras, None, None, 0, 0, folder)
@@ -64,7 +69,10 @@ def splat_arrays(g: Gaussians) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.n
 
 
 def ramp(x: np.ndarray) -> np.ndarray:
-    """Values in [0, 1] -> ``[N, 3]`` colours from blue (0) through white to red (1)."""
+    """Values in [0, 1] -> ``[N, 3]`` colours from blue (0) through white to red (1); NaN (unknown, e.g. the
+    completion of a voxel-merged prediction) is grey, not the colour of 0."""
+    unknown = np.isnan(x)[:, None]
     x = np.clip(np.nan_to_num(x, nan=0.0), 0, 1)[:, None]
     blue, white, red = np.array([0.15, 0.3, 0.9]), np.ones(3), np.array([0.9, 0.15, 0.1])
-    return np.where(x < 0.5, blue + (white - blue) * 2 * x, white + (red - white) * (2 * x - 1))
+    col = np.where(x < 0.5, blue + (white - blue) * 2 * x, white + (red - white) * (2 * x - 1))
+    return np.where(unknown, GREY, col)

@@ -88,11 +88,20 @@ def initial_view(c2w: np.ndarray, centres: np.ndarray) -> tuple[np.ndarray, np.n
     return up, centre - fwd * 1.6 * max(depth, extent), centre
 
 
+def _viser():
+    """The viser module, or one line naming the extra that installs it (not a ModuleNotFoundError traceback)."""
+    try:
+        import viser
+    except ModuleNotFoundError as e:
+        raise ValueError(f"anycity view needs the viewer extra (no module {e.name!r}): pip install -e '.[viewer]'") \
+            from None
+    return viser
+
+
 def build_server(path: str | Path, host: str = "127.0.0.1", port: int = 8080, cameras: bool = True):
     """Start the viewer on ``scene`` at ``path``; returns ``(server, scene)``. ``port=0`` picks a free port;
     ``cameras=False`` hides the camera frustums."""
-    import viser
-
+    viser = _viser()
     scene = load_view_scene(path)
     server = viser.ViserServer(host=host, port=port, verbose=False)
     server.scene.set_up_direction("-y")  # no cameras: the first camera's "up" (OpenCV: y points down)
@@ -117,8 +126,7 @@ def build_server(path: str | Path, host: str = "127.0.0.1", port: int = 8080, ca
                 image=scene.thumbs[v] if scene.thumbs else None, wxyz=_rotmat_to_wxyz(c2w[v, :3, :3]),
                 position=c2w[v, :3, 3], color=(255, 160, 0))
 
-    choices = [c for c in COLOURINGS if c == "colour" or c.split()[0] in scene.extras]
-    colouring = server.gui.add_dropdown("Colour by", tuple(choices), initial_value="colour")
+    colouring = server.gui.add_dropdown("Colour by", colourings(scene.extras), initial_value="colour")
     info = server.gui.add_markdown(_share_text(scene))
 
     @colouring.on_update
@@ -144,9 +152,24 @@ def _share_text(scene: ViewScene) -> str:
     lines = [f"**{n:,} Gaussians**"]
     if "obs_views" in scene.extras:
         lines.append(f"seen by >= 2 input views: {(scene.extras['obs_views'] >= 2).mean():.0%}")
-    if "completion" in scene.extras:
-        lines.append(f"completed by Stage II (> 0.25): {(np.nan_to_num(scene.extras['completion']) > 0.25).mean():.0%}")
+    comp = scene.extras.get("completion")
+    if comp is not None and not _known(comp):
+        lines.append("completion n/a (voxel-merged)")
+    elif comp is not None:
+        unknown = np.isnan(comp)
+        lines.append(f"completed by Stage II (> 0.25): {(comp[~unknown] > 0.25).sum() / len(comp):.0%}"
+                     + (f", n/a for {unknown.mean():.0%} (grey)" if unknown.any() else ""))
     return "  \n".join(lines)
+
+
+def colourings(extras: dict[str, np.ndarray]) -> tuple[str, ...]:
+    """The "Colour by" choices for a scene's provenance columns: those present and not all NaN."""
+    return tuple(c for c in COLOURINGS if c == "colour" or _known(extras.get(c.split()[0])))
+
+
+def _known(column: np.ndarray | None) -> bool:
+    """A provenance column to colour by: present and not all NaN (a voxel-merged prediction's completion)."""
+    return column is not None and len(column) > 0 and not np.isnan(column).all()
 
 
 def _port(text: str) -> int:

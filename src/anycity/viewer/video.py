@@ -109,11 +109,20 @@ def render_frames(scene: ViewScene, w2c: Tensor, K: Tensor, width: int, height: 
         yield (out.rgb[0, 0].clamp(0, 1).permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8)
 
 
+def _imageio_ffmpeg():
+    """The imageio_ffmpeg module, or one line naming the extra that installs it."""
+    try:
+        import imageio_ffmpeg
+    except ModuleNotFoundError as e:
+        raise ValueError(f"anycity render-video needs the viewer extra (no module {e.name!r}): "
+                         "pip install -e '.[viewer]'") from None
+    return imageio_ffmpeg
+
+
 def render_video(path: str | Path, out: str | Path, per_segment: int = 12, orbit: int = 0, width: int | None = None,
                  fps: int = 24, progress: bool = True) -> int:
     """Write the fly-through mp4 of the scene at ``path``; returns the number of frames."""
-    import imageio_ffmpeg
-
+    imageio_ffmpeg = _imageio_ffmpeg()
     scene = load_view_scene(path)
     if scene.w2c is None:
         raise ValueError(f"{path}: no cameras.json beside the scene; render-video follows the predicted cameras, "

@@ -229,3 +229,22 @@ def test_a_malformed_cameras_json_is_one_line_naming_it(tmp_path):
                                                           for v in cams["views"]]}))  # names are optional
     with pytest.warns(UserWarning, match="no inputs/ images"):  # the fixture has none
         assert "IMAGE_ID" in (export(d, "colmap", tmp_path / "o") / "images.txt").read_text()
+
+
+def test_every_format_keeps_the_rows_the_ply_keeps(tmp_path):
+    """.splat and the point clouds kept rows with NaN/inf SH or a zero scale (the PLY writer drops them): a NaN
+    colour became RGB 0 in .splat, a zero scale a splat no viewer draws."""
+    from plyfile import PlyData
+
+    from anycity.export.formats import save_colmap, save_points_ply, splat_bytes
+
+    g, w2c, K = _scene(n=6)
+    g.sh[0, 2, 0, 0] = float("nan")  # a NaN colour
+    g.sh[0, 3, 1, 0] = float("inf")  # an inf higher band
+    g.scales[0, 4] = 0.0  # a zero scale
+    assert save_ply(g, tmp_path / "s.ply") == 3
+    kept = PlyData.read(str(tmp_path / "s.ply"))["vertex"]["x"]
+    assert len(splat_bytes(g)) // 32 == 3
+    assert sorted(PlyData.read(str(save_points_ply(tmp_path / "p.ply", g)))["vertex"]["x"]) == sorted(kept)
+    pts = (save_colmap(tmp_path / "c", w2c, K, 48, 32, ["a", "b", "c"], g) / "points3D.txt").read_text()
+    assert len([line for line in pts.splitlines() if not line.startswith("#")]) == 3

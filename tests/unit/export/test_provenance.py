@@ -37,7 +37,7 @@ def test_obs_views_and_completion():
     torch.testing.assert_close(prov["obs_views"], torch.tensor([[2.0, 0.0, 2.0]]))
     torch.testing.assert_close(prov["completion"], torch.tensor([[0.1, 0.1, 1.0]]), atol=1e-5, rtol=0)
     share = summary(prov)
-    assert share == {"supported": 1 / 3, "completed": 1 / 3, "unsupported": 1 / 3}
+    assert share == {"supported": 1 / 3, "completed": 1 / 3, "unsupported": 1 / 3, "unknown": 0.0}
     assert (completion_score(scaffold, scaffold) == 0).all()  # Stage I: nothing completed
 
 
@@ -52,3 +52,35 @@ def test_provenance_columns_in_ply(tmp_path):
     names = PlyData.read(str(tmp_path / "s.ply"))["vertex"].data.dtype.names
     assert names[-2:] == ("obs_views", "completion") and names[:3] == ("x", "y", "z")
     assert load_ply(tmp_path / "s.ply").num_gaussians == 4  # the standard reader ignores them
+
+
+def _voxel_merged(raw: torch.Tensor, means: torch.Tensor) -> Gaussians:
+    from anycity.models.gaussians import raw_to_gaussians
+
+    return raw_to_gaussians(raw, means, 0, voxel_size=0.05)
+
+
+def test_voxel_merged_completion_is_unknown_even_at_the_same_count():
+    """A test-time voxel merge merges the scaffold and the refined Gaussians separately: row i of one is not row i of
+    the other. The score was NaN (other counts) or paired voxels by their order (same count); it is NaN (unknown)
+    either way, and NaN counts neither as supported nor as completed (it counted as "kept")."""
+    gen = torch.Generator().manual_seed(0)
+    raw = torch.randn(1, 1, 12, 16, 16, generator=gen)
+    means = torch.rand(1, 1, 16, 16, 3, generator=gen)
+    recoloured = raw.clone()
+    recoloured[:, :, 8:11] += 2.0  # Stage II recolours every Gaussian: the same voxels, so the same count
+    scaffold, refined = _voxel_merged(raw, means), _voxel_merged(recoloured, means)
+    assert refined.num_gaussians == scaffold.num_gaussians and scaffold.valid is not None
+    comp = completion_score(refined, scaffold)
+    assert comp.isnan().all()
+    moved = _voxel_merged(recoloured, means + 0.03 * torch.randn(means.shape, generator=gen))
+    assert completion_score(moved, scaffold).isnan().all()  # another count: NaN as before
+    assert (completion_score(scaffold, scaffold) == 0).all()  # a Stage I model: nothing completed, merged or not
+    share = summary({"obs_views": torch.full_like(comp, 3.0), "completion": comp})
+    assert share == {"supported": 0.0, "completed": 0.0, "unsupported": 0.0, "unknown": 1.0}
+
+
+def test_summary_counts_nan_completion_as_unknown():
+    prov = {"obs_views": torch.tensor([[3.0, 3.0, 0.0, 3.0]]),
+            "completion": torch.tensor([[0.0, float("nan"), float("nan"), 0.9]])}
+    assert summary(prov) == {"supported": 0.25, "completed": 0.25, "unsupported": 0.25, "unknown": 0.5}

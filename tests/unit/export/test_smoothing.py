@@ -74,6 +74,34 @@ def test_chunked_opacity_computation_matches_one_pass(monkeypatch):
     w2c = torch.eye(4)[None, None].repeat(1, 2, 1, 1)
     w2c[0, 1, 0, 3] = 0.5
     K = torch.tensor([[40.0, 0, 24], [0, 40.0, 24], [0, 0, 1]]).expand(1, 2, 3, 3)
-    whole = smooth_3d(g, w2c, K, 48, 48)
+    whole, nu = smooth_3d(g, w2c, K, 48, 48), sampling_rate(means, w2c, K, 48, 48)
     monkeypatch.setattr(smoothing, "CHUNK", 7)
-    torch.testing.assert_close(smooth_3d(g, w2c, K, 48, 48).opacities, whole.opacities)
+    chunked = smooth_3d(g, w2c, K, 48, 48)
+    torch.testing.assert_close(chunked.opacities, whole.opacities, rtol=0, atol=0)
+    torch.testing.assert_close(chunked.scales, whole.scales, rtol=0, atol=0)
+    torch.testing.assert_close(sampling_rate(means, w2c, K, 48, 48), nu, rtol=0, atol=0)
+
+
+def test_the_per_camera_tensors_are_built_a_chunk_at_a_time(monkeypatch):
+    """``_best_camera`` builds ~9 ``[B, V, N]`` tensors: only the determinant loop was chunked, so a 64-view scene of
+    200k Gaussians peaked at +530 MB (r07_mem_smooth.py). Every call now sees at most CHUNK Gaussians."""
+    import anycity.export.smoothing as smoothing
+
+    seen = []
+    best = smoothing._best_camera
+
+    def spy(means, *args):
+        seen.append(means.shape[1])
+        return best(means, *args)
+
+    monkeypatch.setattr(smoothing, "_best_camera", spy)
+    monkeypatch.setattr(smoothing, "CHUNK", 16)
+    means = torch.randn(1, 50, 3, generator=torch.Generator().manual_seed(1)) * 0.3 + torch.tensor([0.0, 0.0, 5.0])
+    w2c = torch.eye(4)[None, None].repeat(1, 3, 1, 1)
+    K = torch.tensor([[40.0, 0, 24], [0, 40.0, 24], [0, 0, 1]]).expand(1, 3, 3, 3)
+    s = smooth_3d(_gaussians(means, torch.full((1, 50, 3), 1e-4)), w2c, K, 48, 48)
+    assert s.scales.shape == (1, 50, 3) and seen == [16, 16, 16, 2]
+    seen.clear()
+    assert sampling_rate(means, w2c, K, 48, 48).shape == (1, 50) and seen == [16, 16, 16, 2]  # provenance's too
+    empty = smooth_3d(_gaussians(means[:, :0], torch.zeros(1, 0, 3)), w2c, K, 48, 48)
+    assert empty.scales.shape == (1, 0, 3) and empty.opacities.shape == (1, 0)

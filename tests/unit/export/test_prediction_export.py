@@ -1,0 +1,72 @@
+"""``PredictionExport`` (callbacks/export.py): the provenance line a voxel-merged prediction prints, and the
+``--export.smooth_3d`` values it refuses."""
+
+from __future__ import annotations
+
+import json
+from types import SimpleNamespace
+
+import pytest
+import torch
+
+from anycity.callbacks.export import PredictionExport
+from anycity.export import load_ply_extras
+from anycity.structures import Gaussians
+
+V, H, W = 2, 16, 16
+
+
+def _prediction(valid: bool) -> dict:
+    """A 2-view prediction of 50 Gaussians in front of both cameras; ``valid``: the Gaussians carry the mask a voxel
+    merge (and only it) sets, as do their scaffold's."""
+    n = 50
+    means = torch.rand(1, n, 3, generator=torch.Generator().manual_seed(0)) * 0.4 + torch.tensor([-0.2, -0.2, 3.0])
+
+    def gaussians() -> Gaussians:  # the scaffold's the same: nothing completed
+        return Gaussians(means.clone(),
+                         torch.tensor([1.0, 0, 0, 0]).repeat(1, n, 1), torch.full((1, n, 3), 0.05),
+                         torch.full((1, n), 0.8), torch.zeros(1, n, 1, 3),
+                         torch.ones(1, n, dtype=torch.bool) if valid else None)
+
+    w2c = torch.eye(4).repeat(1, V, 1, 1)
+    K = torch.tensor([[20.0, 0, 8], [0, 20, 8], [0, 0, 1]]).repeat(1, V, 1, 1)
+    return {"gaussians": gaussians(), "scaffold": gaussians(), "depth": torch.full((1, V, 1, H, W), 3.5), "w2c": w2c,
+            "K": K, "images": torch.rand(1, V, 3, H, W), "renders": SimpleNamespace(rgb=torch.rand(1, V, 3, H, W)),
+            "scene": ["s"]}
+
+
+def _export(tmp_path, prediction: dict) -> None:
+    cb = PredictionExport(out_dir=str(tmp_path), save_renders=False)
+    cb._root = tmp_path
+    cb.write_on_batch_end(SimpleNamespace(global_rank=0), None, prediction, None, {"scene": ["s"]}, 0)
+
+
+def test_a_voxel_merged_prediction_prints_completion_n_a(tmp_path, capsys):
+    """With a test-time voxel merge the completion is unknown (NaN): predict printed "100 % observation-supported,
+    0 % completed" (NaN counted as kept, or voxels paired by their order at the same count)."""
+    _export(tmp_path, _prediction(valid=True))
+    out = capsys.readouterr().out
+    assert "s: completion n/a (voxel-merged), 100% of Gaussians seen by >= 2 views, 0% seen by < 2 views" in out
+    assert "observation-supported" not in out and "completed by Stage II" not in out
+    assert torch.from_numpy(load_ply_extras(tmp_path / "s" / "scene.ply")["completion"]).isnan().all()
+
+
+def test_a_pixel_aligned_prediction_prints_its_shares(tmp_path, capsys):
+    _export(tmp_path, _prediction(valid=False))
+    assert ("s: 100% of Gaussians observation-supported (>= 2 views, kept), 0% completed by Stage II, 0% seen by "
+            "< 2 views\n") in capsys.readouterr().out
+
+
+def test_cameras_json_has_no_metres_per_unit(tmp_path):
+    """The network's frame has no known metric scale (docs/viewer.md, scale.json): null, not the sample's scale."""
+    _export(tmp_path, _prediction(valid=False))
+    assert json.loads((tmp_path / "s" / "cameras.json").read_text())["metres_per_unit"] is None
+
+
+@pytest.mark.parametrize("value", [-0.2, float("nan")])
+def test_a_negative_smooth_3d_is_refused(value):
+    """-0.2 turned the filter off without a word (``if self.smooth_3d > 0``)."""
+    with pytest.raises(ValueError, match=r"--export.smooth_3d: expected a variance in px² >= 0 \(0 turns the filter "
+                                         r"off\), got (-0.2|nan)"):
+        PredictionExport(smooth_3d=value)
+    assert PredictionExport(smooth_3d=0.0).smooth_3d == 0.0

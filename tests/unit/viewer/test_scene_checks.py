@@ -1,0 +1,71 @@
+"""What the viewer shows of unknown provenance (NaN completion), and the one-line refusals of ``view`` and
+``render-video``: a scene with no Gaussians, a missing viewer extra."""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+import pytest
+import torch
+from helpers.viewer_scenes import tiny_predict_folder
+
+from anycity.export import save_ply
+from anycity.structures import Gaussians
+from anycity.viewer.scene import load_view_scene, ramp
+from anycity.viewer.server import COLOURINGS, _share_text, build_server
+from anycity.viewer.video import render_video
+
+
+def test_nan_completion_is_grey_not_the_colour_of_kept():
+    col = ramp(np.array([0.0, np.nan, 1.0]))
+    np.testing.assert_allclose(col[1], [0.5, 0.5, 0.5])
+    assert not np.allclose(col[0], 0.5) and not np.allclose(col[2], 0.5)
+
+
+def _with_completion(tmp_path, completion: torch.Tensor):
+    folder = tiny_predict_folder(tmp_path, n=4)
+    g = load_view_scene(folder).gaussians
+    save_ply(g, folder / "scene.ply", extra={"obs_views": torch.full((1, 4), 2.0), "completion": completion[None]})
+    return load_view_scene(folder)
+
+
+def test_a_voxel_merged_scene_offers_no_completion_colouring(tmp_path):
+    """All NaN (a voxel-merged prediction): the panel said "completed by Stage II: 0%" and the colouring drew every
+    Gaussian as kept."""
+    scene = _with_completion(tmp_path, torch.full((4,), float("nan")))
+    assert "completion n/a (voxel-merged)" in _share_text(scene) and "completed by" not in _share_text(scene)
+    from anycity.viewer.server import colourings
+
+    assert colourings(scene.extras) == COLOURINGS[:2]
+
+
+def test_a_partly_unknown_completion_is_shared_over_all_and_named(tmp_path):
+    scene = _with_completion(tmp_path, torch.tensor([0.0, 0.9, float("nan"), 0.1]))
+    assert "completed by Stage II (> 0.25): 25%, n/a for 25% (grey)" in _share_text(scene)
+    from anycity.viewer.server import colourings
+
+    assert colourings(scene.extras) == COLOURINGS
+
+
+def test_a_scene_with_no_gaussians_is_one_line(tmp_path):
+    """0 Gaussians (predict dropped every one as NaN): view and render-video ended in an IndexError traceback."""
+    folder = tiny_predict_folder(tmp_path, n=10)
+    n = 10
+    save_ply(Gaussians(means=torch.full((1, n, 3), float("nan")), quats=torch.ones(1, n, 4), scales=torch.ones(1, n, 3),
+                       opacities=torch.ones(1, n), sh=torch.zeros(1, n, 1, 3)), folder / "scene.ply")
+    with pytest.raises(ValueError, match=r"scene.ply: 0 Gaussians .*; nothing to view"):
+        load_view_scene(folder)
+
+
+def test_without_the_viewer_extra_view_and_render_video_are_one_line(tmp_path, monkeypatch):
+    """Without viser / imageio-ffmpeg: an uncaught ModuleNotFoundError."""
+    monkeypatch.setitem(sys.modules, "viser", None)  # `import viser` raises ModuleNotFoundError
+    monkeypatch.setitem(sys.modules, "imageio_ffmpeg", None)
+    folder = tiny_predict_folder(tmp_path, n=10)
+    with pytest.raises(ValueError, match=r"anycity view needs the viewer extra .*pip install -e '\.\[viewer\]'"):
+        build_server(folder, port=0)
+    with pytest.raises(ValueError, match=r"anycity render-video needs the viewer extra .*pip install -e "
+                                         r"'\.\[viewer\]'"):
+        render_video(folder, tmp_path / "v.mp4", progress=False)
+    assert not (tmp_path / "v.mp4").exists()
