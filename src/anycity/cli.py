@@ -3,8 +3,9 @@
 ``anycity data synth|convert``, ``export``, ``view`` and ``render-video`` run without importing Lightning (they
 start in about a second; ``anycity --help`` does not import torch either); ``fit|validate|test|predict`` are the
 LightningCLI subcommands. Errors a user caused (``ValueError``/``FileNotFoundError``, also when raised inside a
-DataLoader worker, and unknown config keys) print as one line; ``--debug`` or ``ANYCITY_DEBUG=1`` shows the
-traceback. A training command stopped by SIGTERM exits with 143 and one line: where it stopped and how to go on.
+DataLoader worker, and unknown config keys), and a full disk or quota (``ENOSPC``/``EDQUOT``, exit code 1), print as
+one line; ``--debug`` or ``ANYCITY_DEBUG=1`` shows the traceback. A training command stopped by SIGTERM exits with
+143 and one line: where it stopped and how to go on.
 """
 
 from __future__ import annotations
@@ -47,6 +48,109 @@ def merge_ckpt_net(asked: dict | None, stored: dict | None, preset: str) -> tupl
     return merged, ignored
 
 
+def _as_dict(value):
+    """A parsed config value as plain data (jsonargparse Namespaces as dicts)."""
+    return value.as_dict() if hasattr(value, "as_dict") else value
+
+
+def configured_trainer(trainer: dict):
+    """What Lightning's checkpoint look-up reads of the Trainer the parsed ``trainer`` section configures: its
+    ``default_root_dir``, loggers and checkpoint callbacks, built without the Trainer or the model (and nothing
+    written). Lightning's default logger is a ``lightning_logs/version_N`` one, as this CSVLogger."""
+    import os
+    from types import SimpleNamespace
+
+    from lightning.pytorch.callbacks import Checkpoint, ModelCheckpoint
+    from lightning.pytorch.cli import instantiate_class
+    from lightning.pytorch.loggers import CSVLogger
+
+    trainer = _as_dict(trainer) or {}
+    root = trainer.get("default_root_dir") or os.getcwd()
+    logger = trainer.get("logger")
+    specs = [] if logger is False else logger if isinstance(logger, list) else [logger]
+    loggers = [instantiate_class((), s) if isinstance(s, dict) else s if s not in (None, True)
+               else CSVLogger(save_dir=root) for s in specs]
+    callbacks = []
+    for spec in trainer.get("callbacks") or []:
+        if isinstance(spec, dict):
+            module, _, name = spec["class_path"].rpartition(".")
+            if not issubclass(getattr(__import__(module, fromlist=[name]), name), Checkpoint):
+                continue
+            spec = instantiate_class((), spec)
+        if isinstance(spec, Checkpoint):
+            callbacks.append(spec)
+    if not any(isinstance(c, ModelCheckpoint) for c in callbacks) and trainer.get("enable_checkpointing") is not False:
+        callbacks.append(ModelCheckpoint())  # what the Trainer adds
+    return SimpleNamespace(default_root_dir=str(root), loggers=loggers, callbacks=callbacks,
+                           checkpoint_callbacks=callbacks)
+
+
+def check_run_folder(trainer: dict | None) -> None:
+    """Refuse a ``trainer.default_root_dir`` that a CSV or TensorBoard logger's ``save_dir`` contradicts: Lightning
+    writes the checkpoints and logs under the logger's folder, so a config (an ablation on the quickstart) or a
+    ``--trainer.default_root_dir`` alone would write into, and move aside, another run's files."""
+    import os
+
+    trainer = _as_dict(trainer) or {}
+    root, logger = trainer.get("default_root_dir"), trainer.get("logger")
+    first = logger[0] if isinstance(logger, list) and logger else logger
+    if root is None or not isinstance(first, dict):
+        return
+    save = (first.get("init_args") or {}).get("save_dir")
+    if first.get("class_path", "").rsplit(".", 1)[-1] not in ("CSVLogger", "TensorBoardLogger") or save is None:
+        return
+    if os.path.abspath(str(save)) != os.path.abspath(str(root)):
+        raise ValueError(f"trainer.default_root_dir {root} and trainer.logger's save_dir {save} disagree: the "
+                         f"checkpoints and logs would go to {save}; give both the same folder, e.g. "
+                         f"--trainer.default_root_dir {root} --trainer.logger.init_args.save_dir {root}")
+
+
+def require_weights(subcommand: str, config) -> None:
+    """Refuse ``validate|test|predict`` with neither ``--ckpt_path`` nor ``model.pretrained``: it would score or
+    export a randomly initialised network. ``model.init_from`` does not count: ``fit`` alone reads it, and it holds
+    the Stage I scaffold only (the completion branch would be random)."""
+    if config.get("ckpt_path") or config.get("model.init_args.pretrained"):
+        return
+    from anycity.lit.keep import _checkpoint_dirs
+
+    where = (_checkpoint_dirs(configured_trainer(config.get("trainer"))) or [Path("runs/RUN/checkpoints")])[0]
+    stage1 = " (model.init_from is read by fit only)" if config.get("model.init_args.init_from") else ""
+    raise ValueError(f"anycity {subcommand}: no --ckpt_path, so the network's weights would be random{stage1}; pass "
+                     f"the trained checkpoint, e.g. --ckpt_path {where / 'last.ckpt'}")
+
+
+def check_checkpoint(path: str) -> None:
+    """Refuse, in one line and before anything runs, a ``--ckpt_path`` file that is not a Lightning checkpoint (a
+    plain ``state_dict`` such as VGGT's ``model.pt``), or whose stored hyperparameters this version has no option
+    for (written by another version). Read memory-mapped: the weights are not loaded."""
+    import importlib
+    import inspect
+
+    from anycity.safe_load import safe_torch_load
+
+    ckpt = safe_torch_load(path, mmap=True, what="--ckpt_path")
+    if not isinstance(ckpt, dict) or "pytorch-lightning_version" not in ckpt:
+        raise ValueError(f"--ckpt_path {path}: not a Lightning checkpoint (a plain weights file?); pass it as "
+                         "model.init_args.pretrained")
+    stored = dict(ckpt.get("hyper_parameters") or {})
+    unknown = []
+    if stored.get("_class_path"):  # written by LightningCLI: the class it names takes the stored keys
+        module, _, name = stored["_class_path"].rpartition(".")
+        try:
+            cls = getattr(importlib.import_module(module), name)
+        except (ImportError, AttributeError, ValueError):
+            return  # Lightning's own read names the class
+        known = {p for k in inspect.getmro(cls) if "__init__" in vars(k)
+                 for p in inspect.signature(k.__init__).parameters}
+        unknown = [k for k in stored if not k.startswith("_") and k not in known]
+    net = _as_dict(stored.get("net"))
+    if isinstance(net, dict):
+        unknown += [f"net.{k}" for k in net if k not in _section_candidates("model.net.x")]
+    if unknown:
+        raise ValueError(f"--ckpt_path {path}: its stored model.{unknown[0]} is not an option of this anycity (written "
+                         "by another version); use the anycity version that wrote it")
+
+
 class Stopped(SystemExit):
     """A training command stopped by SIGTERM: exit code 143 (128 + 15, what a shell reports for a process the signal
     ended) and, on rank 0, one line saying where it stopped and how to go on (:func:`main` prints it)."""
@@ -71,7 +175,10 @@ def _cli_class():
         files, unlike the ``trainer.callbacks`` list. The ``progress`` bar stays out when the trainer's bars are off
         or another progress bar is listed. ``predict`` keeps no predictions in memory (the export wrote them;
         ``--return_predictions true`` keeps them). ``--ckpt_path`` reads with the checkpoint allow-list of
-        :mod:`anycity.safe_load`; ``--ckpt_path last`` with no last checkpoint is refused."""
+        :mod:`anycity.safe_load`; ``--ckpt_path last`` is the file it names from the start (no last checkpoint:
+        refused). Refused before anything is built or written: ``validate|test|predict`` with no weights (no
+        ``--ckpt_path``, no ``model.pretrained``), and a ``trainer.default_root_dir`` that the logger's
+        ``save_dir`` contradicts (:func:`check_run_folder`)."""
 
         def add_arguments_to_parser(self, parser) -> None:
             parser.add_lightning_class_args(FreezeModules, "freeze")
@@ -86,12 +193,6 @@ def _cli_class():
                 parser.set_defaults(return_predictions=False)  # RAM (~350 MB a sample at paper size) until the end
             return parser
 
-        def _prepare_subcommand_kwargs(self, subcommand: str) -> dict:
-            kwargs = super()._prepare_subcommand_kwargs(subcommand)
-            if kwargs.get("ckpt_path") == "last" and getattr(self, "_last_ckpt", None):
-                kwargs["ckpt_path"] = self._last_ckpt  # the file checked before the run (_find_last)
-            return kwargs
-
         def instantiate_trainer(self, **kwargs):
             """The trainer, with the ``progress`` bar unless the config turns bars off
             (``trainer.enable_progress_bar: false``) or lists another progress bar (Lightning refuses both)."""
@@ -105,24 +206,27 @@ def _cli_class():
                 extra = [c for c in extra if not isinstance(c, LossProgressBar)]
             return self._instantiate_trainer(config, extra)
 
-        def _find_last(self, subcommand: str) -> str:
+        @staticmethod
+        def _find_last(subcommand: str, trainer) -> str:
             """The checkpoint ``--ckpt_path last`` means, found as Lightning finds it (the newest ``last*.ckpt`` of
-            the checkpoint callbacks' folders), before a ``validate|test|predict`` run moves its log folder (which
-            would move where Lightning looks). None found: one line naming any ``<folder>.N/last*.ckpt`` that an
-            earlier fresh fit moved aside (Lightning would only warn and go on from the config's weights)."""
+            the checkpoint callbacks' folders) for ``trainer`` (:func:`configured_trainer`: before the network is
+            built, so that it is built from that file's settings as for a file named, and before a
+            ``validate|test|predict`` run moves its log folder). None found: one line naming any
+            ``<folder>.N/last*.ckpt`` that an earlier fresh fit moved aside (Lightning would only warn and go on from
+            the config's weights)."""
             from lightning.pytorch.callbacks import ModelCheckpoint, OnExceptionCheckpoint
 
             from anycity.lit.keep import _checkpoint_dirs
 
-            found = {getattr(c, "ckpt_path", None) for c in self.trainer.callbacks
+            found = {getattr(c, "ckpt_path", None) for c in trainer.callbacks
                      if isinstance(c, OnExceptionCheckpoint)}
-            for c in self.trainer.checkpoint_callbacks:
+            for c in trainer.checkpoint_callbacks:
                 if isinstance(c, ModelCheckpoint):
-                    found |= c._find_last_checkpoints(self.trainer)
+                    found |= c._find_last_checkpoints(trainer)
             found = [Path(f) for f in found if f and Path(f).is_file()]
             if found:
                 return str(max(found, key=lambda f: f.stat().st_mtime))
-            dirs = _checkpoint_dirs(self.trainer) or [Path(self.trainer.default_root_dir) / "checkpoints"]
+            dirs = _checkpoint_dirs(trainer) or [Path(trainer.default_root_dir) / "checkpoints"]
             aside = sorted((f for d in dirs for f in d.parent.glob(f"{d.name}.*/last*.ckpt")),
                            key=lambda f: f.stat().st_mtime)
             where = ", ".join(str(d) for d in dirs)
@@ -157,7 +261,13 @@ def _cli_class():
             return line + "; no results were reported; rerun the command"
 
         def _parse_ckpt_path(self) -> None:
+            import argparse
+
             sub = self.config.get("subcommand")
+            if sub and self.config[sub].get("ckpt_path") == "last":  # the file, before the network is built
+                self.config[f"{sub}.ckpt_path"] = self._find_last(sub, configured_trainer(self.config[sub].trainer))
+            if sub and self.config[sub].get("ckpt_path") and Path(self.config[sub].ckpt_path).is_file():
+                check_checkpoint(self.config[sub].ckpt_path)
             init = self.config.get(f"{sub}.model.init_args") if sub else None
             keep = {k: init[k] for k in TEST_TIME_KEYS if init is not None and k in init}
             asked_net = (init.get("net") if init is not None else None) or {}
@@ -174,6 +284,9 @@ def _cli_class():
 
                 safe_torch_load(self.config[sub].get("ckpt_path"), what="--ckpt_path")  # the one-line reason
                 raise
+            except argparse.ArgumentError as e:  # a stored value check_checkpoint could not foresee
+                raise ValueError(f"--ckpt_path {self.config[sub].get('ckpt_path')}: its stored hyperparameters are "
+                                 f"not accepted by this anycity (written by another version?): {_one_line(e)}") from e
             for k, v in keep.items():
                 self.config[f"{sub}.model.init_args.{k}"] = v
             now_class = self.config.get(f"{sub}.model.class_path") if sub else None
@@ -199,6 +312,13 @@ def _cli_class():
                 # resumed fit keeps it, so that the checkpoints it writes still say what the run started from)
                 self.config[f"{sub}.model.init_args.pretrained"] = None
 
+        def before_instantiate_classes(self) -> None:
+            sub = self.subcommand
+            config = self.config[sub] if sub else self.config
+            check_run_folder(config.get("trainer"))
+            if sub in ("validate", "test", "predict"):
+                require_weights(sub, config)
+
         def instantiate_classes(self) -> None:
             import contextlib
 
@@ -206,17 +326,14 @@ def _cli_class():
 
             sub = self.config.get("subcommand")
             ckpt = self.config[sub].get("ckpt_path") if sub == "fit" else None
-            with resuming() if ckpt and Path(ckpt).is_file() else contextlib.nullcontext():  # not "last": it may
-                super().instantiate_classes()  # find no checkpoint, and the fit would start from random weights
+            with resuming() if ckpt and Path(ckpt).is_file() else contextlib.nullcontext():
+                super().instantiate_classes()
 
         def _run_subcommand(self, subcommand: str) -> None:
             from lightning.pytorch.utilities import rank_zero_info
 
             from anycity.lit.keep import keep_previous_run, separate_from_training
 
-            self._last_ckpt = None
-            if self.config[subcommand].get("ckpt_path") == "last":
-                self._last_ckpt = self._find_last(subcommand)
             moved_to = separate_from_training(self.trainer, subcommand)  # the training's own files stay as they are
             if moved_to is not None:
                 rank_zero_info(f"anycity: this {subcommand} run's config, logs and previews go to {moved_to}")
@@ -412,7 +529,12 @@ def config_error(message: str, argv: list[str]) -> str:
     import difflib
     import re
 
-    bad = re.findall(r"Option '(\w+)' is not accepted", message) + re.findall(r"NestedArg\(key='(\w+)'", message)
+    refused = _refused_value(message, argv)
+    if refused:
+        return refused
+    # a command-line option's key; not one whose class_path was refused (that is a value, named below)
+    nested = [] if "has no attribute" in message else re.findall(r"NestedArg\(key='(\w+)'", message)
+    bad = re.findall(r"Option '([\w.]+)' is not accepted", message) + nested
     bad += re.findall(r"[Kk]ey '([\w.]+)' is not expected", message)
     # a key in a --config file ("nested key" in jsonargparse 4.39, the oldest pyproject.toml allows)
     bad += re.findall(r"does not accept (?:option|nested key) '([\w.]+)'", message)
@@ -441,6 +563,36 @@ def config_error(message: str, argv: list[str]) -> str:
     hint = near[0] if near else (f"{_ALIASES[alias[0]]} ({alias[0].replace('_', ' ')})" if alias else None)
     what = f"unknown option {given}" if given else f"unknown key {bad[0]} in a --config file"
     return what + (f"; did you mean {hint}?" if hint else "; see anycity COMMAND --help")
+
+
+_UNKNOWN_KEY = ("is not accepted", "is not expected", "Unexpected keys", "does not accept", "No action for key",
+                "nrecognized arguments")
+
+
+def _refused_value(message: str, argv: list[str]) -> str | None:
+    """One line for a value jsonargparse refused for a known command-line option (``--model.init_args.preset huge``;
+    its message names the option only as ``NestedArg(key='preset', ...)``): the option, the value and what is
+    accepted. None for other errors."""
+    import re
+
+    keys = re.findall(r"NestedArg\(key='([\w.]+)'", message)
+    expected = [e for e in re.findall(r"Expected a (.+?)(?:\. Got value: .*)?$", message, re.M) if "NoneType" not in e]
+    if not keys or not expected or any(m in message for m in _UNKNOWN_KEY):
+        return None
+    option = next((a.split("=")[0] for a in argv if a.startswith("--") and a.split("=")[0].endswith("." + keys[-1])),
+                  f"--model.init_args.{keys[-1]}")
+    given = _option_values(argv, (option,))
+    literal = re.match(r"typing\.Literal\[(.*)\]$", expected[0])
+    kind = re.match(r"<class '(?:\w+\.)*(\w+)'>$", expected[0])
+    if literal:
+        accepted = "one of " + ", ".join(v.strip().strip("'\"") for v in literal.group(1).split(","))
+    elif kind:
+        accepted = {"int": "an integer", "float": "a number", "bool": "true or false", "str": "a string",
+                    "list": "a list, e.g. [a, b]", "dict": "a mapping, e.g. {key: value}"}.get(kind.group(1),
+                                                                                            f"a {kind.group(1)}")
+    else:
+        accepted = expected[0]
+    return f"{option} {given[-1][1] if given else ''}: not accepted; expected {accepted}".replace("  ", " ")
 
 
 def _yaml_error(argv: list[str]) -> str | None:
@@ -566,6 +718,7 @@ def _dispatch(args: list[str], argv_given: bool) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """Console entry point (``anycity``)."""
+    import errno
     import os
 
     args = list(sys.argv[1:] if argv is None else argv)
@@ -580,6 +733,13 @@ def main(argv: list[str] | None = None) -> int:
                 PermissionError) as e:
             print(f"anycity: error: {_one_line(e)}  (--debug for the traceback)", file=sys.stderr)
             return 2
+        except OSError as e:  # a full disk or quota: anycity.atomic and the shard writer name the file and the bytes
+            if e.errno not in (errno.ENOSPC, errno.EDQUOT):
+                raise
+            what = e.strerror or str(e)
+            print(f"anycity: error: {what}{f': {e.filename}' if e.filename else ''}  (--debug for the traceback)",
+                  file=sys.stderr)
+            return 1
     except Stopped as e:  # SIGTERM (a cluster's preemption, kill): exit 143, not the 0 of a finished run
         if e.message:
             print(f"anycity: {e.message}", file=sys.stderr)

@@ -274,8 +274,8 @@ def test_turning_the_progress_bar_off_or_choosing_another_one_is_allowed(tiny_sh
     assert isinstance(cli.trainer.progress_bar_callback, want)
 
 
-def test_a_predict_that_receives_sigterm_stops_with_143_and_writes_nothing_unfinished(tiny_shards, tmp_path,
-                                                                                       monkeypatch):
+def test_a_predict_that_receives_sigterm_stops_with_143_and_writes_nothing_unfinished(tiny_shards, fitted,
+                                                                                       tmp_path, monkeypatch):
     """predict never checked Lightning's SIGTERM flag: a preempted city ran to its end, and every stopped training
     command exited 0 (Lightning's SIGTERMException is a SystemExit with no code)."""
     from anycity.callbacks import PredictionExport
@@ -294,8 +294,9 @@ def test_a_predict_that_receives_sigterm_stops_with_143_and_writes_nothing_unfin
 
     monkeypatch.setattr(PredictionExport, "write_on_batch_end", sigterm_during_the_first_chunk)
     with pytest.raises(Stopped) as stop:
-        build_cli(["predict", *_tiny_args(tiny_shards, tmp_path / "p"), *FAST_EVAL, "--data.predict_images",
-                   str(photos), "--data.predict_chunk_size", "4", "--data.predict_chunk_overlap", "2",
+        build_cli(["predict", *_tiny_args(tiny_shards, tmp_path / "p"), *FAST_EVAL,
+                   "--ckpt_path", str(fitted / "checkpoints" / "last.ckpt"), "--data.predict_images", str(photos),
+                   "--data.predict_chunk_size", "4", "--data.predict_chunk_overlap", "2",
                    "--export.out_dir", str(tmp_path / "out")])
     assert stop.value.code == 143
     assert stop.value.message == ("stopped by SIGTERM during predict after 0 exported scene(s); the city flight was "

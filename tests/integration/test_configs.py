@@ -112,3 +112,88 @@ def test_the_overrides_load_stage1_names_rebuild_its_scaffold_after_stage2_yaml(
     m.load_stage1(str(ckpt))
     torch.testing.assert_close(m.net.gaussian_head.state_dict(), stage1.net.gaussian_head.state_dict())
     assert m.net.cfg.completion and list(m.net.cfg.inject_layers) == [0, 1, 3]  # stage2.yaml's completion branch kept
+
+
+# Each shipped config alone (with the config it extends) and as the README, docs and config headers combine them
+COMBOS = sorted({tuple(_chain(rel)) for rel in ALL} | {
+    ("quickstart.yaml", "ablations/frozen_aa.yaml"), ("quickstart.yaml", "ablations/frozen_all.yaml"),
+    ("stage2.yaml", "debug/cpu_ddp.yaml"), ("stage2.yaml", "debug/cpu.yaml"),
+    ("quickstart.yaml", "quickstart_stage2.yaml", "data/colmap.yaml")})
+CHEAP = ["--trainer.accelerator", "cpu", "--trainer.devices", "1", "--trainer.strategy", "auto", "--trainer.precision",
+         "32-true", "--model.init_args.preset", "tiny", "--model.init_args.pretrained", "null",
+         "--model.init_args.pretrained_patterns", "[]", "--model.init_args.gradient_checkpointing", "false",
+         "--data.image_size", "[32, 32]", "--data.patch_size", "8"]
+STAGE2_NET = ["--model.init_args.net.video_prior", "none", "--model.init_args.net.inject_layers", "[0, 1, 3]"]
+
+
+@pytest.mark.parametrize("chain", COMBOS, ids=["+".join(c) for c in COMBOS])
+def test_every_config_checkpoints_into_its_default_root_dir(chain, tiny_shards, tmp_path, monkeypatch):
+    """stage1.yaml / stage2.yaml kept Lightning's default logger, so each run wrote to a new
+    runs/stageN/lightning_logs/version_K/checkpoints: `--ckpt_path last` never found the run before it, and the
+    runs/stage1/checkpoints/last.ckpt that stage2.yaml's init_from and the README name never existed. An ablation on
+    the quickstart wrote into runs/quickstart/stage1 (its default_root_dir lost to quickstart.yaml's logger)."""
+    import os
+
+    import yaml
+
+    monkeypatch.setattr("sys.argv", ["anycity"])
+    monkeypatch.chdir(tmp_path)  # the configs' relative runs/... folders, and their version_N numbering, start empty
+    args = [a for c in chain for a in ("-c", str(CONFIGS / c))]
+    stage2 = any(c in ("stage2.yaml", "quickstart_stage2.yaml", "ablations/wo_lora.yaml") for c in chain)
+    net = STAGE2_NET if stage2 else []
+    cli = build_cli([*args, *CHEAP, *net, "--data.root", str(tiny_shards)], run=False)
+    root = next(yaml.safe_load((CONFIGS / c).read_text())["trainer"].get("default_root_dir") for c in reversed(chain)
+                if "default_root_dir" in (yaml.safe_load((CONFIGS / c).read_text()).get("trainer") or {}))
+    assert os.path.abspath(cli.trainer.default_root_dir) == os.path.abspath(root)
+    for cb in cli.trainer.checkpoint_callbacks:  # where Lightning will write (ModelCheckpoint.setup resolves it so)
+        assert cb._ModelCheckpoint__resolve_ckpt_dir(cli.trainer) == os.path.join(root, "checkpoints"), chain
+    if not cli.trainer.fast_dev_run:
+        assert os.path.abspath(cli.trainer.log_dir) == os.path.abspath(root)
+
+
+@pytest.mark.parametrize("overlay", [["--trainer.default_root_dir", "runs/x"],
+                                     ["-c", "ABLATION"]])  # an ablation that sets default_root_dir alone (as before)
+def test_a_run_folder_the_logger_contradicts_is_refused_before_anything_is_written(overlay, tiny_shards, tmp_path,
+                                                                                    capsys, monkeypatch):
+    """The logger's save_dir decides where Lightning writes: an ablation overlay (or --trainer.default_root_dir alone)
+    on the quickstart wrote into runs/quickstart/stage1 and moved its checkpoints aside."""
+    from anycity.cli import main
+
+    monkeypatch.setattr("sys.argv", ["anycity"])
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv("ANYCITY_DEBUG", raising=False)
+    (tmp_path / "ablation.yaml").write_text("trainer:\n  default_root_dir: runs/x\n")
+    overlay = [str(tmp_path / "ablation.yaml") if a == "ABLATION" else a for a in overlay]
+    argv = ["fit", "-c", str(CONFIGS / "quickstart.yaml"), *overlay, "--data.root", str(tiny_shards),
+            "--data.image_size", "[32, 32]", "--data.num_context", "2", "--data.num_targets", "1", "--data.num_dense",
+            "2", "--trainer.max_steps", "1", "--trainer.limit_val_batches", "0",
+            "--model.init_args.render_backend", "torch"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert err == ("anycity: error: trainer.default_root_dir runs/x and trainer.logger's save_dir "
+                   "runs/quickstart/stage1 disagree: the checkpoints and logs would go to runs/quickstart/stage1; give "
+                   "both the same folder, e.g. --trainer.default_root_dir runs/x --trainer.logger.init_args.save_dir "
+                   "runs/x  (--debug for the traceback)")
+    assert not (tmp_path / "runs").exists()
+    # both given, as docs/stage2.md and the launch scripts do, or the logger off (scripts/gpu_check.py): accepted
+    for extra in (["--trainer.logger.init_args.save_dir", "runs/x"], ["--trainer.logger", "false"]):
+        build_cli(["-c", str(CONFIGS / "quickstart.yaml"), *overlay, *extra, "--data.root", str(tiny_shards)],
+                  run=False)
+
+
+def test_the_slurm_launch_options_keep_the_run_folder(tiny_shards, tmp_path, monkeypatch):
+    """docker/slurm/launch.sh names the run folder with both options over a paper config that now has a logger."""
+    import os
+    import shlex
+
+    monkeypatch.setattr("sys.argv", ["anycity"])
+    monkeypatch.chdir(tmp_path)
+    launch = (CONFIGS.parent / "docker" / "slurm" / "launch.sh").read_text()
+    opts = shlex.split(launch[launch.index("--trainer.default_root_dir"):launch.index("${resume")].replace("\\\n", " ")
+                       .replace('"${run_dir}"', "runs/job"))
+    assert "--trainer.logger.init_args.save_dir" in opts
+    for config in ("stage1.yaml", "stage2.yaml"):
+        net = STAGE2_NET if config == "stage2.yaml" else []
+        cli = build_cli(["-c", str(CONFIGS / config), *CHEAP, *net, "--data.root", str(tiny_shards), *opts], run=False)
+        for cb in cli.trainer.checkpoint_callbacks:
+            assert cb._ModelCheckpoint__resolve_ckpt_dir(cli.trainer) == os.path.join("runs/job", "checkpoints")

@@ -6,6 +6,7 @@ import os
 import re
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 import torch
@@ -298,3 +299,80 @@ def test_a_fit_stopped_by_sigterm_exits_143_naming_its_newest_checkpoint(tiny_sh
     assert re.fullmatch(rf"anycity: stopped by SIGTERM at step (\d+); the newest checkpoint is {re.escape(str(ckpt))}; "
                         rf"resume with the same command and --ckpt_path {re.escape(str(ckpt))}", last), last
     assert int(re.search(r"step (\d+)", last).group(1)) in (step, step + 1), (last, step)
+
+
+@pytest.mark.parametrize("extra, said", [
+    (["--model.init_args.preset", "huge"],
+     "--model.init_args.preset huge: not accepted; expected one of tiny, small, base, vggt-1b"),
+    (["--model.init_args.eval_align", "sim4"], "--model.init_args.eval_align sim4: not accepted; expected one of "
+     "sim3, none"),
+    (["--model.init_args.lr", "fast"], "--model.init_args.lr fast: not accepted; expected a number"),
+    (["--model.init_args.net.camera_trunk_depth", "three"],
+     "--model.init_args.net.camera_trunk_depth three: not accepted; expected an integer"),
+    (["--model.class_path", "anycity.lit.ScafoldModule"],
+     "module 'anycity.lit' has no attribute 'ScafoldModule'; did you mean anycity.lit.ScaffoldModule?"),
+    (["-c", "MODLE", "--print_config"], "unknown section modle (in modle.init_args.lr); did you mean model?"),
+])
+def test_a_bad_value_of_a_known_option_is_named_with_what_it_accepts(extra, said, tmp_path, capsys, monkeypatch):
+    """A refused value (jsonargparse names the option only as NestedArg(key='preset', ...)) was reported as an unknown
+    option ("did you mean preset?"), and under --print_config a misspelt section lost its hint."""
+    monkeypatch.delenv("ANYCITY_DEBUG", raising=False)
+    (tmp_path / "modle.yaml").write_text("modle:\n  init_args:\n    lr: 1\n")
+    extra = [str(tmp_path / "modle.yaml") if a == "MODLE" else a for a in extra]
+    assert cli.main(["fit", "--config", "configs/quickstart.yaml", *extra]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and said in err and "unknown option" not in err, err
+
+
+def test_test_validate_predict_without_weights_are_refused(tiny_shards, tmp_path, capsys, monkeypatch):
+    """Without --ckpt_path (or model.pretrained) they scored or exported a randomly initialised network with exit 0;
+    a Stage II config's init_from is read by fit only (and holds no completion branch)."""
+    monkeypatch.delenv("ANYCITY_DEBUG", raising=False)
+    monkeypatch.chdir(tmp_path)
+    repo = Path(cli.__file__).parents[2]
+    run = tmp_path / "run"
+    small = ["--data.root", str(tiny_shards), "--data.image_size", "[32, 32]", "--data.num_context", "2",
+             "--data.num_targets", "1", "--data.num_dense", "2", "--trainer.limit_test_batches", "1",
+             "--trainer.limit_val_batches", "1", "--trainer.limit_predict_batches", "1",
+             "--model.init_args.render_backend", "torch", "--model.init_args.camera_refine_steps", "0",
+             "--model.init_args.eval_pose_align_steps", "0", "--trainer.default_root_dir", str(run),
+             "--trainer.logger.init_args.save_dir", str(run)]
+    stage2 = ["-c", str(repo / "configs" / "quickstart_stage2.yaml")]
+    for cmd, configs, init_from in (("test", [], ""), ("validate", [], ""),
+                                    ("predict", stage2, " (model.init_from is read by fit only)")):
+        assert cli.main([cmd, "-c", str(repo / "configs" / "quickstart.yaml"), *configs, *small]) == 2
+        assert capsys.readouterr().err.strip().splitlines()[-1] == (
+            f"anycity: error: anycity {cmd}: no --ckpt_path, so the network's weights would be random{init_from}; "
+            f"pass the trained checkpoint, e.g. --ckpt_path {run / 'checkpoints' / 'last.ckpt'}  (--debug for the "
+            "traceback)")
+    assert not run.exists()  # refused before anything was written
+
+
+@pytest.mark.parametrize("code", ["ENOSPC", "EDQUOT"])
+def test_a_full_disk_is_one_line(code, monkeypatch, capsys):
+    """anycity.atomic and the shard writer raise one-line OSErrors for a full disk or quota; main printed them as a
+    44-line traceback."""
+    import errno
+
+    monkeypatch.delenv("ANYCITY_DEBUG", raising=False)
+    message = "disk full writing out/index.json: 583 bytes needed; free space on out (the previous file is unchanged)"
+
+    def dispatch(args, argv_given):
+        raise OSError(getattr(errno, code), message)
+
+    monkeypatch.setattr(cli, "_dispatch", dispatch)
+    assert cli.main(["data", "synth"]) == 1
+    assert capsys.readouterr().err.splitlines() == [f"anycity: error: {message}  (--debug for the traceback)"]
+    monkeypatch.setattr(cli, "_dispatch", lambda args, argv_given: (_ for _ in ()).throw(OSError(errno.EIO, "EIO")))
+    with pytest.raises(OSError, match="EIO"):  # another OSError is a bug report: its traceback shows
+        cli.main(["data", "synth"])
+
+
+def test_data_out_naming_a_file_is_one_line(tmp_path, capsys, monkeypatch):
+    """It was a bare "[Errno 17] File exists"."""
+    monkeypatch.delenv("ANYCITY_DEBUG", raising=False)
+    (tmp_path / "f").write_text("x")
+    assert cli.main(["data", "synth", "--out", str(tmp_path / "f"), "--scenes", "1", "--views", "2"]) == 2
+    assert capsys.readouterr().err == (f"anycity: error: --out {tmp_path / 'f'} is a file; the shard set is written to "
+                                       "a folder: pass a new or empty folder (or a shard set's, with --overwrite)  "
+                                       "(--debug for the traceback)\n")

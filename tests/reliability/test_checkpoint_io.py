@@ -101,3 +101,64 @@ def test_every_torch_file_a_user_passes_is_read_as_data_in_one_line(tmp_path, mo
         with pytest.raises(ValueError, match=f"cannot read {what} .*junk.ckpt: .*not a torch file"):
             load(str(junk))
     assert not (tmp_path / "PWNED_BY_CHECKPOINT").exists()
+
+
+def _lightning_ckpt(path: Path, **extra) -> dict:
+    """A Stage I checkpoint as LightningCLI writes one (tiny network, hyperparameters with their class path)."""
+    import lightning
+
+    from anycity.lit import ScaffoldModule
+
+    m = ScaffoldModule(net={"camera_trunk_depth": 2})
+    ckpt = {"pytorch-lightning_version": lightning.__version__, "epoch": 0, "global_step": 1,
+            "state_dict": m.state_dict(), "hyper_parameters": {**dict(m.hparams), **extra,
+                                                               "_class_path": "anycity.lit.ScaffoldModule"}}
+    torch.save(ckpt, path)
+    return ckpt
+
+
+def test_a_plain_weights_file_as_ckpt_path_is_refused_before_anything_moves(tiny_shards, tmp_path, monkeypatch,
+                                                                            capsys):
+    """A state_dict (VGGT's model.pt) as --ckpt_path gave Lightning's KeyError 'pytorch-lightning_version' traceback,
+    after the run had moved the previous run's logs aside."""
+    from anycity import cli
+
+    monkeypatch.delenv("ANYCITY_DEBUG", raising=False)
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "metrics.csv").write_text("step\n1\n")  # an earlier run's log, which a run would move aside
+    plain = tmp_path / "model.pt"
+    torch.save(_lightning_ckpt(tmp_path / "full.ckpt")["state_dict"], plain)
+    config = str(Path(__file__).parents[2] / "configs" / "quickstart.yaml")
+    assert cli.main(["test", "-c", config, "--data.root", str(tiny_shards), "--ckpt_path", str(plain),
+                     "--trainer.default_root_dir", str(run), "--trainer.logger.init_args.save_dir", str(run)]) == 2
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (
+        f"anycity: error: --ckpt_path {plain}: not a Lightning checkpoint (a plain weights file?); pass it as "
+        "model.init_args.pretrained  (--debug for the traceback)")
+    assert sorted(p.name for p in run.iterdir()) == ["metrics.csv"]
+
+
+@pytest.mark.parametrize("key", ["old_weight", "net.old_net_key"])
+def test_a_checkpoint_with_hyperparameters_this_version_lacks_names_them(key, tiny_shards, tmp_path, monkeypatch,
+                                                                         capsys):
+    """A checkpoint of another anycity version was blamed on "a --config file" or a bare __init__ TypeError."""
+    from anycity import cli
+
+    monkeypatch.delenv("ANYCITY_DEBUG", raising=False)
+    good = tmp_path / "good.ckpt"
+    ckpt = _lightning_ckpt(good)
+    cli.check_checkpoint(str(good))  # this version's: accepted
+    hp = ckpt["hyper_parameters"]
+    if key == "old_weight":
+        hp["old_weight"] = 0.5
+    else:
+        hp["net"] = {**hp["net"], "old_net_key": 3}
+    torch.save(ckpt, tmp_path / "other.ckpt")
+    run = tmp_path / "run"
+    config = str(Path(__file__).parents[2] / "configs" / "quickstart.yaml")
+    assert cli.main(["test", "-c", config, "--data.root", str(tiny_shards), "--ckpt_path", str(tmp_path / "other.ckpt"),
+                     "--trainer.default_root_dir", str(run), "--trainer.logger.init_args.save_dir", str(run)]) == 2
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (
+        f"anycity: error: --ckpt_path {tmp_path / 'other.ckpt'}: its stored model.{key} is not an option of this "
+        "anycity (written by another version); use the anycity version that wrote it  (--debug for the traceback)")
+    assert not run.exists()

@@ -117,3 +117,23 @@ def test_kill_sweep_data_synth(tmp_path):
         assert not list(out.glob("*.partial"))
     print(f"\ndata synth: {hit} kill points hit a live run, every rerun matched the uninterrupted shard set")
     assert hit >= 10
+
+
+def test_ckpt_path_last_builds_the_network_the_checkpoint_was_trained_with(tiny_shards, tmp_path, monkeypatch):
+    """A run trained with a command-line network option (camera_trunk_depth 3; the config says 2) resumes and tests
+    with ``--ckpt_path last`` as with the file named: "last" was resolved only after the network had been built from
+    the config, and loading the checkpoint failed (size mismatch). In-process, so that the code under test is this
+    one's."""
+    from anycity.cli import build_cli
+
+    monkeypatch.setattr("sys.argv", ["anycity"])
+    run = tmp_path / "run"
+    fit = H.tiny_fit_args(tiny_shards, run, 1)[1:]
+    build_cli(["fit", *fit, "--model.init_args.net.camera_trunk_depth", "3"])
+    last = run / "checkpoints" / "last.ckpt"
+    fast = ["--model.init_args.camera_refine_steps", "0", "--model.init_args.eval_pose_align_steps", "0"]
+    cli = build_cli(["test", *fit, *fast, "--trainer.limit_test_batches", "1", "--ckpt_path", "last"])
+    assert cli.trainer.ckpt_path == str(last) and cli.model.net.cfg.camera_trunk_depth == 3
+    assert "test/psnr_scaffold" in cli.trainer.callback_metrics
+    cli = build_cli(["fit", *H.tiny_fit_args(tiny_shards, run, 2)[1:], "--ckpt_path", "last"])  # the resume
+    assert cli.trainer.global_step == 2 and cli.model.net.cfg.camera_trunk_depth == 3

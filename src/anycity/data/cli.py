@@ -78,9 +78,19 @@ def _summary(index: dict) -> str:
             f"{len(index['shards'])} shards")
 
 
+def _check_out(out: str) -> None:
+    """Refuse an ``--out`` that names a file (the shard set is a folder) in one line, not ``[Errno 17] File exists``."""
+    from pathlib import Path
+
+    if Path(out).exists() and not Path(out).is_dir():
+        raise FileExistsError(f"--out {out} is a file; the shard set is written to a folder: pass a new or empty "
+                              "folder (or a shard set's, with --overwrite)")
+
+
 def data_main(argv: list[str]) -> int:
     """Entry point of ``anycity data ...``; returns the exit code."""
     cfg = build_parser().parse_args(argv)
+    _check_out(cfg[cfg.command].out)
     if cfg.command == "synth":
         from anycity.data.synthetic import synth
 
