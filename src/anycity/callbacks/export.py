@@ -13,9 +13,11 @@ from lightning.pytorch.utilities.exceptions import SIGTERMException
 
 from anycity.atomic import publish
 from anycity.export import save_cameras, save_ply
+from anycity.export.ply import PLY_MAX_SH_DEGREE
 from anycity.export.provenance import provenance, summary
 from anycity.export.smoothing import VARIANCE_PX, smooth_3d
 from anycity.export.views import save_view_pngs
+from anycity.structures import Gaussians
 
 
 class PredictionExport(BasePredictionWriter):
@@ -72,6 +74,7 @@ class PredictionExport(BasePredictionWriter):
         self._city_scene: tuple[str, Path, Path, int] | None = None  # (scene, folder, views folder, chunks)
         self._bar = None
         self._root: Path | None = None
+        self._told_sh = False
         self.city_report: dict | None = None
         self.unfinished: str | None = None  # the city scene a stopped run left unwritten
 
@@ -123,6 +126,16 @@ class PredictionExport(BasePredictionWriter):
         if isinstance(batch, dict) and batch.get("chunk") is not None and batch["chunk"]["index"] == 0:
             self._start_bar(batch)
 
+    def _warn_sh_cut(self, g: Gaussians | None) -> None:
+        """Once a run: say that ``scene.ply`` holds SH up to degree 3 when the network predicts more (``vggt-1b``:
+        degree 4, AnySplat's), so viewers show other view-dependent colour than predict's own ``renders/``."""
+        if self._told_sh or g is None or g.sh_degree <= PLY_MAX_SH_DEGREE:
+            return
+        self._told_sh = True
+        warnings.warn(f"anycity predict: the network predicts SH degree {g.sh_degree}; scene.ply keeps degrees 0 to "
+                      f"{PLY_MAX_SH_DEGREE}, the 3DGS PLY's limit (45 f_rest), so viewers show slightly other "
+                      "view-dependent colour than renders/, which use every degree", stacklevel=2)
+
     def _start_bar(self, batch: dict) -> None:
         from tqdm.auto import tqdm
 
@@ -132,6 +145,7 @@ class PredictionExport(BasePredictionWriter):
 
     def write_on_batch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule, prediction: dict[str, Any],
                            batch_indices: Any, batch: Any, batch_idx: int, dataloader_idx: int = 0) -> None:
+        self._warn_sh_cut(prediction.get("gaussians"))
         if isinstance(batch, dict) and batch.get("chunk") is not None:
             self._write_chunk(trainer, prediction, batch)
             prediction.clear()

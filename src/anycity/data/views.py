@@ -65,8 +65,8 @@ def select_train(n: int, num_context: int, num_targets: int, num_dense: int, rng
     if num_context + num_targets > L:
         raise TooFewViews(f"view selection: a {L}-view training window cannot hold {num_context} context + "
                          f"{num_targets} target views, all distinct; use at most {L - num_targets} context views "
-                         f"(num_context / train_num_context), fewer num_targets, or longer windows (data.window, "
-                         f"anycity data synth|convert --window)")
+                         f"(num_context / train_num_context), fewer num_targets, or longer windows (data.window; "
+                         f"anycity data synth --window, convert --max_views)")
     start = int(rng.integers(0, n - L + 1))
     win = list(range(start, start + L))
     edges = np.linspace(0, L, num_context + 1)

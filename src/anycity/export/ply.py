@@ -13,6 +13,7 @@ from torch import Tensor
 from anycity.atomic import atomic_open
 from anycity.structures import Gaussians
 
+PLY_MAX_SH_DEGREE = 3  # the 3DGS PLY's convention: 45 f_rest at most (SIBR, graphdeco and the web viewers)
 ROWS = 1 << 16  # Gaussians per step of the PLY writer: temporaries of a few MB, not copies of the scene
 
 

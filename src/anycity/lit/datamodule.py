@@ -268,7 +268,8 @@ class AerialDataModule(pl.LightningDataModule):
             raise ValueError(f"train_num_context/num_context: up to {hi} context + {self.hp.num_targets} target "
                              f"views do not fit the {n}-view training windows of {where}, so targets would repeat or "
                              f"be context views; use at most {n - self.hp.num_targets} context views, fewer "
-                             "num_targets, or longer windows (anycity data synth|convert --window, data.window)")
+                             "num_targets, or longer windows (data.window; anycity data synth --window, "
+                             "convert --max_views)")
 
     def val_dataloader(self) -> DataLoader:
         return self._loader("val")

@@ -70,3 +70,33 @@ def test_a_negative_smooth_3d_is_refused(value):
                                          r"off\), got (-0.2|nan)"):
         PredictionExport(smooth_3d=value)
     assert PredictionExport(smooth_3d=0.0).smooth_3d == 0.0
+
+
+def test_a_degree_4_network_is_told_once_that_the_ply_keeps_degree_3(tmp_path):
+    """vggt-1b predicts SH degree 4 (AnySplat's); the 3DGS PLY holds up to degree 3 and the cut was silent, so
+    viewers showed other colours than predict's renders/ with no word why."""
+    import dataclasses
+    import warnings
+
+    from anycity.export import load_ply
+
+    pred = _prediction(valid=False)
+    for key in ("gaussians", "scaffold"):
+        g = pred[key]
+        pred[key] = dataclasses.replace(g, sh=torch.zeros(1, g.num_gaussians, 25, 3))
+    cb = PredictionExport(out_dir=str(tmp_path), save_renders=False)
+    cb._root = tmp_path
+    with pytest.warns(UserWarning, match="SH degree 4; scene.ply keeps degrees 0 to 3"):
+        cb.write_on_batch_end(SimpleNamespace(global_rank=0), None, pred, None, {"scene": ["s"]}, 0)
+    assert load_ply(tmp_path / "s" / "scene.ply").sh_degree == 3
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # once a run
+        cb._warn_sh_cut(pred["gaussians"])
+
+
+def test_a_network_within_the_ply_degrees_is_not_warned(tmp_path):
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        _export(tmp_path, _prediction(valid=False))
