@@ -11,7 +11,7 @@ from torch import Tensor
 
 from anycity.atomic import atomic_open
 from anycity.city.align import sim3_parts
-from anycity.export.ply import gaussians_to_ply_arrays
+from anycity.export.ply import gaussians_to_ply_records
 from anycity.geometry.rotations import quat_multiply, rotmat_to_quat
 from anycity.render.sh import sh_rotation
 from anycity.structures import Gaussians
@@ -62,20 +62,17 @@ class PlyStream:
 
     def write(self, g: Gaussians, extra: dict[str, Tensor] | None = None) -> None:
         """Append every scene of ``g`` (invalid / non-finite rows dropped, as in ``save_ply``); ``extra``: more
-        columns ``{name: [B, N]}``, as in :func:`anycity.export.ply.gaussians_to_ply_arrays` (every piece the same
+        columns ``{name: [B, N]}``, as in :func:`anycity.export.ply.gaussians_to_ply_records` (every piece the same
         names)."""
         for i in range(g.batch_size):
-            cols, dropped = gaussians_to_ply_arrays(g, i, self.max_degree, extra)
+            rec, dropped = gaussians_to_ply_records(g, i, self.max_degree, extra)  # one array, written as it is
+            cols = list(rec.dtype.names)
             if self.columns is None:
-                self.columns = list(cols)
-            elif list(cols) != self.columns:
-                raise ValueError(f"PlyStream: piece has columns {list(cols)[:6]}..., expected {self.columns[:6]}...")
-            n = len(cols["x"])
-            data = np.empty(n, dtype=[(k, "<f4") for k in self.columns])
-            for k, v in cols.items():
-                data[k] = v
-            self.body.write(data.tobytes())
-            self.count += n
+                self.columns = cols
+            elif cols != self.columns:
+                raise ValueError(f"PlyStream: piece has columns {cols[:6]}..., expected {self.columns[:6]}...")
+            self.body.write(rec.reshape(-1).view(np.uint8))  # the array's bytes, no copy
+            self.count += len(rec)
             self.dropped += dropped
 
     def close(self) -> Path:

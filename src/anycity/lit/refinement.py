@@ -46,9 +46,10 @@ def stage1_net_flags(stage1: dict, stage2_net: dict | None) -> str:
 def pretrained_scaffold_gaps(net: nn.Module, path: str, kind: str) -> list[str]:
     """Scaffold weights of ``net`` that the pretrained file ``path`` (layout ``kind``) does not fill: absent or of
     another shape (the zero-initialised centre offset excepted). Reads names and shapes only."""
-    from anycity.models.pretrained import read_state_dict, remap_keys
+    from anycity.models.pretrained import read_state_dict, remap_keys, weights_file
 
-    if Path(path).suffix == ".safetensors" and Path(path).is_file():
+    path = weights_file(path)  # a folder: its one weights file, so a safetensors file is still read by names only
+    if path.suffix == ".safetensors" and path.is_file():
         from safetensors import safe_open
 
         with safe_open(str(path), framework="pt") as f:

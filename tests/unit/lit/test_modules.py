@@ -569,3 +569,27 @@ def test_training_gives_the_same_gradients_on_the_fused_cpu_kernels_as_on_the_to
     seen.clear()  # render_pose_grad=False: the poses render detached too (the quickstart's setting)
     _no_log(ScaffoldModule(depth_warmup_steps=0, render_backend="cpu", render_pose_grad=False)).training_step(batch, 0)
     assert seen and set(seen) == {(False, False)}
+
+
+def test_pretrained_gaps_of_a_weights_folder_read_names_only(tmp_path, monkeypatch):
+    """A folder holding ``model.safetensors`` (a downloaded snapshot) is a valid ``pretrained`` since the loader
+    reads its one weights file; the Stage II gap check then read the whole file (gigabytes for VGGT-1B) instead of
+    the names and shapes safetensors gives."""
+    from safetensors.torch import save_file
+
+    import anycity.models.pretrained as pretrained
+    from anycity.lit.refinement import pretrained_scaffold_gaps
+    from anycity.models import build_network
+
+    net = build_network("tiny")
+    sd = {k: v.detach().clone().contiguous() for k, v in net.state_dict().items() if k.startswith("aggregator.")}
+    (tmp_path / "snapshot").mkdir()
+    save_file(sd, str(tmp_path / "snapshot" / "model.safetensors"))
+    expected = pretrained_scaffold_gaps(net, str(tmp_path / "snapshot" / "model.safetensors"), "vggt")
+
+    def no_full_read(path):
+        raise AssertionError(f"read the whole file {path}")
+
+    monkeypatch.setattr(pretrained, "read_state_dict", no_full_read)
+    assert pretrained_scaffold_gaps(net, str(tmp_path / "snapshot"), "vggt") == expected
+    assert expected and all(not k.startswith("aggregator.") for k in expected)
