@@ -124,7 +124,6 @@ def check_checkpoint(path: str) -> None:
     plain ``state_dict`` such as VGGT's ``model.pt``), or whose stored hyperparameters this version has no option
     for (written by another version). Read memory-mapped: the weights are not loaded."""
     import importlib
-    import inspect
 
     from anycity.safe_load import safe_torch_load
 
@@ -140,8 +139,7 @@ def check_checkpoint(path: str) -> None:
             cls = getattr(importlib.import_module(module), name)
         except (ImportError, AttributeError, ValueError):
             return  # Lightning's own read names the class
-        known = {p for k in inspect.getmro(cls) if "__init__" in vars(k)
-                 for p in inspect.signature(k.__init__).parameters}
+        known = _init_params(cls)
         unknown = [k for k in stored if not k.startswith("_") and k not in known]
     net = _as_dict(stored.get("net"))
     if isinstance(net, dict):
@@ -478,7 +476,6 @@ def _candidates(message: str) -> list[str]:
     """Option names the bad key could have meant: init parameters of the class the error names, else of every
     class the training CLI configures."""
     import importlib
-    import inspect
     import re
 
     classes = []
@@ -495,18 +492,20 @@ def _candidates(message: str) -> list[str]:
         from anycity.lit.datamodule import AerialDataModule
 
         classes = [Trainer, AerialDataModule, AnyCityModule, *AnyCityModule.__subclasses__()]
-    names = set()
-    for c in classes:
-        for k in inspect.getmro(c):
-            if "__init__" in vars(k):
-                names.update(p for p in inspect.signature(k.__init__).parameters if p not in ("self", "args", "kwargs"))
-    return sorted(names)
+    return sorted(set().union(*(_init_params(c) for c in classes)))
+
+
+def _init_params(cls: type) -> set[str]:
+    """The keyword arguments ``cls(...)`` takes: the ``__init__`` parameters of it and its bases."""
+    import inspect
+
+    return {p for k in inspect.getmro(cls) if "__init__" in vars(k)
+            for p in inspect.signature(k.__init__).parameters if p not in ("self", "args", "kwargs")}
 
 
 def _section_candidates(dotted: str) -> list[str] | None:
     """Valid keys beside ``dotted`` (``data.x``, ``trainer.x``, ``model[.init_args].net.x``), or None when the
     section is not one of those."""
-    import inspect
 
     parts = dotted.lstrip("-").split(".")[:-1]
     if "net" in parts:
@@ -520,7 +519,7 @@ def _section_candidates(dotted: str) -> list[str] | None:
             from anycity.lit.datamodule import AerialDataModule as cls
         else:
             from lightning.pytorch import Trainer as cls
-        return sorted(p for p in inspect.signature(cls.__init__).parameters if p not in ("self", "args", "kwargs"))
+        return sorted(_init_params(cls))
     return None
 
 

@@ -29,12 +29,17 @@ def psnr(pred: Tensor, target: Tensor) -> Tensor:
 SSIM_BORDER = 5  # the 11-px window's half width: pixels nearer the edge than this are not averaged
 
 
+def ssim_window_fits(images: Tensor) -> bool:
+    """Whether ``[..., H, W]`` images have a pixel whose whole 11-px window lies inside (H, W > 10)."""
+    return min(images.shape[-2:]) > 2 * SSIM_BORDER
+
+
 def ssim_map(pred: Tensor, target: Tensor) -> Tensor:
     """SSIM of each pixel whose whole window lies inside the image (Gaussian window 11, sigma 1.5) of
     ``[..., 3, H, W]`` images in [0, 1] -> ``[M, 3, H - 10, W - 10]``."""
     p, t = _flat(pred).clamp(0, 1), _flat(target)
     b = SSIM_BORDER
-    if min(p.shape[-2:]) <= 2 * b:
+    if not ssim_window_fits(p):
         raise ValueError(f"ssim: images of {tuple(p.shape[-2:])} px have no pixel whose 11-px window fits; "
                          f"score images larger than {2 * b} px on each side")
     _, full = structural_similarity_index_measure(p, t, data_range=1.0, reduction="none", return_full_image=True)
@@ -44,7 +49,7 @@ def ssim_map(pred: Tensor, target: Tensor) -> Tensor:
 def ssim(pred: Tensor, target: Tensor) -> Tensor:
     """Per-image SSIM (module docstring: the window's interior pixels) of ``[..., 3, H, W]`` images -> ``[M]``;
     NaN for images of 10 px or less on a side, where no window fits (skimage refuses them)."""
-    if min(pred.shape[-2:]) <= 2 * SSIM_BORDER:
+    if not ssim_window_fits(pred):
         return torch.full((_flat(pred).shape[0],), float("nan"), device=pred.device)
     return ssim_map(pred, target).mean(dim=(1, 2, 3))
 

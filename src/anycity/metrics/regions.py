@@ -54,7 +54,7 @@ import torchmetrics
 from torch import Tensor
 
 from anycity.geometry import camera_centers, unproject_depth, visible_views
-from anycity.metrics.image import SSIM_BORDER, ssim_map
+from anycity.metrics.image import SSIM_BORDER, ssim_map, ssim_window_fits
 
 DEFAULT_MIN_VIEWS = 2
 DEFAULT_PARALLAX_DEG = 2.0
@@ -180,7 +180,7 @@ def masked_ssim(pred: Tensor, target: Tensor, mask: Tensor) -> Tensor:
     """Per-image mean of the SSIM map (:func:`anycity.metrics.image.ssim_map`: the pixels 5 px and more inside the
     image) over the masked pixels and channels -> ``[M]``; NaN where the mask is empty there. The window still
     reads unmasked neighbours. NaN for images of 10 px or less on a side (no window fits)."""
-    if min(pred.shape[-2:]) <= 2 * SSIM_BORDER:
+    if not ssim_window_fits(pred):
         return torch.full((_flat(pred, 3, "masked_ssim").shape[0],), float("nan"), device=pred.device)
     smap = ssim_map(_flat(pred, 3, "masked_ssim"), _flat(target, 3, "masked_ssim"))
     b = SSIM_BORDER
