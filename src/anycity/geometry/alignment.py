@@ -15,7 +15,8 @@ def umeyama(
         src, dst: ``[..., N, 3]`` corresponding points (N >= 3, not collinear for a unique R).
         weights: ``[..., N]`` non-negative weights (exactly ``src.shape[:-1]``: no broadcasting), or None.
     Returns:
-        s ``[...]``, R ``[..., 3, 3]``, t ``[..., 3]``.
+        s ``[...]``, R ``[..., 3, 3]``, t ``[..., 3]`` in the dtype ``src``, ``dst`` (and ``weights``) promote
+        to; the fit runs in float32 at least (torch's SVD has no float16/bfloat16 kernel).
 
     Gradients: the SVD has no usable gradient for degenerate inputs (fewer than 3 non-collinear points, or
     repeated singular values, e.g. symmetric point sets give NaN); callers align under ``torch.no_grad()``.
@@ -30,7 +31,12 @@ def umeyama(
         if bool((weights < 0).any()):
             raise ValueError("umeyama: weights must be >= 0 (a negative weight gives an arbitrary scale); clamp them "
                              "with weights.clamp_min(0)")
-    w = torch.ones(src.shape[:-1], dtype=src.dtype, device=src.device) if weights is None else weights
+    out = torch.promote_types(src.dtype, dst.dtype)
+    if weights is not None:
+        out = torch.promote_types(out, weights.dtype)
+    work = torch.promote_types(out, torch.float32)
+    src, dst = src.to(work), dst.to(work)
+    w = torch.ones(src.shape[:-1], dtype=work, device=src.device) if weights is None else weights.to(work)
     w = w / w.sum(-1, keepdim=True).clamp_min(1e-12)
     mu_s = (w[..., None] * src).sum(-2)
     mu_d = (w[..., None] * dst).sum(-2)
@@ -44,7 +50,7 @@ def umeyama(
     var_s = (w * (xs * xs).sum(-1)).sum(-1)
     s = (S * D).sum(-1) / var_s.clamp_min(1e-12) if with_scale else torch.ones_like(var_s)
     t = mu_d - s[..., None] * (R @ mu_s[..., None])[..., 0]
-    return s, R, t
+    return s.to(out), R.to(out), t.to(out)
 
 
 def sim3_matrix(s: Tensor, R: Tensor, t: Tensor) -> Tensor:

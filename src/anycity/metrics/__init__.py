@@ -1,5 +1,6 @@
-"""Evaluation metrics: image quality (PSNR/SSIM via torchmetrics), depth accuracy (AbsRel, delta1) and relative
-camera pose errors (RRE, RTE, AUC@30), and the observed / weak region diagnostic with region-masked metrics."""
+"""Evaluation metrics: image quality (PSNR via torchmetrics, SSIM as skimage's default), depth accuracy (AbsRel,
+delta1) and relative camera pose errors (RRE, RTE, AUC@30), and the observed / weak region diagnostic with
+region-masked metrics."""
 
 from anycity.metrics.depth import depth_metrics
 from anycity.metrics.image import mean_colour_baseline, nearest_view_reference, psnr, ssim

@@ -9,7 +9,8 @@ never leaks through a depth edge). A pixel is **observed** when
 
 - at least ``min_views`` context views see it, and
 - the largest angle between the viewing rays (context camera centre -> point) of two seeing views is at least
-  ``min_parallax_deg`` (enough baseline to triangulate it), and
+  ``min_parallax_deg`` (enough baseline to triangulate it; asked only when ``min_views >= 2``: with
+  ``min_views=1`` one seeing view is enough), and
 - it is not at a depth discontinuity of the target depth (:func:`depth_edges`: relative second difference of
   inverse depth along rows and columns at most ``edge_thresh``; ~ the relative size of a depth step, and zero on
   any plane, so oblique ground and facades seen at grazing angles are not called edges).
@@ -61,7 +62,7 @@ DEFAULT_PARALLAX_DEG = 2.0
 DEFAULT_DEPTH_TOL = 0.1
 DEFAULT_EDGE_THRESH = 0.3
 
-_PAIR_CHUNK = 2**16  # points per parallax chunk: bounds the [B, V, V, chunk] cosine tensor
+_PAIR_BUDGET = 2**22  # elements of the [B, V, V, n] cosine tensor per parallax chunk (16 MiB in float32)
 
 
 def _valid_depth(depth: Tensor, valid: Tensor | None) -> Tensor:
@@ -92,19 +93,28 @@ def depth_edges(depth: Tensor, edge_thresh: float, valid: Tensor | None = None) 
     return edge
 
 
+def _parallax_chunk(b: int, v: int) -> int:
+    """Points per parallax chunk for ``b`` images and ``v`` context views: the ``[b, v, v, n]`` cosine tensor
+    stays within ``_PAIR_BUDGET`` elements whatever b and v."""
+    return max(1, _PAIR_BUDGET // max(1, b * v * v))
+
+
 def _max_parallax_cos(points: Tensor, centres: Tensor, vis: Tensor) -> Tensor:
     """Cosine of the largest angle between viewing rays of two seeing views: ``[B, N]`` (1 where < 2 views).
 
     points ``[B, N, 3]``, centres ``[B, V, 3]``, vis ``[B, V, N]``.
     """
+    b, v = vis.shape[:2]
+    if v == 0:
+        return points.new_ones(points.shape[:2])
+    n = _parallax_chunk(b, v)
     out = []
-    for s in range(0, points.shape[1], _PAIR_CHUNK):
-        p, v = points[:, s:s + _PAIR_CHUNK], vis[..., s:s + _PAIR_CHUNK]
+    for s in range(0, points.shape[1], n):
+        p, seen = points[:, s:s + n], vis[..., s:s + n]
         rays = p[:, None] - centres[:, :, None]  # [B, V, n, 3]
         rays = rays / rays.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-        cos = (rays[:, :, None] * rays[:, None]).sum(-1)  # [B, V, V, n]
-        pair = v[:, :, None] & v[:, None]
-        cos = torch.where(pair, cos, torch.ones_like(cos))
+        cos = torch.einsum("bvnc,bwnc->bvwn", rays, rays)  # [B, V, V, n], no [B, V, V, n, 3] product
+        cos.masked_fill_(~(seen[:, :, None] & seen[:, None]), 1.0)
         out.append(cos.flatten(1, 2).amin(1))
     return torch.cat(out, dim=-1) if out else points.new_ones(points.shape[:2])
 
@@ -122,7 +132,9 @@ def region_masks(target_depth: Tensor, target_w2c: Tensor, target_K: Tensor, con
         context_depth: ``[B, V, 1, H', W']`` z-depth of the context views (same world units).
         context_w2c, context_K: ``[B, V, 4, 4]``, ``[B, V, 3, 3]`` (pixels of the context depth).
         min_views: context views that must see a pixel's point.
-        min_parallax_deg: largest viewing-ray angle among the seeing views must reach this (degrees).
+        min_parallax_deg: largest viewing-ray angle among the seeing views must reach this (degrees); only with
+            ``min_views >= 2``: with ``min_views=1`` a pixel seen by one context view and off a depth edge is
+            observed.
         depth_tol: relative depth-test tolerance (see :func:`~anycity.geometry.visible_views`).
         edge_thresh: relative depth step above which a target pixel is a depth discontinuity.
         target_valid, context_valid: optional bool masks shaped like the depths (False = no depth).
@@ -147,7 +159,7 @@ def region_masks(target_depth: Tensor, target_w2c: Tensor, target_K: Tensor, con
     vis = visible_views(points, context_depth, context_w2c, context_K, depth_tol=depth_tol, valid=context_valid)
     vis = vis & valid.reshape(b, 1, -1)
     enough = vis.sum(1) >= min_views
-    if min_parallax_deg > 0:
+    if min_views >= 2 and min_parallax_deg > 0:  # one view has no parallax: min_views=1 asks for none
         cos = _max_parallax_cos(points, camera_centers(context_w2c.float()), vis)
         enough = enough & (cos <= math.cos(math.radians(min_parallax_deg)))
     observed = enough.reshape(b, t, 1, h, w) & valid & ~depth_edges(depth, edge_thresh, target_valid)
@@ -226,28 +238,35 @@ _LPIPS_BACKBONE_FILES = {"alex": "alexnet-owt-7be5be79.pth", "vgg": "vgg16-39792
                          "squeeze": "squeezenet1_1-b8a52dc0.pth"}
 
 
-def lpips_or_none(net: str = "alex") -> tuple[torch.nn.Module | None, str]:
+def lpips_or_none(net: str = "vgg") -> tuple[torch.nn.Module | None, str]:
     """A spatial LPIPS network (torchmetrics' ``_LPIPS``, ``spatial=True``: ``[M, 1, H, W]`` maps) built fully
-    offline, or ``(None, reason)`` with one line saying why and how to enable it. Never downloads anything."""
-    cached = Path(torch.hub.get_dir()) / "checkpoints" / _LPIPS_BACKBONE_FILES.get(net, f"{net}.pth")
+    offline, or ``(None, reason)`` with one line saying why and how to enable it. Never downloads anything.
+
+    ``net`` is the backbone: ``"vgg"`` (default) as the feed-forward papers' evaluation (pixelSplat's
+    ``LPIPS(net="vgg")``, used by NoPoSplat and AnySplat), ``"alex"`` or ``"squeeze"``. The figures of different
+    backbones are not comparable, so the returned line names it (``LPIPS-vgg``)."""
+    if net not in _LPIPS_BACKBONE_FILES:
+        raise ValueError(f"lpips_or_none: net must be one of {', '.join(_LPIPS_BACKBONE_FILES)}, got {net!r}")
+    name = f"LPIPS-{net}"
+    cached = Path(torch.hub.get_dir()) / "checkpoints" / _LPIPS_BACKBONE_FILES[net]
     how = (f"install torchvision matching your torch and put its ImageNet {net} weights at {cached} "
-           "to score LPIPS (whole image and per region)")
+           f"to score {name} (whole image and per region)")
     try:
         from torchmetrics.functional.image.lpips import _LPIPS
         from torchmetrics.utilities.imports import _TORCHVISION_AVAILABLE
     except Exception as e:  # noqa: BLE001 - any import failure means "absent"
-        return None, f"LPIPS left out: torchmetrics LPIPS unavailable ({type(e).__name__}); {how}"
+        return None, f"{name} left out: torchmetrics LPIPS unavailable ({type(e).__name__}); {how}"
     if not _TORCHVISION_AVAILABLE:
-        return None, f"LPIPS left out: torchvision is not installed; {how}"
+        return None, f"{name} left out: torchvision is not installed; {how}"
     if not cached.is_file():  # checked first: torch.hub would print "Downloading: ..." before _no_downloads refuses
-        return None, f"LPIPS left out: {net} backbone weights are not in the torch hub cache; {how}"
+        return None, f"{name} left out: {net} backbone weights are not in the torch hub cache; {how}"
     try:
         with _no_downloads():
             model = _LPIPS(pretrained=True, net=net, spatial=True).eval()
     except Exception as e:  # noqa: BLE001 - missing weights or any backbone failure
         msg = " ".join(str(e).split())[:120]
-        return None, f"LPIPS left out: {net} backbone weights not found offline ({msg}); {how}"
-    return model, f"LPIPS (whole image and per region): torchmetrics {net} backbone, loaded offline"
+        return None, f"{name} left out: {net} backbone weights not found offline ({msg}); {how}"
+    return model, f"{name} (whole image and per region): torchmetrics {net} backbone, loaded offline from {cached}"
 
 
 class RegionMetric(torchmetrics.Metric):

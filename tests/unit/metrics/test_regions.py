@@ -259,17 +259,82 @@ def test_lpips_absent_is_one_line_without_download(monkeypatch, capfd, tmp_path)
     # torch.hub prints "Downloading: <url>" before it calls the (refused) download: weights absent from the cache
     # must not reach it at all (seen on a CUDA machine that has torchvision), so the cache is checked first
     assert net is None and "\n" not in why and "not in the torch hub cache" in why
-    assert "alexnet-owt-7be5be79.pth" in why and "Downloading" not in capfd.readouterr().err
+    assert "vgg16-397923af.pth" in why and "Downloading" not in capfd.readouterr().err
     # A file in the cache that does not build (here: not a checkpoint, or no torchvision) is caught as well.
     monkeypatch.setattr(torch.hub, "get_dir", lambda: str(tmp_path))
     (tmp_path / "checkpoints").mkdir()
-    (tmp_path / "checkpoints" / "alexnet-owt-7be5be79.pth").write_bytes(b"not a checkpoint")
+    (tmp_path / "checkpoints" / "vgg16-397923af.pth").write_bytes(b"not a checkpoint")
     net, why = lpips_or_none()
     assert net is None and "\n" not in why and "left out" in why and "not in the torch hub cache" not in why
     with regions._no_downloads():
         with pytest.raises(RuntimeError, match="offline"):
             torch.hub.download_url_to_file("https://example.invalid/w.pth", "/nonexistent")
     assert torch.hub.download_url_to_file is no_download  # restored
+
+
+def test_lpips_defaults_to_vgg_as_the_feed_forward_papers_and_names_its_backbone(monkeypatch, tmp_path):
+    # pixelSplat's evaluation (NoPoSplat, AnySplat) scores LPIPS(net="vgg"); alex figures are not comparable, so
+    # the line `anycity test` prints says which one it is, and where its weights go.
+    import torch.hub
+    import torchmetrics.functional.image.lpips as tm_lpips
+    import torchmetrics.utilities.imports as tmi
+
+    def no_download(*a, **k):
+        raise AssertionError("lpips_or_none tried to download")
+
+    monkeypatch.setattr(torch.hub, "download_url_to_file", no_download)
+    monkeypatch.setattr(torch.hub, "get_dir", lambda: str(tmp_path))
+    vgg_file = tmp_path / "checkpoints" / "vgg16-397923af.pth"
+    net, why = lpips_or_none()
+    assert net is None and "\n" not in why and "LPIPS-vgg" in why and str(vgg_file) in why
+    net, why = lpips_or_none("alex")  # still selectable
+    assert net is None and "LPIPS-alex" in why and str(tmp_path / "checkpoints" / "alexnet-owt-7be5be79.pth") in why
+    with pytest.raises(ValueError, match="lpips_or_none: net must be one of alex, vgg, squeeze, got 'resnet'"):
+        lpips_or_none("resnet")
+    # With the weights in the cache the default builds the vgg network, and the line says so.
+    built = {}
+
+    class FakeLPIPS(torch.nn.Module):
+        def __init__(self, pretrained, net, spatial):
+            super().__init__()
+            built.update(pretrained=pretrained, net=net, spatial=spatial)
+
+    monkeypatch.setattr(tmi, "_TORCHVISION_AVAILABLE", True)
+    monkeypatch.setattr(tm_lpips, "_LPIPS", FakeLPIPS)
+    vgg_file.parent.mkdir()
+    vgg_file.write_bytes(b"weights")
+    net, why = lpips_or_none()
+    assert isinstance(net, FakeLPIPS) and built == {"pretrained": True, "net": "vgg", "spatial": True}
+    assert why.startswith("LPIPS-vgg") and "vgg backbone" in why and "\n" not in why
+
+
+def test_min_views_one_needs_no_parallax():
+    # One context view has no viewing-ray pair: with min_views=1 the parallax test is not asked (it used to fail
+    # every single-view point, so min_views=1 behaved like 2).
+    obs, weak, valid, _ = _masks(TARGET, STEREO[:1], min_views=1)
+    assert valid.all() and obs[CENTRE] and obs[H // 4:3 * H // 4, W // 4:3 * W // 4].all()
+    assert _masks(TARGET, STEREO[:1])[1][CENTRE]  # the default min_views=2: weak
+
+
+def test_parallax_chunks_bound_the_cosine_tensor_and_agree_with_one_chunk(monkeypatch):
+    # The [B, V, V, n] cosine tensor of a chunk stays within the budget whatever B and V (it was 2**16 points
+    # for any B, V: +1.1 GiB for one 256 px target against 32 views).
+    for b, v in [(1, 1), (1, 4), (1, 32), (4, 32), (2, 64)]:
+        n = regions._parallax_chunk(b, v)
+        assert n >= 1 and b * v * v * n <= regions._PAIR_BUDGET
+    assert regions._parallax_chunk(1, 32) * 64 == regions._parallax_chunk(1, 4)
+    g = torch.Generator().manual_seed(0)
+    points = torch.randn(2, 1000, 3, generator=g) + torch.tensor([0.0, 0.0, 5.0])
+    centres = torch.randn(2, 5, 3, generator=g)
+    vis = torch.rand(2, 5, 1000, generator=g) > 0.4
+    rays = points[:, None] - centres[:, :, None]
+    rays = rays / rays.norm(dim=-1, keepdim=True)
+    cos = (rays[:, :, None] * rays[:, None]).sum(-1)  # [B, V, V, N] in one go
+    ref = torch.where(vis[:, :, None] & vis[:, None], cos, torch.ones_like(cos)).flatten(1, 2).amin(1)
+    torch.testing.assert_close(regions._max_parallax_cos(points, centres, vis), ref)
+    monkeypatch.setattr(regions, "_PAIR_BUDGET", 2 * 5 * 5 * 37)  # 37-point chunks: 27 chunk boundaries
+    assert regions._parallax_chunk(2, 5) == 37
+    torch.testing.assert_close(regions._max_parallax_cos(points, centres, vis), ref)
 
 
 def test_region_masks_are_vectorised_and_fast_enough():
