@@ -52,7 +52,7 @@ class Gaussians:
         means: ``[B, N, 3]`` centres in world units.
         quats: ``[B, N, 4]`` rotations, **wxyz**, need not be normalised.
         scales: ``[B, N, 3]`` standard deviations along the rotated axes (activated, > 0).
-        opacities: ``[B, N]`` in [0, 1] (activated).
+        opacities: ``[B, N]`` in [0, 1] (activated: ``validate`` refuses other values).
         sh: ``[B, N, K, 3]`` spherical-harmonic coefficients, K = (degree+1)^2; degree 0 gives
             colour = 0.282095 * sh + 0.5.
         valid: ``[B, N]`` bool, or None (all valid). Invalid Gaussians contribute nothing; ragged
@@ -115,7 +115,17 @@ class Gaussians:
             if t is not None:
                 if t.device != m.device:
                     raise ValueError(f"gaussians.{f.name}: on {t.device}, but means are on {m.device}")
-                _check_finite(f"gaussians.{f.name}", t)
+                if f.name != "opacities":  # checked below
+                    _check_finite(f"gaussians.{f.name}", t)
+        if self.opacities.numel():
+            # one reduction and one host sync, as _check_finite's: min and max are NaN when any element is, so values
+            # in [0, 1] are finite too; anything else is looked at closely
+            lo, hi = torch.aminmax(self.opacities.detach())
+            if not bool((lo >= 0) & (hi <= 1)):
+                _check_finite("gaussians.opacities", self.opacities)
+                raise ValueError(f"gaussians.opacities: expected values in [0, 1], got [{lo.item():.4g}, "
+                                 f"{hi.item():.4g}]; apply sigmoid to opacity logits (the backends disagree outside "
+                                 "[0, 1])")
         return self
 
     def detach(self) -> Gaussians:

@@ -34,12 +34,25 @@ def test_gaussians_validate_and_properties():
     ("opacities", torch.tensor([[float("nan")] * 5] * 2), "NaN"),
     ("means", torch.zeros(2, 5, 3).index_fill(2, torch.tensor([1]), float("inf")), "means: contains NaN"),
     ("sh", torch.zeros(2, 5, 4, 3).index_fill(1, torch.tensor([4]), -float("inf")), "sh: contains NaN"),
+    ("opacities", torch.ones(2, 5).index_fill(1, torch.tensor([2]), float("inf")), "opacities: contains NaN"),
+    # activated opacities only: the backends disagree outside [0, 1]
+    ("opacities", torch.ones(2, 5).index_fill(1, torch.tensor([2]), 1.25),
+     r"gaussians.opacities: expected values in \[0, 1\], got \[1, 1.25\]; apply sigmoid"),
+    ("opacities", torch.zeros(2, 5).index_fill(1, torch.tensor([0]), -0.5), r"opacities: expected values in \[0, 1\]"),
 ])
 def test_gaussians_validate_errors(field, value, match):
     kwargs = vars(gaussians())
     kwargs[field] = value
     with pytest.raises(ValueError, match=match):
         Gaussians(**kwargs).validate()
+
+
+def test_gaussians_opacities_at_the_ends_of_their_range_validate():
+    for value in (0.0, 1.0):
+        for dtype in (torch.float32, torch.float64, torch.bfloat16, torch.float16):
+            Gaussians(**{**vars(gaussians()), "opacities": torch.full((2, 5), value)}).to(dtype=dtype).validate()
+    Gaussians(torch.zeros(2, 0, 3), torch.ones(2, 0, 4), torch.ones(2, 0, 3), torch.ones(2, 0),
+              torch.zeros(2, 0, 1, 3)).validate()  # no Gaussians: nothing to range-check
 
 
 def test_gaussians_whose_finite_values_overflow_a_sum_validate():

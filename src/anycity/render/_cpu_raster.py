@@ -188,7 +188,6 @@ def make_raster_kernels(D: int):
     QW = QBASE + D + 2
     NORMALS = D == 7
 
-    @njit(parallel=True, fastmath=True, error_model="numpy", cache=True)
     def raster_fwd(Q, tile_off, tiles_x, tiles_y, width, height, bg, rgb, depth, alpha, normal, t_final, last):
         """Composite every tile. Writes rgb/depth/alpha/normal ``[C,ch,H,W]``, t_final and last ``[C,H,W]``
         (last = index within the tile's run of the last blended pair, -1 if none)."""
@@ -255,7 +254,6 @@ def make_raster_kernels(D: int):
                     t_final[c, py, px] = T
                     last[c, py, px] = sc[NPIX + i]
 
-    @njit(parallel=True, fastmath=True, error_model="numpy", cache=True)
     def raster_bwd(Q, tile_off, slot, tiles_x, tiles_y, width, height, bg, t_final, last, depth,
                    g_rgb, g_depth, g_alpha, g_normal, G):
         """Per pair, dL/d(mx, my, conic a, b, c, opacity, features) summed over the tile's pixels -> G[slot]."""
@@ -361,8 +359,17 @@ def make_raster_kernels(D: int):
                     G[row, 11] = s_f5
                     G[row, 12] = s_f6
 
-    stamp_constants((raster_fwd, raster_bwd))
-    return raster_fwd, raster_bwd
+    kernels = tuple(_jit_per_channel_count(fn, D) for fn in (raster_fwd, raster_bwd))
+    stamp_constants(kernels)
+    return kernels
+
+
+def _jit_per_channel_count(fn, D: int) -> Dispatcher:
+    """``fn`` compiled with a cache file of its own per ``D``: numba names a kernel's cache index after its qualname,
+    which both channel counts' closures share; two processes compiling D = 4 and D = 7 at once then both write data
+    file 1 of one index, and a later process loaded one D's machine code for the other (silently wrong renders)."""
+    fn.__qualname__ = f"{fn.__name__}_d{D}"
+    return njit(parallel=True, fastmath=True, error_model="numpy", cache=True)(fn)
 
 
 # cached kernels go stale when a constant of this module (imported ones included) changes: see stamp_constants

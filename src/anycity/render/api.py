@@ -98,15 +98,29 @@ def _tolerance(dtype: torch.dtype, floor: float) -> float:
 
 
 def _check_rotation(w2c: Tensor, dtype: torch.dtype) -> None:
-    """Refuse a ``w2c`` whose 3x3 block is not orthonormal: geometry would come out right (x/z, y/z are
-    scale-invariant), but the SH view directions would use the wrong camera centre ``-Rᵀ t``."""
-    R = w2c[..., :3, :3].detach().double()
+    """Refuse a ``w2c`` that is not a rigid transform: a 3x3 block that is not orthonormal (geometry would come out
+    right, x/z and y/z being scale-invariant, but the SH view directions would use the wrong camera centre
+    ``-Rᵀ t``), a reflection (det R = -1: a mirrored image), or a bottom row other than [0, 0, 0, 1] (the torch and cpu
+    backends ignore it, but gsplat inverts the whole 4x4 for the SH camera centre)."""
+    w2c = w2c.detach().double()
+    R = w2c[..., :3, :3]
     err = (R @ R.mT - torch.eye(3, dtype=R.dtype, device=R.device)).abs().amax(dim=(-2, -1))
+    row = (w2c[..., 3, :] - torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=R.dtype, device=R.device)).abs().amax(-1)
     tol = _tolerance(dtype, 1e-3)
-    if bool((err > tol).any()):
+    det = (R[..., 0, :] * torch.linalg.cross(R[..., 1, :], R[..., 2, :])).sum(-1)  # no LU: a few flops per camera
+    bad = torch.stack([(err > tol).any(), (det < 0).any(),  # one host sync for the three checks
+                       (row > _tolerance(dtype, 1e-6)).any()]).tolist()
+    if bad[0]:
         raise ValueError(f"w2c: the rotation block w2c[..., :3, :3] is not orthonormal (max |R R^T - I| = "
                          f"{err.max().item():.3g} > {tol:.3g}); pass rigid world-to-camera transforms: put a scale "
                          "into the scene, not the camera, or orthonormalise R (U V^T of its SVD)")
+    if bad[1]:
+        raise ValueError("w2c: the rotation block w2c[..., :3, :3] has determinant -1 (a reflection: the image would "
+                         "come out mirrored), it must be +1; a flipped axis: check the y-up/y-down convention (OpenCV: "
+                         "x right, y down, z forward)")
+    if bad[2]:
+        raise ValueError(f"w2c: bottom row w2c[..., 3, :] must be [0, 0, 0, 1], got one off by {row.max().item():.3g}; "
+                         "pass 4x4 world-to-camera transforms (append [0, 0, 0, 1] to a 3x4 [R|t], not zeros)")
 
 
 def _check_intrinsics(K: Tensor, dtype: torch.dtype) -> None:
@@ -162,11 +176,12 @@ def render(
 
     Args:
         gaussians: B scenes of N Gaussians (``anycity.structures.Gaussians``).
-        w2c: ``[B, V, 4, 4]`` world-to-camera (OpenCV: x right, y down, z forward), rigid: the 3x3 block
-            orthonormal to 1e-3 (4 epsilons of a bfloat16/float16 dtype).
+        w2c: ``[B, V, 4, 4]`` world-to-camera (OpenCV: x right, y down, z forward), rigid: the 3x3 block a
+            rotation (orthonormal to 1e-3, or 4 epsilons of a bfloat16/float16 dtype; det +1), bottom row
+            [0, 0, 0, 1].
         K: ``[B, V, 3, 3]`` pinhole intrinsics in pixels of the rendered image: zero skew, last row [0, 0, 1].
         width, height: image size in pixels.
-        background: ``[3]``, ``[B, V, 3]`` or None (black).
+        background: ``[3]``, ``[B, V, 3]`` or None (black); finite.
         near, far: culling planes on camera z (``1e-6 <= near < far``); a Gaussian at z == near or far is kept.
         render_normals: also return ``normal``.
         backend: "torch" (tiled pure PyTorch, CPU and CUDA, float32/float64), "gsplat" (CUDA float32, needs the
@@ -232,6 +247,8 @@ def _render(gaussians, w2c, K, width, height, background, near, far, render_norm
         bg = torch.as_tensor(background, dtype=dtype, device=means.device)
         if bg.shape not in ((3,), (B, V, 3)):
             raise ValueError(f"background: expected shape [3] or [B, V, 3] = {(B, V, 3)}, got {tuple(bg.shape)}")
+        if not bool(torch.isfinite(bg).all()):
+            raise ValueError("background: contains NaN or infinite values; pass colours in [0, 1] (or None: black)")
         bg = bg.expand(B, V, 3)
     valid = gaussians.valid
     if valid is None:

@@ -43,6 +43,7 @@ from torch import Tensor
 
 from anycity.render import _cpu_project as _proj
 from anycity.render import _cpu_raster as _rast
+from anycity.render import projection as _projection
 from anycity.render._numba_cache import repair_cache
 
 _log = logging.getLogger(__name__)
@@ -133,7 +134,8 @@ def _camera_table(w2c: Tensor, K: Tensor, width: int, height: int) -> np.ndarray
     R, t = w2c[:, :3, :3], w2c[:, :3, 3]
     fx, fy, cx, cy = K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2]
     centre = -torch.einsum("cji,cj->ci", R, t)
-    hx, hy = 0.3 * 0.5 * width / fx, 0.3 * 0.5 * height / fy  # projection.FOV_CLAMP
+    clamp = _projection.FOV_CLAMP  # read per call, as the torch backend does: an edited value reaches both
+    hx, hy = clamp * 0.5 * width / fx, clamp * 0.5 * height / fy
     lims = torch.stack([-cx / fx - hx, (width - cx) / fx + hx, -cy / fy - hy, (height - cy) / fy + hy], -1)
     table = torch.cat([R.reshape(-1, 9), t, torch.stack([fx, fy, cx, cy], -1), centre, lims], -1)
     return np.ascontiguousarray(table.numpy())
@@ -204,12 +206,15 @@ class _FusedRender(torch.autograd.Function):
         _set_threads()
         pixel_grads = (grad(g_rgb, img3), grad(g_depth, img1), grad(g_alpha, img1),
                        grad(g_normal, img3) if D == 7 else grad(None, (1, 3, 1, 1)))
-        outs = [torch.empty_like(t) for t in (means, quats, scales, opacities, sh)]
+        # contiguous like the inputs _np gives: numba compiles a kernel again for each new array layout (the model's
+        # sh is a transposed view, and empty_like would keep its strides)
+        fields = (means, quats, scales, opacities, sh)
+        outs = [torch.empty_like(t, memory_format=torch.contiguous_format) for t in fields]
         want_w2c, want_K, want_bg = (ctx.needs_input_grad[i] for i in (6, 7, 10))
         g_cam = np.empty((_proj.N_CHUNKS, C, 16) if want_w2c or want_K else (_proj.N_CHUNKS, 1, 16))
         with _launch_lock:
             bwd(Q, tile_off, slot, tiles_x, tiles_y, width, height, bg, t_final, last, depth, *pixel_grads, G)
-            _proj.project_bwd(*[_np(t) for t in (means, quats, scales, opacities, sh)], cams, V, pstart, G,
+            _proj.project_bwd(*[_np(t) for t in fields], cams, V, pstart, G,
                               *[o.numpy() for o in outs], want_w2c or want_K, g_cam)
         g_w2c = g_K = g_bg = None
         if want_w2c or want_K:

@@ -364,3 +364,62 @@ def test_cold_cache_in_a_fresh_directory(tmp_path: Path):
     assert all(hits >= 1 and misses == 0 for hits, misses in second["stats"].values())
     assert second["seconds"] < first["seconds"] / 2
     assert any(tmp_path.rglob("*.nbi"))
+
+
+def test_each_channel_count_has_its_own_kernel_cache_files():
+    """numba names a kernel's cache index after its qualname, which the D = 4 and D = 7 compositing closures shared:
+    two processes compiling both at once (``make test``'s workers) could both write data file 1 of that one index,
+    and later processes loaded one D's machine code under the other's key (silently wrong renders)."""
+    from anycity.render import cpu_backend
+
+    paths = {D: [Path(d._cache._cache_file._index_path).name for d in cpu_backend.raster_kernels(D)] for D in (4, 7)}
+    assert len({*paths[4], *paths[7]}) == 4, paths
+    assert [p.split("-")[0] for p in paths[7]] == ["_cpu_raster.raster_fwd_d7", "_cpu_raster.raster_bwd_d7"], paths
+    assert [d.__name__ for d in cpu_backend.raster_kernels(7)] == ["raster_fwd", "raster_bwd"]  # messages keep names
+
+
+def test_non_contiguous_fields_add_no_kernel_specialisation():
+    """The model's sh (sh_degree >= 1) is a transposed view: backward allocated its gradients with empty_like, which
+    kept the strides, so numba compiled project_bwd again for that layout (6-11 s, unannounced). The gradients are
+    the same bits as for contiguous fields, and no kernel gains a signature."""
+    from anycity.render import cpu_backend
+
+    gauss, w2c, K = make_scene(N=30, sh_degree=1)
+
+    def grads(g):
+        out = render(g, w2c.float(), K.float(), 40, 32, backend="cpu")
+        (out.rgb.square().sum() + out.depth.sum()).backward()
+        return [getattr(g, k).grad for k in PARAMS]
+
+    ref = grads(cast(gauss, torch.float32))
+    counts = [len(d.signatures) for d in cpu_backend._dispatchers(4)]
+    fields = {k: getattr(gauss, k).detach().float() for k in PARAMS}
+    # stored channel-first and viewed as [B, N, ...], as a head's output is
+    fields["means"] = fields["means"].transpose(1, 2).contiguous().transpose(1, 2)
+    fields["sh"] = fields["sh"].permute(0, 2, 3, 1).contiguous().permute(0, 3, 1, 2)
+    g = Gaussians(**{k: v.requires_grad_() for k, v in fields.items()})
+    assert not g.means.is_contiguous() and not g.sh.is_contiguous()
+    got = grads(g)
+    assert [len(d.signatures) for d in cpu_backend._dispatchers(4)] == counts
+    for name, a, b in zip(PARAMS, got, ref):
+        assert torch.equal(a, b), name
+
+
+def test_the_fused_kernels_follow_an_edited_fov_clamp(monkeypatch):
+    """projection.FOV_CLAMP (how far outside the image the EWA Jacobian is clamped) is read at call time by both
+    backends, so an edited value reaches the fused kernels too; the cpu backend had 0.3 written out."""
+    from helpers.scenes import make_cameras, make_gaussians
+
+    from anycity.render import projection
+
+    g = make_gaussians(N=40, dtype=torch.float32, z=2.0, spread=(3.0, 3.0, 0.5), scale=(0.3, 1.0))  # many off-frame
+    w2c, K = make_cameras(1, 1, 40, 32, dtype=torch.float32)
+
+    def both():
+        return [render(g, w2c, K, 40, 32, backend=b).rgb for b in ("torch", "cpu")]
+
+    before = both()
+    monkeypatch.setattr(projection, "FOV_CLAMP", 0.0)
+    torch_rgb, cpu_rgb = both()
+    assert (torch_rgb - before[0]).abs().max() > 1e-2  # the clamp matters in this scene
+    torch.testing.assert_close(cpu_rgb, torch_rgb, atol=2e-5, rtol=0)

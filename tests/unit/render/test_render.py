@@ -207,6 +207,19 @@ def test_auto_backend_resolution():
         (lambda a: a.update(near=1e-7), "near/far"),
         (lambda a: a["w2c"][..., :3, :].mul_(2.0), r"w2c: the rotation block .* not orthonormal"),  # wrong SH centre
         (lambda a: a["w2c"][..., 0, :3].mul_(1.01), "w2c: the rotation block"),
+        # gsplat inverts the whole 4x4 for the SH camera centre: a zero row (a 3x4 [R|t] padded with zeros) crashed it,
+        # a homogeneous scale moved the centre; the torch and cpu backends ignored the row
+        (lambda a: a["w2c"].__setitem__((0, 0, 3, 3), 0.0), r"w2c: bottom row w2c\[..., 3, :\] must be \[0, 0, 0, 1\]"),
+        (lambda a: a["w2c"].__setitem__((0, 0, 3, 3), 2.0), "w2c: bottom row"),
+        (lambda a: a["w2c"].__setitem__((0, 0, 3, 1), 0.1), "w2c: bottom row"),
+        # a reflection passed the orthonormality check and rendered a mirrored image
+        (lambda a: a["w2c"][..., 1, :].neg_(), r"w2c: .* determinant -1 .* must be \+1; a flipped axis: check the y"),
+        (lambda a: a.update(background=torch.tensor([float("nan"), 0, 0], dtype=F64)), "background: contains NaN"),
+        (lambda a: a.update(background=torch.tensor([0, float("inf"), 0], dtype=F64)), "background: contains NaN"),
+        # the backends disagree outside [0, 1] (the fused kernels cut footprints at 3.33 sigma, torch does not)
+        (lambda a: a["gaussians"].opacities.__setitem__((0, 3), 1.5),
+         r"gaussians.opacities: expected values in \[0, 1\], got \[.*, 1.5\]; apply sigmoid"),
+        (lambda a: a["gaussians"].opacities.__setitem__((0, 3), -0.25), "gaussians.opacities: expected values in"),
         (lambda a: a["K"].__setitem__((0, 0, 0, 1), 5.0), r"K: skew .* 5 px"),  # ignored by the renderer
         (lambda a: a["K"].__setitem__((0, 0, 1, 0), -0.01), "K: skew"),
         (lambda a: a["K"].__setitem__((0, 0, 2, 2), 2.0), r"K: last row must be \[0, 0, 1\]"),
