@@ -1,8 +1,10 @@
 """Shard sets: complete shards only, index.json atomic, disk-full and earlier sets handled without loss."""
 
 import errno
+import io
 import json
 import os
+import shutil
 import socket
 import subprocess
 import sys
@@ -126,13 +128,49 @@ def test_overwrite_and_a_rerun_after_a_crash_leave_no_unlisted_shard(tmp_path):
         _write(tmp_path, ["d"], overwrite=True)
     assert sorted(p.name for p in tmp_path.glob("*.tar")) == ["train-000000.tar"]
     (tmp_path / "index.json").unlink()  # as a run killed after publishing shards leaves it
-    (tmp_path / "val-000003.tar").write_bytes(b"a killed run's shard")
+    shutil.copy(tmp_path / "train-000000.tar", tmp_path / "val-000003.tar")  # a killed run's (anycity) shard
     with pytest.warns(UserWarning, match=r"removed 1 shard"):
         _write(tmp_path, ["e"])
     assert sorted(p.name for p in tmp_path.glob("*.tar")) == ["train-000000.tar"]
     (tmp_path / "notes.tar").write_bytes(b"not ours")  # other names are left alone
     _write(tmp_path, ["f"], overwrite=True)
     assert (tmp_path / "notes.tar").exists()
+
+
+def _foreign_tar(path, i):
+    with tarfile.open(path, "w") as t:
+        data = f"the user's own sample {i}".encode()
+        info = tarfile.TarInfo(f"s{i}.txt")
+        info.size = len(data)
+        t.addfile(info, io.BytesIO(data))
+
+
+def test_another_webdataset_set_in_out_is_refused_not_clobbered(tmp_path):
+    """A folder holding another webdataset set under the common names ``train-NNNNNN.tar`` (no index.json): a run
+    without --overwrite replaced its first shard and deleted the rest as "an earlier run's"."""
+    for i in range(6):
+        _foreign_tar(tmp_path / f"train-{i:06d}.tar", i)
+    (tmp_path / "val-000000.tar").write_bytes(b"not even a tar")
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    with pytest.raises(FileExistsError, match=rf"^{tmp_path} holds 7 file\(s\) named like this writer's shards that "
+                                              r"no anycity run wrote \(train-000000\.tar, train-000001\.tar, "
+                                              r"train-000002\.tar, train-000003\.tar and 3 more\); pass --overwrite "
+                                              r"to replace them or choose another --out$"):
+        _write(tmp_path, ["a"])
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before  # untouched, the lock given back
+    for p in list(tmp_path.iterdir()):
+        p.unlink()
+    _write(tmp_path, ["a", "b"])  # a killed anycity run's shards (no index.json) are still recognised and replaced
+    (tmp_path / "index.json").unlink()
+    with pytest.warns(UserWarning, match=r"removed 1 shard"):
+        _write(tmp_path, ["c"])
+    _foreign_tar(tmp_path / "test-000000.tar", 0)
+    with pytest.raises(FileExistsError, match=r"holds 1 file\(s\) .*\(test-000000\.tar\)"):
+        (tmp_path / "index.json").unlink()
+        _write(tmp_path, ["d"])
+    with pytest.warns(UserWarning, match=r"removed 1 shard.*test-000000\.tar"):
+        _write(tmp_path, ["d"], overwrite=True)  # --overwrite replaces them
+    assert sorted(p.name for p in tmp_path.glob("*.tar")) == ["train-000000.tar"]
 
 
 def test_bad_window_stride_and_depth_dtype_are_refused_before_anything_is_written(tmp_path):

@@ -16,14 +16,16 @@ import cv2
 import numpy as np
 import torch
 
-from anycity.data.imagecheck import check_image_file, exif_orientation, image_size
+from anycity.data.imagecheck import check_image_file, exif_orientation, image_size, pil_pixel_limit, read_image
 from anycity.data.views import jpeg_reduction, resize_plan, resize_view
 
-PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".webp")
-# photos that are not read here, named in a warning: camera raw and HEIF (no decoder), TIFF (where its orientation
-# tag is applied differs between OpenCV and Pillow versions; OpenCV 5.0 refuses an oriented TIFF)
-UNREAD_SUFFIXES = (".dng", ".heic", ".heif", ".raw", ".cr2", ".cr3", ".nef", ".arw", ".orf", ".rw2", ".raf", ".tif",
-                   ".tiff")
+JPEG_SUFFIXES = (".jpg", ".jpeg", ".jfif", ".jpe")
+PHOTO_SUFFIXES = (*JPEG_SUFFIXES, ".png", ".webp")
+# Every other visible file of a photo folder is named in a warning as not read, except these sidecars that sit
+# beside drone and phone photos: metadata (.xmp, Apple's .aae), DJI's flight logs and RTK timestamps (.srt, .mrk),
+# notes and tables (.txt, .json, .csv). Camera raw and HEIF have no decoder here; TIFF is not read either, as where
+# its orientation tag is applied differs between OpenCV and Pillow versions (OpenCV 5.0 refuses an oriented TIFF).
+SIDECAR_SUFFIXES = (".xmp", ".aae", ".srt", ".mrk", ".txt", ".json", ".csv")
 MAX_VIEWS = 64  # views of one forward pass; more photos are reconstructed in chunks (anycity.city)
 
 
@@ -35,18 +37,20 @@ def list_photos(folder: str | Path) -> list[Path]:
     """The photos of ``folder`` (:data:`PHOTO_SUFFIXES`, any case; at least 2), sorted by name.
 
     Hidden files are not photos: a card copied from a Mac holds a ``._DJI_0001.JPG`` metadata file beside each
-    photo. Camera raw, HEIF and TIFF files are named in a warning, as they are not read.
+    photo. Any other file (camera raw, HEIF, TIFF, BMP, a video, ...) but the sidecars of :data:`SIDECAR_SUFFIXES` is
+    named in a warning, as it is not read.
     """
     folder = Path(folder)
     if not folder.is_dir():
         raise FileNotFoundError(f"predict_images: {folder} is not a folder; pass a folder holding one scene's photos")
     visible = sorted(p for p in folder.iterdir() if not p.name.startswith("."))
     files = [p for p in visible if _is_photo(p)]
-    unread = [p.name for p in visible if p.suffix.lower() in UNREAD_SUFFIXES]
+    unread = [p.name for p in visible
+              if p.suffix.lower() not in (*PHOTO_SUFFIXES, *SIDECAR_SUFFIXES) and not p.is_dir()]
     if unread:
         shown = ", ".join(unread[:5]) + (" ..." if len(unread) > 5 else "")
-        warnings.warn(f"predict_images: {len(unread)} camera raw, HEIF or TIFF files in {folder} are not read "
-                      f"({shown}); export them as JPEG to use them", stacklevel=2)
+        warnings.warn(f"predict_images: {len(unread)} file(s) in {folder} are not read ({shown}): only "
+                      f"{'/'.join(PHOTO_SUFFIXES)} photos are; export them as JPEG to use them", stacklevel=2)
     if len(files) < 2:
         only = f" (only {files[0].name})" if files else ""
         photos = "1 photo" if files else "no photos"
@@ -99,14 +103,14 @@ def load_photo(path: Path, hw: tuple[int, int], mode: str = "keep", patch: int =
         return "keep" if mode == "keep" and resize_plan(h, w, hw, "keep", patch)[2:] == tuple(hw) else "crop"
 
     r = 1
-    if path.suffix.lower() in (".jpg", ".jpeg"):
+    if path.suffix.lower() in JPEG_SUFFIXES:
         h, w = size or photo_size(path)  # as shown
         r = jpeg_reduction(h, w, *resize_plan(h, w, hw, fit(h, w), patch)[:2])
     flag = {1: cv2.IMREAD_COLOR, 2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4,
             8: cv2.IMREAD_REDUCED_COLOR_8}[r]
     # the orientation from where photo_size read it (Pillow), not OpenCV's: a PNG's ImageMagick "Raw profile type
     # exif" chunk is one that Pillow reads and OpenCV does not, which left such a photo sideways and cropped
-    bgr = cv2.imread(str(path), flag | cv2.IMREAD_IGNORE_ORIENTATION)
+    bgr = read_image(path, flag | cv2.IMREAD_IGNORE_ORIENTATION)
     if bgr is None:
         raise ValueError(f"predict_images: cannot decode {path}; re-save it as JPEG or PNG, or remove it")
     bgr = oriented(bgr, exif_orientation(path))
@@ -155,7 +159,8 @@ class PhotoFolder:
 
         self.folder = Path(folder)
         files = list_photos(self.folder)
-        idx, self.ordered_by = order_photos(files, order)
+        with pil_pixel_limit():  # order_photos reads capture times with Pillow
+            idx, self.ordered_by = order_photos(files, order)
         self.files = [files[i] for i in idx]
         self.names = [f.name for f in self.files]
         self.mode, self.patch = mode, patch

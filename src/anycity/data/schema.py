@@ -37,6 +37,9 @@ from typing import Any
 import cv2
 import numpy as np
 
+from anycity.data.imagecheck import pil_pixel_limit
+from anycity.geometry import camera_problem
+
 SCHEMA_VERSION = 2
 CAMERAS_KEY = "cameras.json"
 NORMAL_FRAME = "camera_opencv"
@@ -200,14 +203,52 @@ def decode_image(b: bytes, gray: bool = False, reduce: int = 1) -> np.ndarray:
     return arr if gray else cv2.cvtColor(arr, cv2.COLOR_BGR2RGB)
 
 
-def encode_scene(rec: SceneRecord, split: str, depth_dtype: str = "float16") -> dict[str, Any]:
+def _stored_hw(image: np.ndarray | bytes) -> tuple[int, int] | None:
+    """``(h, w)`` of an image array, or of encoded bytes from their header (None when unreadable)."""
+    if not isinstance(image, bytes):
+        return tuple(np.shape(image)[:2])
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with pil_pixel_limit(1 << 62), Image.open(io.BytesIO(image)) as im:  # the header only: no size limit
+            return im.size[::-1]
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError):
+        return None
+
+
+def view_problem(v: ViewRecord) -> str | None:
+    """What makes one view unfit for a shard, or None: an unsound camera (:func:`anycity.geometry.camera_problem`),
+    or an image, depth (``[H, W]``), normal (``[H, W, 3]``) or mask (``[H, W]``) that is not ``height`` x ``width``."""
+    problem = camera_problem(v.w2c, v.K)
+    if problem:
+        return problem
+    want = (int(v.height), int(v.width))
+    if min(want) < 1:
+        return f"width x height {v.width}x{v.height}; expected positive sides"
+    for name, a in (("image", v.image), ("depth", v.depth), ("normal", v.normal), ("mask", v.mask)):
+        if a is None:
+            continue
+        got = _stored_hw(a)
+        if got is None:
+            return f"image bytes are not a readable {v.ext} file"
+        if got != want or (name in ("depth", "mask") and np.ndim(a) != 2):
+            shape = "x".join(map(str, got if isinstance(a, bytes) else np.shape(a)))
+            return f"{name} is {shape}, expected {want[0]}x{want[1]} (the view's height x width)"
+    return None
+
+
+def encode_scene(rec: SceneRecord, split: str, depth_dtype: str = "float16", check: bool = True) -> dict[str, Any]:
     """SceneRecord -> webdataset sample dict (bytes values), ``cameras.json`` included.
 
-    Normals are written when the views carry them; a mask only when it differs from ``depth > 0``.
+    Normals are written when the views carry them; a mask only when it differs from ``depth > 0``. ``check``: refuse
+    in one line, naming the sample key and view, a view with a :func:`view_problem`.
     """
     sample: dict[str, Any] = {"__key__": check_key(rec.key)}
     views = []
     for i, v in enumerate(rec.views):
+        problem = view_problem(v) if check else None
+        if problem:
+            raise ValueError(f"sample {rec.key!r} view {i} ({v.name}): {problem}; fix that view or leave it out")
         keys = view_keys(i, v.ext)
         sample[keys["image"]] = v.image if isinstance(v.image, bytes) else encode_image(v.image, v.ext)
         entry: dict[str, Any] = {"name": v.name, "image": keys["image"], "depth": None, "normal": None, "mask": None,

@@ -25,6 +25,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from anycity.atomic import atomic_write_bytes
 from anycity.data.city import City, make_city
 from anycity.data.raycast import SceneTensors, fov_intrinsics, look_at, render
 from anycity.data.schema import SceneRecord, ViewRecord, decode_image, decode_npy, encode_image
@@ -184,6 +185,8 @@ def synth(out: str | Path, scenes: int = 8, views: int = 48, size: str | tuple[i
     """
     if trajectory not in TRAJECTORIES:
         raise ValueError(f"trajectory: expected one of {TRAJECTORIES}, got {trajectory!r}")
+    if int(seed) < 0:  # numpy's seeds are non-negative: refused here, not when the first city is made
+        raise ValueError(f"seed: expected an integer >= 0, got {seed}; pass --seed 0 or more")
     if scenes < 1 or views < 2:  # a sample needs a context view and another to score it on
         raise ValueError(f"scenes and views: expected scenes >= 1 and views >= 2, got scenes={scenes}, views={views}")
     if not 10 <= float(hfov) <= 120:
@@ -252,10 +255,12 @@ def write_preview(records: list[SceneRecord], path: str | Path, per_scene: int =
         rows.append(np.concatenate([cv2.resize(t, (tw, th), interpolation=cv2.INTER_AREA) for t in tiles], 1))
     width = max(r.shape[1] for r in rows)
     sheet = np.concatenate([np.pad(r, ((0, 2), (0, width - r.shape[1]), (0, 0)), constant_values=255) for r in rows])
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    cv2.imwrite(str(path), sheet[..., ::-1].copy(), [cv2.IMWRITE_PNG_COMPRESSION, 9])
-    return path
+    ok, png = cv2.imencode(".png", sheet[..., ::-1].copy(), [cv2.IMWRITE_PNG_COMPRESSION, 9])
+    if not ok:
+        raise ValueError(f"could not encode the preview {path} as PNG")
+    # encoded here and written by Python: OpenCV 5's imwrite crashes the process on a path that is not UTF-8
+    atomic_write_bytes(path, png.tobytes())
+    return Path(path)
 
 
 def load_depth(b: bytes) -> np.ndarray:

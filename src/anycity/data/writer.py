@@ -14,6 +14,7 @@ import os
 import re
 import secrets
 import socket
+import tarfile
 import time
 import warnings
 from pathlib import Path
@@ -22,7 +23,7 @@ import numpy as np
 import webdataset as wds
 
 from anycity.atomic import atomic_write_bytes
-from anycity.data.schema import SCHEMA_VERSION, SceneRecord, encode_scene, split_windows, window_bounds
+from anycity.data.schema import CAMERAS_KEY, SCHEMA_VERSION, SceneRecord, encode_scene, split_windows, window_bounds
 
 SPLITS = ("train", "val", "test")
 DEPTH_DTYPES = ("float16", "float32")
@@ -68,16 +69,20 @@ class ShardSetWriter:
         stride: views between window starts (default ``window // 2``: half-overlapping windows).
         window_splits: the splits that are windowed; evaluation splits stay whole scenes by default (each
             held-out view is scored once either way: windows own disjoint ranges).
-        overwrite: replace a shard set already in ``out`` (default: refuse).
+        overwrite: replace a shard set already in ``out`` (default: refuse), or files named like its shards.
+        check_views: refuse a view whose camera or array sizes are unsound (:func:`~anycity.data.schema.encode_scene`);
+            False writes them as given (tests of how readers handle a damaged set).
 
     The writer holds ``out``'s lock file (:data:`LOCK_NAME`) from here to :meth:`close` (or a failure in a
     ``with`` block). Shards named like this writer's (``{train,val,test}-NNNNNN.tar``) that the new index does not
     list, an earlier run's or a killed run's, are removed when the set is complete, with a warning naming them.
+    Without ``overwrite``, files of such names that are not an anycity run's (another webdataset set: their first
+    sample has no ``cameras.json``) are refused here, before anything is written.
     """
 
     def __init__(self, out: str | Path, maxcount: int = 64, maxsize: float = 1e9, depth_dtype: str = "float16",
-                 window: int | None = None, stride: int | None = None,
-                 window_splits: tuple[str, ...] = ("train",), overwrite: bool = False) -> None:
+                 window: int | None = None, stride: int | None = None, window_splits: tuple[str, ...] = ("train",),
+                 overwrite: bool = False, check_views: bool = True) -> None:
         try:  # an integer type would store metres truncated, modulo its range
             name = np.dtype(depth_dtype).name
         except (TypeError, ValueError):
@@ -92,6 +97,7 @@ class ShardSetWriter:
         self.out.mkdir(parents=True, exist_ok=True)
         self.maxcount, self.maxsize, self.depth_dtype = maxcount, maxsize, depth_dtype
         self.window, self.stride, self.window_splits = window, stride, tuple(window_splits)
+        self.check_views = check_views
         self._lock: Path | None
         self._lock, self._lock_text = _acquire_lock(self.out)
         try:
@@ -99,6 +105,12 @@ class ShardSetWriter:
             if index.exists() and not overwrite:
                 raise FileExistsError(f"{self.out} already holds a shard set (index.json); pass --overwrite to "
                                       "replace it or choose another --out")
+            foreign = [] if overwrite else _foreign_shards(self.out)
+            if foreign:
+                shown = ", ".join(foreign[:4]) + (f" and {len(foreign) - 4} more" if len(foreign) > 4 else "")
+                raise FileExistsError(f"{self.out} holds {len(foreign)} file(s) named like this writer's shards that "
+                                      f"no anycity run wrote ({shown}); pass --overwrite to replace them or choose "
+                                      "another --out")
             self._old_shards = _listed_shards(index)
             index.unlink(missing_ok=True)  # from here on the old index can never list a half-rewritten shard
             for stale in self.out.glob("*.tar.partial"):  # leftovers of a killed run: never listed, safe to drop
@@ -127,7 +139,7 @@ class ShardSetWriter:
         parts = split_windows(rec, self.window, self.stride) if split in self.window_splits else [rec]
         self._claim_keys([part.key for part in parts])
         for part in parts:
-            sample = encode_scene(part, split, self.depth_dtype)
+            sample = encode_scene(part, split, self.depth_dtype, check=self.check_views)
             try:
                 w.write(sample)
             except OSError as e:
@@ -235,6 +247,30 @@ def _listed_shards(index: Path) -> set[str]:
                 and _SHARD_RE.fullmatch(e["path"])}
     except (OSError, ValueError, AttributeError, TypeError):
         return set()
+
+
+def _foreign_shards(out: Path) -> list[str]:
+    """The files of ``out`` named like this writer's shards whose first sample has no ``cameras.json`` member (every
+    sample this writer writes has one; webdataset writes a sample's members in name order, so it comes last)."""
+    return sorted(p.name for p in out.iterdir() if _SHARD_RE.fullmatch(p.name) and p.is_file()
+                  and not _anycity_shard(p))
+
+
+def _anycity_shard(path: Path) -> bool:
+    """Whether the first sample of the tar ``path`` holds ``<key>.cameras.json`` (headers only are read)."""
+    try:
+        with tarfile.open(path, "r:") as tar:
+            first = None
+            while (m := tar.next()) is not None:
+                key = m.name.split(".", 1)[0]
+                if first not in (None, key):  # the first sample ended without one
+                    return False
+                first = key
+                if m.name == f"{key}.{CAMERAS_KEY}":
+                    return True
+    except (OSError, tarfile.TarError):
+        pass
+    return False
 
 
 def _read_lock(path: Path) -> tuple[str, dict | None] | None:

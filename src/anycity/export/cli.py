@@ -110,12 +110,15 @@ def _write(g, cams: dict | None, src: Path, fmt: str, out: Path) -> Path:
                            ply_file_path="points3D.ply")
 
 
+_PHOTO_SUFFIXES = (".jpg", ".jpeg", ".jfif", ".jpe", ".png", ".webp")  # data.photos' (export may not import data)
+
+
 def image_names(names: list[str]) -> list[str]:
     """Exported image file names for the cameras' view names: ``DJI_0018.jpg`` -> ``DJI_0018.png`` (the inputs are
     PNGs at the cameras' size), ``003`` -> ``003.png``; whitespace becomes ``_`` (COLMAP's images.txt and the
     readers of it split lines on spaces: ``DJI 0018.jpg`` -> ``DJI_0018.png``); prefixed with the view index where
     two would collide."""
-    stems = [Path(n).stem if Path(n).suffix.lower() in (".jpg", ".jpeg", ".png", ".webp") else n for n in names]
+    stems = [Path(n).stem if Path(n).suffix.lower() in _PHOTO_SUFFIXES else n for n in names]
     stems = ["_".join(s.split()) or "view" for s in stems]
     if len(set(stems)) < len(stems):
         stems = [f"{v:03d}_{s}" for v, s in enumerate(stems)]

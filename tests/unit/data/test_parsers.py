@@ -574,17 +574,14 @@ def test_matrixcity_exr_depth_is_read_with_or_without_opencv_s_exr_codec(tmp_pat
     for p in exrs:
         OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage},
                      {"R": cm, "G": cm, "B": cm}).write(str(p))
+    from anycity.data.parsers import matrixcity
+
     if reader == "opencv":
         monkeypatch.setenv("OPENCV_IO_ENABLE_OPENEXR", "1")  # before OpenCV 4.x first looks (it reads it once)
-        try:
-            read = cv2.haveImageReader(str(exrs[0]))
-        except cv2.error:
-            read = False
-        if not read:
+        if not matrixcity.opencv_reads_exr():
             pytest.skip("this OpenCV build has no OpenEXR codec")
     else:
-        monkeypatch.setattr(cv2, "haveImageReader", lambda *a: False)
-        monkeypatch.setattr(cv2, "imread", lambda *a: None)
+        monkeypatch.setattr(matrixcity, "opencv_reads_exr", lambda: False)
     convert("matrixcity", block, tmp_path / "out")
     sample = next(iter(wds.WebDataset(str(next((tmp_path / "out").glob("*.tar"))), shardshuffle=False)))
     want = np.array([[12.34, 0, 800.0, 2.505]], np.float32).repeat(H, 0).repeat(W // 4, 1)
@@ -597,12 +594,49 @@ def test_exr_depth_without_a_reader_is_refused_naming_what_to_install(tmp_path, 
     block, exrs = _exr_block(tmp_path)
     for p in exrs:
         p.write_bytes(b"v/1\x01" + bytes(60))
-    monkeypatch.setattr(cv2, "haveImageReader", lambda *a: False)
+    from anycity.data.parsers import matrixcity
+
+    monkeypatch.setattr(matrixcity, "opencv_reads_exr", lambda: False)
     monkeypatch.setitem(sys.modules, "OpenEXR", None)  # not installed
     with pytest.raises(ValueError, match=r"0000\.exr: cannot read EXR depth: this OpenCV build has no OpenEXR codec "
                                          r"and the OpenEXR package is not installed; pip install 'anycity\[exr\]' "
                                          r"\(or OpenEXR\)$"):
         convert("matrixcity", block, tmp_path / "out")
+
+
+@pytest.mark.parametrize("fmt", ["nerfstudio", "matrixcity"])
+def test_depth_in_a_folder_whose_name_is_not_utf8_is_read(tmp_path, child, latin1_path, fmt):
+    """A dataset in a folder with a latin-1 name (``caf\\xe9``, a surrogate-escaped str in Python): OpenCV 5's
+    imread (nerfstudio's depth PNGs) and haveImageReader (MatrixCity's EXR depth) crashed the process (SIGSEGV)."""
+    import os
+
+    import OpenEXR
+
+    made = tmp_path / "made"  # written under a plain name (cv2.imwrite would crash too), then renamed
+    if fmt == "nerfstudio":
+        _images(made / "images", [f"f{i}.png" for i in range(N)])
+        (made / "depth").mkdir()
+        frames = [{"file_path": f"images/f{i}.png", "depth_file_path": f"depth/f{i}.png",
+                   "transform_matrix": (np.linalg.inv(g) @ GL_TO_CV).tolist()} for i, g in enumerate(_gt())]
+        for fr in frames:
+            cv2.imwrite(str(made / fr["depth_file_path"]), np.full((H, W), 2500, np.uint16))  # mm
+        (made / "transforms.json").write_text(json.dumps({"fl_x": 30, "fl_y": 31, "cx": 16, "cy": 12, "w": W,
+                                                          "h": H, "frames": frames}))
+        sub = ""
+    else:
+        _, exrs = _exr_block(made)
+        cm = np.full((H, W), 250.0, np.float32)
+        for p in exrs:
+            OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage},
+                         {"R": cm, "G": cm, "B": cm}).write(str(p))
+        sub = "/aerial/train/block_1"
+    src = latin1_path(tmp_path, b"caf\xe9")
+    os.rmdir(src)
+    os.rename(made, src)
+    child("import sys; from anycity.data.parsers import convert; convert(sys.argv[1], sys.argv[2], sys.argv[3])",
+          fmt, src + sub, str(tmp_path / "out"))
+    sample = next(iter(wds.WebDataset(str(next((tmp_path / "out").glob("*.tar"))), shardshuffle=False)))
+    np.testing.assert_allclose(np.load(io.BytesIO(sample["001.depth.npy"])), 2.5)
 
 
 @pytest.mark.parametrize("max_side", [-5, 0, 7])
@@ -634,3 +668,15 @@ def test_a_view_comes_back_encoded_as_the_shard_stores_it(tmp_path, ext, dist, m
     if max_side:
         img = cv2.resize(img, (rec.width, rec.height), interpolation=cv2.INTER_AREA)
     assert rec.image == encode_image(img[..., ::-1], rec.ext)
+
+
+@pytest.mark.parametrize("ext", [".jfif", ".jpe", ".JPG"])
+def test_every_jpeg_suffix_a_photo_folder_reads_is_stored_as_its_own_jpeg_bytes(tmp_path, ext):
+    """A .jfif or .jpe photo (Windows' names for saved JPEGs) is a JPEG: the shard keeps its bytes, not a PNG copy."""
+    from anycity.data.parsers.base import ParsedView, _load_view
+
+    rng = np.random.default_rng(0)
+    ok, buf = cv2.imencode(".jpg", rng.integers(0, 255, (H, W, 3), dtype=np.uint8))
+    (tmp_path / f"a{ext}").write_bytes(buf.tobytes())
+    rec = _load_view(ParsedView("a", tmp_path / f"a{ext}", np.eye(4), K, W, H), None)
+    assert rec.ext == "jpg" and rec.image == buf.tobytes()

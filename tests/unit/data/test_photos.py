@@ -126,10 +126,57 @@ def test_hidden_files_are_not_photos_and_raw_files_are_named(tmp_path):
     (d / "._DJI_0001.JPG").write_bytes(b"\x00\x05\x16\x07Mac OS X")
     (d / "DJI_0001.DNG").write_bytes(b"raw")
     (d / "DJI_0002.tif").write_bytes(b"tiff")
-    with pytest.warns(UserWarning, match=r"2 camera raw, HEIF or TIFF files .* not read \(DJI_0001\.DNG, "
-                      r"DJI_0002\.tif\); export them as JPEG"):
+    with pytest.warns(UserWarning, match=r"2 file\(s\) in .* are not read \(DJI_0001\.DNG, DJI_0002\.tif\): only "
+                                         r"\.jpg/.*photos are; export them as JPEG"):
         out = load_photo_folder(d, (32, 32))
     assert out["names"] == ["DJI_0001.JPG", "DJI_0002.JPG"]
+
+
+def test_jfif_and_jpe_are_photos_and_any_other_file_but_a_sidecar_is_named(tmp_path):
+    """``.jfif`` / ``.jpe`` JPEGs, and BMP, AVIF, JPEG 2000 files, were dropped from a folder without a word."""
+    import warnings
+
+    from anycity.data.photos import list_photos
+
+    d = tmp_path / "flight"
+    d.mkdir()
+    for i, name in enumerate(["DJI_0001.JPG", "DJI_0002.jfif", "DJI_0003.JPE"]):  # OpenCV writes no .jfif
+        (d / name).write_bytes(cv2.imencode(".jpg", np.full((32, 32, 3), 60 * i, np.uint8))[1].tobytes())
+    for name in ["DJI_0004.bmp", "DJI_0005.avif", "DJI_0006.jp2", "DJI_0007.MP4"]:
+        (d / name).write_bytes(b"x")
+    for suffix in (".xmp", ".aae", ".srt", ".mrk", ".txt", ".json", ".csv"):  # metadata, flight logs, notes: not named
+        (d / f"DJI_0001{suffix.upper()}").write_bytes(b"x")
+    (d / "images_2.bmp").mkdir()  # a folder is not a file left out
+    with warnings.catch_warnings(record=True) as w:
+        warnings.simplefilter("always")
+        files = list_photos(d)
+    assert [p.name for p in files] == ["DJI_0001.JPG", "DJI_0002.jfif", "DJI_0003.JPE"]
+    assert [str(m.message) for m in w] == [
+        f"predict_images: 4 file(s) in {d} are not read (DJI_0004.bmp, DJI_0005.avif, DJI_0006.jp2, DJI_0007.MP4): "
+        "only .jpg/.jpeg/.jfif/.jpe/.png/.webp photos are; export them as JPEG to use them"]
+    flags = []
+    import anycity.data.photos as photos
+
+    read = photos.read_image
+    with pytest.MonkeyPatch.context() as mp, pytest.warns(UserWarning, match="4 file"):
+        mp.setattr(photos, "read_image", lambda f, flag: flags.append(flag) or read(f, flag))
+        out = load_photo_folder(d, (8, 8), mode="keep", patch=8)
+    assert out["images"].shape == (3, 3, 8, 8)
+    assert flags == [cv2.IMREAD_REDUCED_COLOR_4 | cv2.IMREAD_IGNORE_ORIENTATION] * 3  # each decoded as a JPEG
+
+
+def test_a_photo_whose_file_name_is_not_utf8_loads(tmp_path, child, latin1_path):
+    """A latin-1 ``caf\\xe9.jpg`` (an old card, a zip) is a surrogate-escaped str in Python, on which OpenCV 5's
+    imread crashed the process (SIGSEGV)."""
+    ok, jpg = cv2.imencode(".jpg", np.random.default_rng(0).integers(0, 255, (48, 64, 3), dtype=np.uint8))
+    (tmp_path / "flight").mkdir()
+    (tmp_path / "flight" / "a.jpg").write_bytes(jpg.tobytes())
+    latin1_path(tmp_path / "flight", b"caf\xe9.jpg", jpg.tobytes())
+    out = child("import sys; from anycity.data.photos import load_photo_folder\n"
+                "out = load_photo_folder(sys.argv[1], (24, 32), mode='crop', patch=8)\n"
+                "print([n.encode('utf-8', 'surrogateescape') for n in out['names']], tuple(out['images'].shape), "
+                "bool((out['images'][0] == out['images'][1]).all()))", str(tmp_path / "flight"))
+    assert out.split() == ["[b'a.jpg',", "b'caf\\xe9.jpg']", "(2,", "3,", "24,", "32)", "True"]
 
 
 def test_large_jpegs_decode_at_a_fraction_of_their_size(tmp_path, monkeypatch):
@@ -149,12 +196,12 @@ def test_large_jpegs_decode_at_a_fraction_of_their_size(tmp_path, monkeypatch):
     Image.fromarray(img).save(d / "a.jpg", quality=95, exif=exif)
     Image.fromarray(img).save(d / "b.JPG", quality=95, exif=exif)
     flags = []
-    imread = cv2.imread
-    monkeypatch.setattr(photos.cv2, "imread", lambda f, flag: flags.append(flag) or imread(f, flag))
+    read = photos.read_image
+    monkeypatch.setattr(photos, "read_image", lambda f, flag: flags.append(flag) or read(f, flag))
     out = load_photo_folder(d, (64, 48), mode="keep", patch=8)
     assert flags == [cv2.IMREAD_REDUCED_COLOR_8 | cv2.IMREAD_IGNORE_ORIENTATION] * 2
     assert out["images"].shape == (2, 3, 64, 48)
-    full = imread(str(d / "a.jpg"), cv2.IMREAD_COLOR)[..., ::-1]
+    full = cv2.imread(str(d / "a.jpg"), cv2.IMREAD_COLOR)[..., ::-1]
     assert full.shape[:2] == (640, 480)  # upright
     ref, *_ = resize_view(np.ascontiguousarray(full), np.eye(3), (64, 48), "keep", 8)
     err = (out["images"][0].permute(1, 2, 0).numpy() - ref / 255).__abs__().mean()

@@ -73,3 +73,47 @@ def test_corrupt_tar_bytes(tmp_path):
     sample = next(iter(wds.WebDataset(str(p), shardshuffle=False)))
     with pytest.raises(ValueError, match=r"train-000000.tar.*'cameras.json'"):
         read_meta(sample)
+
+
+def _broken(case):
+    rec = _record("bad")
+    v = rec.views[1]
+    if case == "scaled rotation":
+        v.w2c = v.w2c.copy()
+        v.w2c[:3, :3] *= 2
+    elif case == "mirrored rotation":
+        v.w2c = np.diag([-1.0, 1, 1, 1]) @ v.w2c
+    elif case == "negative fy":
+        v.K = np.diag([30.0, -30.0, 1.0])
+    elif case == "NaN translation":
+        v.w2c = v.w2c.copy()
+        v.w2c[0, 3] = np.nan
+    elif case == "depth":
+        v.depth = v.depth[:, :16]
+    elif case == "normal":
+        v.normal = np.zeros((30, 20, 3), np.float32)
+    elif case == "mask":
+        v.mask = np.ones((20, 30, 1), bool)
+    elif case == "image bytes":
+        import cv2
+
+        v.image = cv2.imencode(".png", np.zeros((20, 31, 3), np.uint8))[1].tobytes()
+    return rec
+
+
+@pytest.mark.parametrize("case,said", [
+    ("scaled rotation", "camera pose is not a rigid rotation"), ("mirrored rotation", "not a rigid rotation"),
+    ("negative fy", r"focal lengths > 0 \(got fx=30, fy=-30\)"), ("NaN translation", "camera holds NaN/inf"),
+    ("depth", r"depth is 20x16, expected 20x30 \(the view's height x width\)"), ("normal", "normal is 30x20x3"),
+    ("mask", "mask is 20x30x1"), ("image bytes", "image is 20x31, expected 20x30")])
+def test_a_view_with_an_unsound_camera_or_array_size_is_refused_naming_it(tmp_path, case, said):
+    """The writer stored cameras every converter refuses (camera_problem) and arrays of another size than the
+    view's; the sample builder then read them without a word (a mirrored world, a stretched depth map)."""
+    with pytest.raises(ValueError, match=rf"^sample 'bad' view 1 \(img1\.png\): .*{said}.*; fix that view or leave it "
+                                         r"out$"):
+        with ShardSetWriter(tmp_path / "out") as w:
+            w.write(_record("good"), "train")
+            w.write(_broken(case), "train")
+    assert not (tmp_path / "out" / "index.json").exists()
+    with ShardSetWriter(tmp_path / "raw", check_views=False) as w:  # a damaged set on purpose: readers' tests
+        w.write(_broken(case), "train")

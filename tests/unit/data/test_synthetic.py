@@ -199,6 +199,35 @@ def test_bad_window_and_depth_dtype_are_refused_before_a_scene_is_rendered(tmp_p
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
 
 
+def test_a_negative_seed_is_refused_naming_it_before_the_out_folder_is_made(tmp_path, capsys):
+    """numpy's "expected non-negative integer" named neither --seed nor the fix, after --out was created."""
+    with pytest.raises(ValueError, match=r"^seed: expected an integer >= 0, got -1; pass --seed 0 or more$"):
+        synth(tmp_path / "a", scenes=1, views=2, size="16x16", workers=1, seed=-1)
+    from anycity.cli import main
+
+    assert main(["data", "synth", "--out", str(tmp_path / "b"), "--scenes", "1", "--views", "2", "--size", "16x16",
+                 "--workers", "1", "--seed", "-3"]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "seed: expected an integer >= 0, got -3; pass --seed 0 or more" in err[0], err
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
+def test_preview_in_a_folder_whose_name_is_not_utf8(tmp_path, child, latin1_path):
+    """``--out`` with a latin-1 name (``caf\\xe9``): OpenCV 5's imwrite crashed the process (SIGSEGV) on the
+    surrogate-escaped path of preview.png, after the shards were written."""
+    import os
+
+    out = latin1_path(tmp_path, b"caf\xe9")
+    os.rmdir(out)
+    child("import sys; from anycity.data.cli import data_main\n"
+          "sys.exit(data_main(['synth', '--out', sys.argv[1], '--scenes', '1', '--views', '2', '--size', '16x16', "
+          "'--workers', '1', '--trajectory', 'orbit', '--preview']))", out)
+    names = sorted(os.listdir(os.fsencode(out)))
+    assert names == [b"index.json", b"preview.png", b"train-000000.tar"], names
+    with open(os.path.join(os.fsencode(out), b"preview.png"), "rb") as f:
+        assert f.read(8) == b"\x89PNG\r\n\x1a\n"
+
+
 def test_two_identical_runs_write_identical_bytes(tmp_path):
     import time
 

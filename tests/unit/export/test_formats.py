@@ -147,6 +147,11 @@ def test_exports_carry_a_photo_folders_input_images(tmp_path):
     # COLMAP's images.txt is split on spaces: a photo named with one would lose the rest of its name there
     assert image_names(["DJI 0001.JPG", "DJI_0001.png"]) == ["000_DJI_0001.png", "001_DJI_0001.png"]
     assert image_names(["IMG 7 .jpg"]) == ["IMG_7.png"]
+    # every suffix a photo folder reads (data.photos.PHOTO_SUFFIXES) is replaced, not kept inside the name
+    from anycity.data.photos import PHOTO_SUFFIXES
+
+    names = [f"p{i}{s}" for i, s in enumerate(PHOTO_SUFFIXES)]
+    assert image_names(names) == [f"p{i}.png" for i in range(len(names))]
 
 
 def test_ply_export_and_errors(tmp_path, capsys):

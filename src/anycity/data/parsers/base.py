@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 
 from anycity.data.imagecheck import check_jpeg_complete
+from anycity.data.photos import JPEG_SUFFIXES
 from anycity.data.schema import SceneRecord, ViewRecord, encode_image
 from anycity.data.writer import SPLITS, ShardSetWriter, split_scenes
 
@@ -137,7 +138,7 @@ def _load_view(v: ParsedView, max_side: int | None) -> ViewRecord:
         if depth is not None:
             depth = _resize_depth(depth, w, h)
         img, depth, K = undistort(img, depth, K, np.asarray(v.dist, np.float64))
-    ext = "jpg" if v.image_path.suffix.lower() in (".jpg", ".jpeg") else "png"
+    ext = "jpg" if v.image_path.suffix.lower() in JPEG_SUFFIXES else "png"
     s = min(1.0, max_side / max(h, w)) if max_side else 1.0
     resized = s < 1.0
     if resized:
@@ -146,7 +147,7 @@ def _load_view(v: ParsedView, max_side: int | None) -> ViewRecord:
         K[0] *= nw / w
         K[1] *= nh / h
         w, h = nw, nh
-    kept = not distorted and not resized and v.image_path.suffix.lower() in (".jpg", ".jpeg", ".png")
+    kept = not distorted and not resized and v.image_path.suffix.lower() in (*JPEG_SUFFIXES, ".png")
     image = raw if kept else encode_image(img[..., ::-1], ext)
     mask = None
     if depth is not None:

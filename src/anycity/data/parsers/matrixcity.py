@@ -25,6 +25,7 @@ folder's (``block_1_test``) or the folder above it (``aerial/test/``).
 
 from __future__ import annotations
 
+import functools
 import glob
 import json
 import math
@@ -35,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from anycity.data.imagecheck import image_size
+from anycity.data.imagecheck import image_size, read_image
 from anycity.data.parsers.base import ParsedScene, ParsedView, c2w_gl_to_w2c, require
 
 _DEPTH_EXTS = (".exr", ".npy")
@@ -66,19 +67,26 @@ def read_exr(path: Path) -> np.ndarray:
     os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")  # read once, at OpenCV's first EXR file
     import cv2
 
-    try:
-        cv_reads = cv2.haveImageReader(str(path))
-    except cv2.error:  # OpenCV 4.x with the codec disabled
-        cv_reads = False
-    if cv_reads:
-        try:
-            img = cv2.imread(str(path), cv2.IMREAD_ANYCOLOR | cv2.IMREAD_ANYDEPTH)
-        except cv2.error:
-            img = None
+    if opencv_reads_exr():
+        img = read_image(path, cv2.IMREAD_ANYCOLOR | cv2.IMREAD_ANYDEPTH)
         if img is None:
             raise ValueError(f"{path}: not a readable EXR; re-extract the depth archive")
         return np.asarray(img[..., 0] if img.ndim == 3 else img, np.float32)
     return _read_openexr(path)
+
+
+@functools.cache
+def opencv_reads_exr() -> bool:
+    """Whether this OpenCV build has the OpenEXR codec (4.x: with ``OPENCV_IO_ENABLE_OPENEXR``; 5.0's wheels have
+    none), by encoding and decoding one pixel: ``cv2.haveImageReader`` takes a path, which OpenCV 5 crashes on
+    when it is not UTF-8."""
+    import cv2
+
+    try:
+        ok, buf = cv2.imencode(".exr", np.ones((1, 1), np.float32))
+        return bool(ok) and cv2.imdecode(buf, cv2.IMREAD_ANYCOLOR | cv2.IMREAD_ANYDEPTH) is not None
+    except cv2.error:
+        return False
 
 
 def _read_openexr(path: Path) -> np.ndarray:
@@ -88,7 +96,8 @@ def _read_openexr(path: Path) -> np.ndarray:
         raise ValueError(f"{path}: cannot read EXR depth: this OpenCV build has no OpenEXR codec and the OpenEXR "
                          "package is not installed; pip install 'anycity[exr]' (or OpenEXR)") from None
     try:
-        channels = OpenEXR.File(str(path), separate_channels=True).channels()
+        # the bytes of the name: OpenEXR refuses a str path that is not UTF-8 (a latin-1 folder name)
+        channels = OpenEXR.File(os.fsencode(path), separate_channels=True).channels()
     except Exception as e:  # noqa: BLE001 - any damaged file: one line naming it
         raise ValueError(f"{path}: not a readable EXR ({type(e).__name__}); re-extract the depth archive") from None
     name = next((c for c in ("B", "Y", "R", "G") if c in channels), None)

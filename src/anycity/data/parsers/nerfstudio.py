@@ -17,6 +17,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from anycity.data.imagecheck import read_image
 from anycity.data.parsers.base import ParsedScene, ParsedView, c2w_gl_to_w2c, require
 
 _DIST = ("k1", "k2", "p1", "p2", "k3")  # OpenCV's order
@@ -71,7 +72,7 @@ def parse(src: str | Path) -> list[ParsedScene]:
             dp = root / fr["depth_file_path"]
 
             def depth(dp=dp):
-                raw = cv2.imread(str(require(dp, "a 16-bit depth png")), cv2.IMREAD_UNCHANGED)
+                raw = read_image(require(dp, "a 16-bit depth png"), cv2.IMREAD_UNCHANGED)
                 if raw is None or raw.ndim != 2:
                     raise ValueError(f"{dp}: not a one-channel depth png; re-export it, or drop its depth_file_path")
                 return raw.astype(np.float32) * scale
