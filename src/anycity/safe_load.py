@@ -72,5 +72,9 @@ def safe_torch_load(path: str | os.PathLike, map_location: Any = "cpu", *, mmap:
         raise ValueError(f"refusing to load {what} {path}: it holds objects other than tensors and plain data "
                          f"({_first_line(e)}); only load files from a source you trust, or re-save it as a plain "
                          "state_dict") from None
-    except (RuntimeError, EOFError) as e:  # truncated / not a torch file
+    except (FileNotFoundError, PermissionError, IsADirectoryError):  # the caller's one-line handling of these
+        raise
+    # truncated / not a torch file: a zip cut short raises OSError (EINVAL) or RuntimeError, text read as a legacy
+    # pickle (an HTTP error page saved as the file) KeyError, IndexError or ValueError
+    except (RuntimeError, EOFError, OSError, KeyError, IndexError, ValueError) as e:
         raise unreadable(e) from None

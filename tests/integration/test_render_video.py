@@ -101,3 +101,74 @@ def test_without_the_viewer_extra_render_video_is_one_line(tmp_path, capsys, mon
     err = capsys.readouterr().err.strip()
     assert "render-video needs the viewer extra" in err and "pip install -e '.[viewer]'" in err
     assert len(err.splitlines()) == 1
+
+
+_FFMPEG_CANNOT_FINISH = r"""
+import resource, sys
+from anycity.cli import main
+folder, out, limit = sys.argv[1], sys.argv[2], int(sys.argv[3])
+resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))  # ffmpeg inherits it: a disk or quota that fills up
+sys.exit(main(["render-video", folder, "--out", out, "--per-segment", "4", "--width", "96", "--overwrite"]))
+"""
+
+
+def test_a_video_ffmpeg_cannot_finish_is_not_published_over_the_earlier_one(tmp_path):
+    """imageio-ffmpeg ignores ffmpeg's exit status: ffmpeg failing at its last write (the mp4's index) left a cut,
+    unplayable mp4 that was renamed over the good one under --overwrite, and render-video said "wrote"."""
+    import subprocess
+    import sys
+
+    imageio_ffmpeg = pytest.importorskip("imageio_ffmpeg")
+    (tmp_path / "s").mkdir()
+    folder = tiny_predict_folder(tmp_path / "s", n=400, with_prov=False)
+    out = tmp_path / "fly.mp4"
+    assert main(["render-video", str(folder), "--out", str(out), "--per-segment", "4", "--width", "96"]) == 0
+    good = out.read_bytes()
+    assert imageio_ffmpeg.count_frames_and_secs(str(out))[0] == 9
+    child = subprocess.run([sys.executable, "-c", _FFMPEG_CANNOT_FINISH, str(folder), str(out), str(len(good) // 2)],
+                           capture_output=True, text=True, timeout=300)
+    err = child.stderr.strip().splitlines()[-1]
+    assert child.returncode == 2, child.stdout + child.stderr
+    assert f"anycity: error: --out {out}: ffmpeg failed writing the video" in err and "wrote" not in child.stdout
+    assert out.read_bytes() == good
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["fly.mp4", "s"]  # no temp file left
+
+
+def test_ffmpeg_exiting_midway_is_one_line_naming_out(tmp_path, monkeypatch):
+    """ffmpeg that dies while frames are sent (a broken pipe): imageio's OSError, with ffmpeg's whole command line,
+    ended render-video in a traceback."""
+    imageio_ffmpeg = pytest.importorskip("imageio_ffmpeg")
+    from anycity.viewer import video
+
+    folder, out = _scene_and_an_earlier_video(tmp_path)
+    real = imageio_ffmpeg.write_frames
+
+    def dies_after_two(path, *args, **kwargs):
+        writer = real(path, *args, **kwargs)
+        frame = yield
+        writer.send(None)
+        for _ in range(2):
+            writer.send(frame)
+            frame = yield
+        writer.close()
+        raise OSError("[Errno 32] Broken pipe\n\nFFMPEG COMMAND:\nffmpeg -y ...")
+
+    monkeypatch.setattr(imageio_ffmpeg, "write_frames", dies_after_two)
+    with pytest.raises(ValueError, match=r"--out .*fly\.mp4: ffmpeg failed writing the video \(it stopped after 2 "
+                                         r"frames") as e:
+        video.render_video(folder, out, per_segment=2, width=16, progress=False)
+    assert "\n" not in str(e.value) and out.read_bytes() == b"an earlier video"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["fly.mp4", "s"]
+
+
+def test_a_damaged_input_image_does_not_stop_render_video(tmp_path):
+    """render-video never shows the input images, yet loaded them: a cut inputs/001.png (an interrupted copy) ended
+    it in an OSError traceback."""
+    pytest.importorskip("imageio_ffmpeg")
+    (tmp_path / "s").mkdir()
+    folder = tiny_predict_folder(tmp_path / "s", n=50, with_prov=False)
+    png = folder / "inputs" / "001.png"
+    png.write_bytes(png.read_bytes()[:60])
+    out = tmp_path / "fly.mp4"
+    assert main(["render-video", str(folder), "--out", str(out), "--per-segment", "1", "--width", "16"]) == 0
+    assert out.stat().st_size > 100

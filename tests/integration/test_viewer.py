@@ -110,3 +110,49 @@ def test_view_refuses_an_empty_scene_and_a_missing_extra_in_one_line(tmp_path, c
     assert main(["view", str(tiny_predict_folder(tmp_path / "full", n=10)), "--port", "0"]) == 2
     err = capsys.readouterr().err.strip()
     assert "anycity view needs the viewer extra" in err and len(err.splitlines()) == 1
+
+
+_VIEW = "import sys; from anycity.cli import main; sys.exit(main(sys.argv[1:]))"
+
+
+@pytest.mark.parametrize("host, why", [("nohost.invalid", "cannot resolve it"),
+                                       ("203.0.113.7", "not an address of this machine")])
+def test_a_host_the_viewer_cannot_listen_on_is_one_line_not_a_hang(tmp_path, host, why):
+    """viser's server thread died (or tried 1000 ports) and `anycity view` waited for it forever, printing nothing."""
+    import sys
+
+    pytest.importorskip("viser")
+    folder = tiny_predict_folder(tmp_path, n=10)
+    try:
+        child = subprocess.run([sys.executable, "-c", _VIEW, "view", str(folder), "--host", host, "--port", "0"],
+                               capture_output=True, text=True, timeout=90)
+    except subprocess.TimeoutExpired:
+        pytest.fail(f"anycity view --host {host} hung")
+    err = child.stderr.strip()
+    assert child.returncode == 2 and len(err.splitlines()) == 1, err
+    assert f"--host {host}: {why}" in err and "127.0.0.1" in err
+
+
+def test_a_taken_port_moves_up_and_a_taken_65535_is_one_line(tmp_path):
+    """--port 65535 taken: viser moved to 65536, its thread died on the OverflowError and view hung."""
+    import socket
+
+    pytest.importorskip("viser")
+    from anycity.viewer.server import build_server, listen_port
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        assert listen_port("127.0.0.1", port) > port
+        assert listen_port("127.0.0.1", 0) == 0
+    with socket.socket() as top:
+        top.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            top.bind(("127.0.0.1", 65535))
+        except OSError:
+            pytest.skip("port 65535 is in use here")
+        top.listen()
+        with pytest.raises(ValueError, match=r"--port 65535: it is taken on 127\.0\.0\.1; pass --port 0") as e:
+            build_server(tiny_predict_folder(tmp_path, n=10), port=65535)
+        assert "\n" not in str(e.value)

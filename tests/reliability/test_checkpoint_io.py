@@ -37,6 +37,52 @@ def test_truncated_checkpoint_is_a_one_line_error(tmp_path):
         safe_torch_load(path)
 
 
+@pytest.fixture(scope="module")
+def _full_ckpt(tmp_path_factory):
+    path = tmp_path_factory.mktemp("full") / "full.ckpt"
+    torch.save({"state_dict": {"w": torch.randn(256, 256, generator=torch.Generator().manual_seed(0))}, "epoch": 3},
+               path)
+    return path.read_bytes()
+
+
+@pytest.mark.parametrize("mmap", [False, True])
+@pytest.mark.parametrize("cut", [0, 1, 100, 5_000, 20_000, 40_000, 60_000, 200_000])
+def test_a_checkpoint_cut_anywhere_is_a_one_line_error(_full_ckpt, tmp_path, cut, mmap):
+    """A download stopped at 5..69 KB raised OSError (Errno 22) from the zip reader, a traceback."""
+    path = tmp_path / "cut.ckpt"
+    path.write_bytes(_full_ckpt[:cut])
+    with pytest.raises(ValueError, match=r"cannot read checkpoint .*cut\.ckpt: .*truncated or not a torch file") as e:
+        safe_torch_load(path, mmap=mmap)
+    assert "\n" not in str(e.value)
+
+
+@pytest.mark.parametrize("body", ["Not Found", "<html><body>502 Bad Gateway</body></html>", "Repository not found",
+                                  '{"error": 1}', "Nothing here", "(ello world", "]ello world", "hello", "jello"])
+def test_a_text_file_saved_as_a_checkpoint_is_a_one_line_error(tmp_path, body):
+    """An HTTP error body saved by `curl -o` (no -f): some text starting with 'N', '(' or ']' raised IndexError,
+    with 'h' or 'j' KeyError, from the legacy unpickler."""
+    path = tmp_path / "dl.ckpt"
+    path.write_text(body + "\n")
+    with pytest.raises(ValueError, match=r"cannot read checkpoint .*dl\.ckpt: .*truncated or not a torch file") as e:
+        safe_torch_load(path)
+    assert "\n" not in str(e.value)
+
+
+def test_missing_and_unreadable_paths_keep_their_own_errors(tmp_path, monkeypatch):
+    """OSError is now read as "truncated", but not a missing file or one this user may not read."""
+    with pytest.raises(FileNotFoundError, match="checkpoint not found"):
+        safe_torch_load(tmp_path / "nope.ckpt")
+    path = tmp_path / "private.ckpt"
+    torch.save({"w": torch.zeros(2)}, path)
+
+    def denied(*args, **kwargs):
+        raise PermissionError(13, "Permission denied", str(path))
+
+    monkeypatch.setattr(torch, "load", denied)  # root reads a 0o000 file, so the refusal is simulated
+    with pytest.raises(PermissionError, match="Permission denied"):
+        safe_torch_load(path)
+
+
 def test_save_then_load_roundtrip_plain_data(tmp_path):
     io = SafeCheckpointIO()
     ckpt = {"state_dict": {"w": torch.randn(3)}, "epoch": 1, "hyper_parameters": {"lr": 1e-3, "size": (32, 32)}}

@@ -206,3 +206,30 @@ def test_photo_folder_hostile_images(tmp_path, kind, ok):
         _one_line_naming(e.value, bad)
     grew_mb = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss0) / 1024
     assert grew_mb < 500, f"{kind}: peak memory grew by {grew_mb:.0f} MB"  # the 30000^2 bomb was not allocated
+
+
+@pytest.mark.parametrize("n_rest", [3, 6, 12, 27, 30, 46])
+def test_a_ply_with_no_sh_degrees_f_rest_count_is_refused(tmp_path, n_rest):
+    """6 f_rest (2 coefficients beyond DC: no SH degree has 3) loaded as a "degree" that the renderer's SH evaluation
+    then read wrongly; a count that is no (d + 1)^2 - 1 per channel is refused in one line naming the file."""
+    from plyfile import PlyData, PlyElement
+
+    p = tmp_path / "scene.ply"
+    save_ply(_gaussians(), p, max_degree=0)
+    v = PlyData.read(str(p))["vertex"].data
+    data = np.zeros(len(v), dtype=v.dtype.descr + [(f"f_rest_{i}", "<f4") for i in range(n_rest)])
+    for name in v.dtype.names:
+        data[name] = v[name]
+    PlyData([PlyElement.describe(data, "vertex")]).write(str(p))
+    with pytest.raises(ValueError, match=rf"scene\.ply .*{n_rest} f_rest_\* properties: no SH degree") as e:
+        load_ply(p)
+    _one_line_naming(e.value, p)
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_a_ply_of_every_sh_degree_still_loads(tmp_path, degree):
+    g = _gaussians()
+    g = Gaussians(means=g.means, quats=g.quats, scales=g.scales, opacities=g.opacities,
+                  sh=torch.randn(1, 20, 16, 3, generator=torch.Generator().manual_seed(1)))
+    save_ply(g, tmp_path / "scene.ply", max_degree=degree)
+    assert load_ply(tmp_path / "scene.ply").sh.shape == (1, 20, (degree + 1) ** 2, 3)

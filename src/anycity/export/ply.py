@@ -172,6 +172,10 @@ def _read_ply(path: Path) -> Gaussians:
         return torch.from_numpy(np.stack([np.asarray(v[k], dtype=np.float32) for k in keys], -1))
 
     n_rest = sum(1 for k in names if k.startswith("f_rest_"))
+    coeffs = n_rest // 3 + 1  # SH coefficients per channel: (degree + 1)^2
+    if n_rest % 3 or round(coeffs ** 0.5) ** 2 != coeffs:
+        raise ValueError(f"{n_rest} f_rest_* properties: no SH degree has that many (3 * ((degree + 1)^2 - 1): 0, 9, "
+                         "24, 45, ...)")  # load_ply names the file
     dc = col("f_dc_0", "f_dc_1", "f_dc_2")[:, None, :]
     rest = col(*[f"f_rest_{i}" for i in range(n_rest)]).reshape(-1, 3, n_rest // 3).transpose(1, 2) if n_rest \
         else dc[:, :0]

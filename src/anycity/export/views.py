@@ -10,6 +10,8 @@ import numpy as np
 from PIL import Image
 from torch import Tensor
 
+from anycity.atomic import atomic_open
+
 
 def view_png(folder: str | Path, kind: str, view: int) -> Path:
     """``folder/kind/NNN.png`` for view index ``view``."""
@@ -17,10 +19,12 @@ def view_png(folder: str | Path, kind: str, view: int) -> Path:
 
 
 def save_view_pngs(folder: str | Path, kind: str, images: Tensor, views: Sequence[int]) -> None:
-    """Write ``images[j]`` (``[V, 3, H, W]``, in [0, 1]) as the 8-bit PNG ``view_png(folder, kind, views[j])``."""
+    """Write ``images[j]`` (``[V, 3, H, W]``, in [0, 1]) as the 8-bit PNG ``view_png(folder, kind, views[j])``,
+    each through :func:`anycity.atomic.atomic_open`: a killed run leaves no truncated PNG for the viewer to read."""
     if len(views) != len(images):
         raise ValueError(f"{len(images)} images for {len(views)} view indices")
     (Path(folder) / kind).mkdir(parents=True, exist_ok=True)
     for v, img in zip(views, images, strict=True):
         arr = (img.float().clamp(0, 1).permute(1, 2, 0).cpu().numpy() * 255 + 0.5).astype(np.uint8)
-        Image.fromarray(arr).save(view_png(folder, kind, v))
+        with atomic_open(view_png(folder, kind, v)) as f:
+            Image.fromarray(arr).save(f, format="PNG")

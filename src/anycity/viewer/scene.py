@@ -3,6 +3,7 @@ input thumbnails, loaded from a predict folder or a ``scene.ply``."""
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -35,8 +36,9 @@ class ViewScene:
     thumbs: list[np.ndarray] = field(default_factory=list)
 
 
-def load_view_scene(path: str | Path, thumb_side: int = 128) -> ViewScene:
-    """The scene at ``path`` (a predict folder or a ``scene.ply``); one line for a scene with no Gaussians."""
+def load_view_scene(path: str | Path, thumb_side: int = 128, thumbs: bool = True) -> ViewScene:
+    """The scene at ``path`` (a predict folder or a ``scene.ply``); one line for a scene with no Gaussians.
+    ``thumbs=False`` skips the input thumbnails (render-video never shows them)."""
     path = Path(path)
     g, cams = load_scene(path)
     folder = path if path.is_dir() else path.parent
@@ -48,14 +50,27 @@ def load_view_scene(path: str | Path, thumb_side: int = 128) -> ViewScene:
     if cams is None:
         return ViewScene(g, extras, None, None, 0, 0, folder)
     w2c, K, w, h, names = camera_tensors(cams)
+    return ViewScene(g, extras, w2c, K, w, h, folder, load_thumbs(folder, len(names), thumb_side) if thumbs else [])
+
+
+def load_thumbs(folder: Path, views: int, side: int = 128) -> list[np.ndarray]:
+    """``[h, w, 3]`` uint8 thumbnails (longest side ``side``) of ``folder/inputs/NNN.png`` for each of ``views``
+    views, or none at all when one is missing or unreadable (a damaged copy warns once; the splats still show)."""
     thumbs = []
-    for i in range(len(names)):
+    for i in range(views):
         f = view_png(folder, "inputs", i)
-        if f.is_file():
-            im = Image.open(f).convert("RGB")
-            im.thumbnail((thumb_side, thumb_side))
-            thumbs.append(np.asarray(im))
-    return ViewScene(g, extras, w2c, K, w, h, folder, thumbs if len(thumbs) == len(names) else [])
+        if not f.is_file():
+            return []
+        try:
+            with Image.open(f) as im:
+                im = im.convert("RGB")
+        except (OSError, SyntaxError, ValueError) as e:  # PIL's errors for a truncated or damaged PNG
+            warnings.warn(f"{f}: unreadable input image ({e}); the viewer shows no camera thumbnails for this scene "
+                          "(copy the predict folder again or re-run predict to get them)", stacklevel=2)
+            return []
+        im.thumbnail((side, side))
+        thumbs.append(np.asarray(im))
+    return thumbs
 
 
 def splat_arrays(g: Gaussians) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

@@ -5,7 +5,9 @@ renderer. Listens on 127.0.0.1 unless told otherwise."""
 from __future__ import annotations
 
 import argparse
+import errno
 import math
+import socket
 import time
 from pathlib import Path
 
@@ -98,10 +100,57 @@ def _viser():
     return viser
 
 
+def _bind_all(infos: list, port: int) -> None:
+    """Listen on ``port`` at every address of ``infos`` (``socket.getaddrinfo`` rows) at once, as asyncio's server
+    does (SO_REUSEADDR, IPv6 sockets v6-only), then close them; the first failure's ``OSError`` propagates."""
+    socks = []
+    try:
+        for family, kind, proto, _, addr in infos:
+            try:
+                s = socket.socket(family, kind, proto)
+            except OSError:  # a family this kernel lacks (IPv6 off): asyncio skips it too
+                continue
+            socks.append(s)
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            if family == socket.AF_INET6:
+                s.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_V6ONLY, 1)
+            s.bind((addr[0], port, *addr[2:]))
+            s.listen()
+    finally:
+        for s in socks:
+            s.close()
+
+
+def listen_port(host: str, port: int) -> int:
+    """The first of ``port``, ``port + 1``, ... 65535 that ``host`` can listen on (``port=0``: 0, for viser to pick
+    one, once ``host`` is checked). One line naming ``--host`` for a name that does not resolve or an address this
+    machine does not have, and naming ``--port`` when every port up to 65535 is taken: viser's server thread would
+    die (or try 1000 ports) and ``anycity view`` would wait for it forever."""
+    fix = "pass 127.0.0.1 (this machine only), 0.0.0.0 (every interface) or another address this machine has"
+    try:
+        infos = list(dict.fromkeys(socket.getaddrinfo(host or None, port, type=socket.SOCK_STREAM,
+                                                      flags=socket.AI_PASSIVE)))
+    except (OSError, UnicodeError) as e:  # socket.gaierror: no such name
+        raise ValueError(f"--host {host}: cannot resolve it ({getattr(e, 'strerror', None) or e}); {fix}") from None
+    for p in range(port, 65536) if port else (0,):
+        try:
+            _bind_all(infos, p)
+            return p
+        except OSError as e:
+            if e.errno in (errno.EADDRINUSE, errno.EACCES):  # taken, or privileged: the next one (as viser does)
+                continue
+            if e.errno == errno.EADDRNOTAVAIL:
+                raise ValueError(f"--host {host}: not an address of this machine; {fix}") from None
+            raise ValueError(f"--host {host} --port {p}: cannot listen there ({e.strerror or e}); {fix}") from None
+    ports = "it is" if port == 65535 else f"every port from {port} to 65535 is"
+    raise ValueError(f"--port {port}: {ports} taken on {host}; pass --port 0 (any free one) or a lower port")
+
+
 def build_server(path: str | Path, host: str = "127.0.0.1", port: int = 8080, cameras: bool = True):
-    """Start the viewer on ``scene`` at ``path``; returns ``(server, scene)``. ``port=0`` picks a free port;
-    ``cameras=False`` hides the camera frustums."""
+    """Start the viewer on ``scene`` at ``path``; returns ``(server, scene)``. ``port=0`` picks a free port, a
+    taken one moves up (:func:`listen_port`); ``cameras=False`` hides the camera frustums."""
     viser = _viser()
+    port = listen_port(host, port)
     scene = load_view_scene(path)
     server = viser.ViserServer(host=host, port=port, verbose=False)
     server.scene.set_up_direction("-y")  # no cameras: the first camera's "up" (OpenCV: y points down)

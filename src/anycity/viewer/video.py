@@ -119,11 +119,46 @@ def _imageio_ffmpeg():
     return imageio_ffmpeg
 
 
+VIDEO_SUFFIXES = (".mp4", ".m4v", ".mkv", ".mov")  # containers the bundled ffmpeg writes H.264 into
+
+
+def check_video_out(out: str | Path) -> None:
+    """One line naming ``--out`` when it cannot become a video: an existing folder, or a name whose suffix is not
+    one of :data:`VIDEO_SUFFIXES` (ffmpeg picks the container by it). Checked before the scene is loaded: ffmpeg
+    would otherwise fail only after every frame was rendered."""
+    out = Path(out)
+    if out.is_dir():
+        raise IsADirectoryError(f"--out {out} is a folder; pass a video file name, e.g. --out "
+                                f"{out / 'flythrough.mp4'}")
+    if out.suffix.lower() not in VIDEO_SUFFIXES:
+        got = f"suffix {out.suffix!r} is not a video container" if out.suffix else "no suffix"
+        raise ValueError(f"--out {out}: {got}; end the name in {', '.join(VIDEO_SUFFIXES)} "
+                         f"(e.g. --out {out.with_suffix('.mp4')})")
+
+
+def _check_frames(imageio_ffmpeg, tmp: Path, frames: int, out: Path) -> None:
+    """Raise one line naming ``--out`` unless ffmpeg reads ``frames`` frames back from ``tmp``. imageio-ffmpeg
+    ignores ffmpeg's exit status, so a video ffmpeg could not finish (a full disk or quota at the muxer's last
+    write) would otherwise be published as whole, over an earlier one under --overwrite."""
+    try:
+        got = imageio_ffmpeg.count_frames_and_secs(str(tmp))[0]
+    except (RuntimeError, OSError):  # ffmpeg cannot read it (no moov atom): a cut file
+        got = 0
+    if got != frames:
+        raise _ffmpeg_failed(out, f"the encoded video holds {got} of {frames} frames")
+
+
+def _ffmpeg_failed(out: Path, what: str) -> ValueError:
+    return ValueError(f"--out {out}: ffmpeg failed writing the video ({what}; a full disk or quota?); {out} is "
+                      "unchanged: free space or pass --out on another disk, and rerun")
+
+
 def render_video(path: str | Path, out: str | Path, per_segment: int = 12, orbit: int = 0, width: int | None = None,
                  fps: int = 24, progress: bool = True) -> int:
     """Write the fly-through mp4 of the scene at ``path``; returns the number of frames."""
     imageio_ffmpeg = _imageio_ffmpeg()
-    scene = load_view_scene(path)
+    check_video_out(out)
+    scene = load_view_scene(path, thumbs=False)
     if scene.w2c is None:
         raise ValueError(f"{path}: no cameras.json beside the scene; render-video follows the predicted cameras, "
                          "pass the predict scene folder")
@@ -145,10 +180,14 @@ def render_video(path: str | Path, out: str | Path, per_segment: int = 12, orbit
         writer.send(None)
         try:
             for frame in render_frames(scene, w2c, K, width, height, progress):
-                writer.send(np.ascontiguousarray(frame))
+                try:
+                    writer.send(np.ascontiguousarray(frame))
+                except OSError:  # ffmpeg exited (a broken pipe); imageio's message holds its whole command line
+                    raise _ffmpeg_failed(Path(out), f"it stopped after {n} frames") from None
                 n += 1
         finally:
             writer.close()
+        _check_frames(imageio_ffmpeg, tmp, n, Path(out))
     return n
 
 
@@ -167,7 +206,8 @@ def render_video_main(argv: list[str]) -> int:
                                 description="Render an mp4 fly-through along the predicted cameras.",
                                 allow_abbrev=False)
     p.add_argument("path", help="predict scene folder (scene.ply + cameras.json)")
-    p.add_argument("--out", default=None, help="mp4 path (default: <path>/flythrough.mp4)")
+    p.add_argument("--out", default=None,
+                   help=f"video file, {'/'.join(VIDEO_SUFFIXES)} (default: <path>/flythrough.mp4)")
     p.add_argument("--per_segment", "--per-segment", type=_int_at_least(1), default=12,
                    help="frames between consecutive cameras (default: %(default)s)")
     p.add_argument("--orbit", type=_int_at_least(0), default=0,
@@ -178,6 +218,7 @@ def render_video_main(argv: list[str]) -> int:
     a = p.parse_args(argv)
     src = Path(a.path)
     out = Path(a.out) if a.out else (src if src.is_dir() else src.parent) / "flythrough.mp4"
+    check_video_out(out)
     if out.exists() and not a.overwrite:
         raise FileExistsError(f"anycity render-video: {out} exists; pass --overwrite to replace it, or --out NEW.mp4")
     check_writable_folder(out.parent, "--out")  # ffmpeg would fail with a broken pipe after the first frame

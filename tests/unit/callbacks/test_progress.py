@@ -41,3 +41,28 @@ def test_plain_lines_only_on_global_rank_zero(capsys):
         trainer = SimpleNamespace(global_step=1, is_global_zero=rank == 0, max_steps=3, current_epoch=0)
         bar.on_train_batch_end(trainer, _Tiny(), None, None, 0)
     assert capsys.readouterr().out.count("] step 1/3 ") == 1
+
+
+def test_a_run_ended_by_max_epochs_prints_its_last_step_once(capsys):
+    """max_steps=-1: the last step got a line only when it was a multiple of print_every (14 steps, every 5: the
+    log ended at step 10)."""
+    x = torch.randn(14, 3, generator=torch.Generator().manual_seed(0))
+    loader = torch.utils.data.DataLoader(torch.utils.data.TensorDataset(x, x.sum(1, keepdim=True)), batch_size=2)
+    trainer = pl.Trainer(accelerator="cpu", devices=1, max_epochs=2, logger=False, enable_checkpointing=False,
+                         enable_model_summary=False, callbacks=[LossProgressBar(print_every=5, force_plain=True)])
+    trainer.fit(_Tiny(), loader)
+    lines = re.findall(r"\] step (\d+)/\? epoch (\d+) ", capsys.readouterr().out)
+    assert trainer.global_step == 14
+    assert lines == [("5", "0"), ("10", "1"), ("14", "1")]  # the last step's epoch, not the one after it
+
+
+def test_the_last_step_line_is_not_repeated_and_only_on_rank_zero(capsys):
+    from tqdm import tqdm
+
+    for rank, printed in ((1, -1), (0, -1), (0, 7)):
+        bar = LossProgressBar(print_every=5, force_plain=True)
+        bar.get_metrics = lambda trainer, module: {"rgb": 0.5}
+        bar._train_progress_bar, bar._printed = tqdm(disable=True), printed
+        trainer = SimpleNamespace(global_step=7, is_global_zero=rank == 0, max_steps=-1, current_epoch=1)
+        bar.on_train_end(trainer, _Tiny())
+    assert capsys.readouterr().out.count("] step 7/? ") == 1

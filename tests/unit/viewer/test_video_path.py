@@ -78,3 +78,51 @@ def test_nonsense_arguments_stop_with_the_option_named(tmp_path, capsys, args, n
     with pytest.raises(SystemExit):
         render_video_main([str(tmp_path), *args])
     assert f"argument {name}: " in capsys.readouterr().err
+
+
+@pytest.fixture
+def _no_scene_load(monkeypatch):
+    """render-video must refuse a bad --out before loading (and rendering) the scene."""
+    from anycity.viewer import video
+
+    def load(*args, **kwargs):
+        raise AssertionError("the scene was loaded before --out was checked")
+
+    monkeypatch.setattr(video, "load_view_scene", load)
+
+
+@pytest.mark.parametrize("overwrite", [[], ["--overwrite"]])
+@pytest.mark.parametrize("name", ["vids", "clip.mp4"])
+def test_an_out_that_is_a_folder_is_refused_up_front(tmp_path, capsys, _no_scene_load, name, overwrite):
+    """It failed only after every frame was rendered, naming a hidden temp file (or said "exists, pass
+    --overwrite")."""
+    from anycity.cli import main
+
+    pytest.importorskip("imageio_ffmpeg")
+    out = tmp_path / name
+    out.mkdir()
+    (out / "keep.txt").write_text("user data")
+    assert main(["render-video", str(tmp_path), "--out", str(out), *overwrite]) == 2
+    err = capsys.readouterr().err.strip()
+    assert f"--out {out} is a folder" in err and len(err.splitlines()) == 1 and ".anycity-tmp" not in err
+    assert (out / "keep.txt").read_text() == "user data"
+    assert sorted(p.name for p in tmp_path.iterdir()) == [name]
+
+
+@pytest.mark.parametrize("name", ["flythrough", "fly.gif", "fly.webm", "fly.mp4.part"])
+def test_an_out_with_no_video_suffix_is_refused_up_front(tmp_path, capsys, _no_scene_load, name):
+    from anycity.cli import main
+
+    pytest.importorskip("imageio_ffmpeg")
+    out = tmp_path / name
+    assert main(["render-video", str(tmp_path), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert f"--out {out}: " in err and ".mp4, .m4v, .mkv, .mov" in err and len(err.splitlines()) == 1
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("name", ["fly.mp4", "fly.MKV", "fly.mov", "fly.m4v"])
+def test_video_suffixes_ffmpeg_writes_h264_into_pass(tmp_path, name):
+    from anycity.viewer.video import check_video_out
+
+    check_video_out(tmp_path / name)
