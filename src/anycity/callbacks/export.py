@@ -11,7 +11,7 @@ import lightning.pytorch as pl
 from lightning.pytorch.callbacks import BasePredictionWriter
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 
-from anycity.atomic import publish
+from anycity.atomic import publish, staged_folder
 from anycity.export import save_cameras, save_ply
 from anycity.export.ply import PLY_MAX_SH_DEGREE
 from anycity.export.provenance import provenance, summary
@@ -157,14 +157,16 @@ class PredictionExport(BasePredictionWriter):
         g, prov = self._exported(prediction)
         for i, name in enumerate(scenes):
             folder = self._sample_folder(trainer, name)
-            save_ply(g, folder / "scene.ply", index=i, extra=prov)
+            names = batch.get("names") if isinstance(batch, dict) else None  # a photo folder's file names
+            # staged: a failure or a kill part-way leaves no scene folder (a scene.ply without its cameras.json)
+            with staged_folder(folder) as stage:
+                save_ply(g, stage / "scene.ply", index=i, extra=prov)
+                save_cameras(stage / "cameras.json", w2c[i], K[i], int(w), int(h), names[i] if names else None)
+                if self.save_renders:
+                    for kind, imgs in (("renders", renders.rgb[i]), ("inputs", images[i])):
+                        save_view_pngs(stage, kind, imgs, range(len(imgs)))
             if prov is not None:
                 _print_shares(folder.name, _shares(prov, g.valid, slice(i, i + 1), slice(None))[0])
-            names = batch.get("names") if isinstance(batch, dict) else None  # a photo folder's file names
-            save_cameras(folder / "cameras.json", w2c[i], K[i], int(w), int(h), names[i] if names else None)
-            if self.save_renders:
-                for kind, imgs in (("renders", renders.rgb[i]), ("inputs", images[i])):
-                    save_view_pngs(folder, kind, imgs, range(len(imgs)))
             self.written.append(folder)
 
     def _exported(self, prediction: dict[str, Any]):

@@ -100,3 +100,20 @@ def test_a_network_within_the_ply_degrees_is_not_warned(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         _export(tmp_path, _prediction(valid=False))
+
+
+def test_a_scene_that_fails_part_way_leaves_no_scene_folder(tmp_path, monkeypatch):
+    """Each scene folder is staged and renamed when complete: a failure (or a kill) after ``scene.ply`` left it
+    without ``cameras.json``, and ``anycity view`` showed it without a word."""
+    import anycity.callbacks.export as export
+
+    def no_cameras(*args, **kwargs):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(export, "save_cameras", no_cameras)
+    with pytest.raises(OSError, match="disk full"):
+        _export(tmp_path, _prediction(valid=False))
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+    monkeypatch.undo()
+    _export(tmp_path, _prediction(valid=False))  # the next run writes the whole folder
+    assert sorted(p.name for p in (tmp_path / "s").iterdir()) == ["cameras.json", "scene.ply"]
