@@ -193,8 +193,12 @@ def _cli_class():
 
         def instantiate_trainer(self, **kwargs):
             """The trainer, with the ``progress`` bar unless the config turns bars off
-            (``trainer.enable_progress_bar: false``) or lists another progress bar (Lightning refuses both)."""
+            (``trainer.enable_progress_bar: false``) or lists another progress bar (Lightning refuses both), and
+            :class:`~anycity.callbacks.last_checkpoint.FinalLastCheckpoint` last (a finished fit's ``last.ckpt`` is
+            its final step, whatever checkpoint callbacks the config lists)."""
             from lightning.pytorch.callbacks import ProgressBar
+
+            from anycity.callbacks.last_checkpoint import FinalLastCheckpoint
 
             extra = [self._get(self.config_init, c) for c in self._parser(self.subcommand).callback_keys]
             config = {**self._get(self.config_init, "trainer", default={}), **kwargs}
@@ -202,7 +206,8 @@ def _cli_class():
             listed = listed if isinstance(listed, list) else [listed]
             if config.get("enable_progress_bar") is False or any(isinstance(c, ProgressBar) for c in listed):
                 extra = [c for c in extra if not isinstance(c, LossProgressBar)]
-            return self._instantiate_trainer(config, extra)
+            # last: after NonFiniteGuard's on_train_end, which refuses a run whose steps were all skipped
+            return self._instantiate_trainer(config, [*extra, FinalLastCheckpoint()])
 
         @staticmethod
         def _find_last(subcommand: str, trainer) -> str:

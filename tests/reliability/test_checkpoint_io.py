@@ -112,6 +112,31 @@ def test_disk_full_keeps_previous_and_names_path_and_bytes(tmp_path, monkeypatch
     frame.f_locals["buf"].close()
 
 
+
+def test_remove_checkpoint_removes_a_folder_checkpoint_and_never_follows_a_link(tmp_path):
+    """A checkpoint that is a folder (FSDP's sharded state dict) raised IsADirectoryError where Lightning's own
+    checkpoint IO removes it: ModelCheckpoint(save_top_k=1) replacing its best checkpoint would fail. A link
+    (save_last="link") goes, and what it points to stays."""
+    io = SafeCheckpointIO()
+    sharded = tmp_path / "run" / "epoch=0-step=2.ckpt"
+    (sharded / "shards").mkdir(parents=True)
+    (sharded / "shards" / "__0_0.distcp").write_bytes(b"x")
+    (sharded / "meta.pt").write_bytes(b"x")
+    outside = tmp_path / "elsewhere"
+    (outside / "keep").mkdir(parents=True)
+    (sharded / "link_out").symlink_to(outside, target_is_directory=True)  # inside the folder: not followed
+    io.remove_checkpoint(sharded)
+    assert not sharded.exists() and (outside / "keep").is_dir()
+    io.save_checkpoint({"w": torch.ones(1)}, tmp_path / "run" / "best.ckpt")
+    for name, target in (("last.ckpt", tmp_path / "run" / "best.ckpt"), ("last_dir.ckpt", outside)):
+        link = tmp_path / "run" / name
+        link.symlink_to(target)
+        io.remove_checkpoint(link)
+        assert not link.is_symlink() and target.exists()
+    io.remove_checkpoint(tmp_path / "run" / "best.ckpt")
+    io.remove_checkpoint(tmp_path / "run" / "gone.ckpt")  # already gone: nothing to do
+    assert list((tmp_path / "run").iterdir()) == [] and (outside / "keep").is_dir()
+
 def test_atomic_write_replaces_whole_file(tmp_path):
     p = tmp_path / "f.bin"
     atomic_write_bytes(p, b"old" * 10)

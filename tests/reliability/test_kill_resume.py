@@ -137,3 +137,79 @@ def test_ckpt_path_last_builds_the_network_the_checkpoint_was_trained_with(tiny_
     assert "test/psnr_scaffold" in cli.trainer.callback_metrics
     cli = build_cli(["fit", *H.tiny_fit_args(tiny_shards, run, 2)[1:], "--ckpt_path", "last"])  # the resume
     assert cli.trainer.global_step == 2 and cli.model.net.cfg.camera_trunk_depth == 3
+
+
+class _Crash(Exception):
+    pass
+
+
+def test_a_resumed_fit_with_max_epochs_set_skips_the_samples_it_trained_on(tiny_shards, tmp_path, monkeypatch):
+    """With ``trainer.max_epochs`` set as well as ``max_steps``, the LR schedule's length was read from Lightning's
+    estimated_stepping_batches, which built the training loader before a resumed run's batch count was restored:
+    the resumed run trained again on the stream's first samples (nothing said so) and ended elsewhere than an
+    uninterrupted run. In-process (the code under test is this one's): the interrupted run raises in its third
+    step, after step 2's checkpoint."""
+    from anycity.cli import build_cli
+    from anycity.lit import ScaffoldModule
+
+    monkeypatch.setattr("sys.argv", ["anycity"])
+    args = lambda run: ["fit", *H.tiny_fit_args(tiny_shards, run, 3)[1:], "--trainer.max_epochs", "100"]  # noqa: E731
+    ref, run = tmp_path / "ref", tmp_path / "run"
+    build_cli(args(ref))
+    step = ScaffoldModule.training_step
+
+    def crash_at_step_3(self, batch, batch_idx):
+        if self.global_step == 2:
+            raise _Crash
+        return step(self, batch, batch_idx)
+
+    with monkeypatch.context() as m:
+        m.setattr(ScaffoldModule, "training_step", crash_at_step_3)
+        with pytest.raises(_Crash):
+            build_cli(args(run))
+    cli = build_cli([*args(run), "--ckpt_path", "last"])
+    assert cli.trainer.global_step == 3
+    last = "checkpoints/last.ckpt"
+    diff = H.max_abs_diff(H.params(ref / last), H.params(run / last))
+    assert diff == 0.0, f"the resumed run differs from the uninterrupted one by {diff}"
+
+
+@pytest.mark.parametrize("stop", [None, "exception", "sigterm"])
+def test_last_ckpt_is_the_final_step_of_a_finished_fit_and_untouched_by_an_interrupted_one(tmp_path, stop):
+    """FinalLastCheckpoint: a fit that ends by itself (max_steps 3, a checkpoint every 2 steps) leaves last.ckpt at
+    step 3 (Lightning's own end-of-training save writes it only when nothing was saved during the run: step 2). A
+    fit stopped in its third step, by an exception or by SIGTERM (which Lightning raises once the step is done),
+    goes through on_exception, not on_train_end, and keeps step 2's: the CLI's SIGTERM line names that file."""
+    import contextlib
+
+    import lightning.pytorch as pl
+    import torch
+    from lightning.pytorch.callbacks import ModelCheckpoint
+    from lightning.pytorch.utilities.exceptions import SIGTERMException
+
+    from anycity.callbacks.last_checkpoint import FinalLastCheckpoint
+
+    class Toy(pl.LightningModule):
+        def __init__(self):
+            super().__init__()
+            self.w = torch.nn.Linear(1, 1)
+
+        def training_step(self, batch, batch_idx):
+            if self.global_step == 2 and stop == "exception":
+                raise _Crash
+            if self.global_step == 2 and stop == "sigterm":
+                self.trainer._signal_connector.received_sigterm = True  # what Lightning's SIGTERM handler sets
+            return self.w(batch[0]).pow(2).mean()
+
+        def configure_optimizers(self):
+            return torch.optim.SGD(self.parameters(), lr=0.1)
+
+    data = torch.utils.data.DataLoader(torch.utils.data.TensorDataset(torch.ones(100, 1)), batch_size=1)
+    cb = ModelCheckpoint(dirpath=tmp_path, save_last=True, save_top_k=0, every_n_train_steps=2)
+    trainer = pl.Trainer(max_steps=3, callbacks=[cb, FinalLastCheckpoint()], logger=False, accelerator="cpu",
+                         enable_progress_bar=False, enable_model_summary=False)
+    raises = {"exception": _Crash, "sigterm": SIGTERMException}.get(stop)
+    with pytest.raises(raises) if raises else contextlib.nullcontext():
+        trainer.fit(Toy(), data)
+    assert H.safe_torch_load(tmp_path / "last.ckpt")["global_step"] == (2 if stop else 3)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["last.ckpt"]

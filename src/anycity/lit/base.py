@@ -97,6 +97,19 @@ def warmup_cosine(step: int, warmup: int, total: int, min_ratio: float) -> float
     return min_ratio + (1 - min_ratio) * 0.5 * (1 + math.cos(math.pi * progress))
 
 
+def schedule_steps(trainer: pl.Trainer) -> int:
+    """The optimiser steps an LR schedule spans: ``trainer.max_steps`` (with ``accumulate_grad_batches`` too, a
+    step is one optimiser step). Not Lightning's ``estimated_stepping_batches``: for the shard stream, which has no
+    length, that is ``max_steps`` anyway, or -1 / inf when only ``max_epochs`` ends the run; and with
+    ``max_epochs`` set, reading it builds the training loader before a resumed run's batch count is restored, so
+    the resumed run trained again on the samples it had already seen."""
+    steps = trainer.max_steps
+    if steps is None or steps <= 0:
+        raise ValueError(f"trainer.max_steps is {steps}: the LR schedule is sized by it (the shard stream has no "
+                         "length, so max_epochs cannot size it); set --trainer.max_steps N")
+    return int(steps)
+
+
 _RESUMING = contextvars.ContextVar("anycity_resuming", default=False)
 
 
@@ -272,7 +285,7 @@ class AnyCityModule(pl.LightningModule):
         param_groups = [{"params": ps, "lr": hp.lr * (scale if pre else 1.0),
                          "weight_decay": 0.0 if nd else hp.weight_decay} for (pre, nd), ps in groups.items()]
         opt = make_adamw(param_groups, hp.lr, fused=self.fused_adamw_allowed())
-        total = int(self.trainer.estimated_stepping_batches)
+        total = schedule_steps(self.trainer)
         sched = torch.optim.lr_scheduler.LambdaLR(
             opt, lambda s: warmup_cosine(s, hp.warmup_steps, total, hp.min_lr_ratio))
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}

@@ -12,12 +12,15 @@
 - **load**: :func:`anycity.safe_load.safe_torch_load`, ``torch.load(weights_only=True)`` with an allow-list of
   the few non-tensor types a Lightning checkpoint holds, so a checkpoint crafted to run code on unpickling is
   refused with a one-line ``ValueError`` instead of being executed.
+- **remove**: a file, or a folder checkpoint (FSDP's sharded state dict) with what it holds, as Lightning's own; a
+  symlink itself, never what it points to.
 """
 
 from __future__ import annotations
 
 import io
 import os
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -71,4 +74,10 @@ class SafeCheckpointIO(TorchCheckpointIO):
         return safe_torch_load(path, map_location=map_location)
 
     def remove_checkpoint(self, path) -> None:
-        Path(path).unlink(missing_ok=True)
+        """Remove a checkpoint file, or a folder one (FSDP's sharded state dict) with what it holds, as Lightning's
+        own does. A symlink (``save_last="link"``) is removed itself, never what it points to."""
+        path = Path(path)
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path)  # never follows a symlink inside the folder either
+        else:
+            path.unlink(missing_ok=True)

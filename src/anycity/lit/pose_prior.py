@@ -10,6 +10,7 @@ import lightning.pytorch as pl
 import torch
 from torch import Tensor
 
+from anycity.lit.base import schedule_steps
 from anycity.metrics.pose import relative_pose_errors
 from anycity.models.pose_prior import PairFlowPose
 from anycity.structures import ViewBatch
@@ -46,7 +47,7 @@ class PosePriorModule(pl.LightningModule):
 
     def configure_optimizers(self) -> dict:
         opt = torch.optim.AdamW(self.parameters(), self.hparams.lr, weight_decay=self.hparams.weight_decay)
-        total = max(int(self.trainer.estimated_stepping_batches), 4)  # OneCycleLR needs a warm-up of >= 1 step
+        total = max(schedule_steps(self.trainer), 4)  # OneCycleLR needs a warm-up of >= 1 step
         sched = torch.optim.lr_scheduler.OneCycleLR(opt, self.hparams.lr, total_steps=total,
                                                     pct_start=max(0.05, 2 / total))
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}

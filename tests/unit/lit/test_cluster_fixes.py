@@ -202,7 +202,8 @@ def test_sim3_fit_of_non_finite_cameras_falls_back_to_identity_instead_of_raisin
     assert torch.isfinite(s).all() and abs(s[0].item() - 1) < 1e-4
 
 
-def test_a_nan_batch_gives_a_nan_loss_reaching_every_trainable_parameter_instead_of_raising():
+def test_a_non_finite_forward_gives_a_nan_loss_reaching_every_trainable_parameter_instead_of_raising():
+    # (NaN images are refused by the network's input check; an overflow inside the network is what remains)
     from anycity.geometry import make_intrinsics
     from anycity.structures import ViewBatch, Views
 
@@ -210,10 +211,12 @@ def test_a_nan_batch_gives_a_nan_loss_reaching_every_trainable_parameter_instead
         w2c = torch.eye(4).repeat(1, n, 1, 1)
         w2c[..., 0, 3] = torch.linspace(0, 0.3, n)
         K = make_intrinsics(30.0, 30.0, 16.0, 16.0).expand(1, n, 3, 3).clone()
-        return Views(images=torch.full((1, n, 3, 32, 32), float("nan")), w2c=w2c, K=K)
+        return Views(images=torch.full((1, n, 3, 32, 32), 0.5), w2c=w2c, K=K)
 
     m = ScaffoldModule(preset="tiny", render_backend="torch")
     m.log = lambda *a, **k: None
+    with torch.no_grad():
+        m.net.aggregator.camera_token.fill_(float("inf"))  # every token non-finite after the first attention
     loss = m.training_step(ViewBatch(context=views(2), target=views(1)), 0)  # the renderer would raise on NaN
     assert torch.isnan(loss)
     loss.backward()
@@ -238,7 +241,7 @@ def test_pretrained_lr_scale_applies_to_pretrained_weights_only_and_patterns_mus
     from anycity.models import build_network
 
     def lrs(m):
-        m._trainer = SimpleNamespace(estimated_stepping_batches=10)
+        m._trainer = SimpleNamespace(max_steps=10)
         opt = m.configure_optimizers()["optimizer"]
         return sorted({(g["initial_lr"], any(p is m.net.aggregator.camera_token for p in g["params"]))
                        for g in opt.param_groups})
@@ -261,7 +264,7 @@ def test_adamw_is_fused_in_full_precision_and_foreach_under_mixed_precision():
     precision Lightning refuses to clip gradients for an optimiser that unscales inside its step, so foreach stays,
     also for a resumed optimiser whose checkpoint came from a fused run (torch restores the saved flags)."""
     def optimiser(m, precision):
-        m._trainer = SimpleNamespace(estimated_stepping_batches=10, precision=precision)
+        m._trainer = SimpleNamespace(max_steps=10, precision=precision)
         return m.configure_optimizers()["optimizer"]
 
     def kernels(opt):
@@ -304,3 +307,49 @@ def test_a_precision_that_casts_the_whole_module_is_refused_in_one_line(cls, pre
         m._trainer = SimpleNamespace(precision=ok, ckpt_path=None,
                                      strategy=SimpleNamespace(restore_checkpoint_after_setup=False))
         m.setup("test")
+
+
+class _Stream(torch.utils.data.IterableDataset):
+    """A stream with no length, as the shard pipeline: Lightning cannot count its batches."""
+
+    def __iter__(self):
+        yield from (torch.zeros(1) for _ in range(3))
+
+
+def _zero_loss(module, batch, batch_idx):
+    return sum(p.sum() for p in module.parameters() if p.requires_grad) * 0.0
+
+
+@pytest.mark.parametrize("cls", ["ScaffoldModule", "PosePriorModule"])
+@pytest.mark.parametrize("max_epochs", [2, -1])
+def test_the_lr_schedule_is_sized_by_max_steps_and_refuses_a_run_ended_by_epochs(cls, max_epochs, monkeypatch):
+    """The schedule's length came from Lightning's estimated_stepping_batches, which for a stream with no length is
+    max_steps: -1 under ``--trainer.max_steps -1 --trainer.max_epochs N`` (the cosine dropped to its floor right after
+    warm-up, silently) and int(inf), a traceback, under max_epochs -1. Now it is max_steps, refused in one line when
+    unset."""
+    import lightning.pytorch as pl
+
+    from anycity.lit.pose_prior import PosePriorModule
+
+    module_cls = {"ScaffoldModule": ScaffoldModule, "PosePriorModule": PosePriorModule}[cls]
+    monkeypatch.setattr(module_cls, "training_step", _zero_loss)
+    module = module_cls(preset="tiny") if cls == "ScaffoldModule" else module_cls()
+
+    def fit(max_steps):
+        trainer = pl.Trainer(max_steps=max_steps, max_epochs=max_epochs, accelerator="cpu", logger=False,
+                             enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False)
+        trainer.fit(module, train_dataloaders=torch.utils.data.DataLoader(_Stream(), batch_size=1))
+        return trainer
+
+    with pytest.raises(ValueError, match=r"^trainer.max_steps is -1: the LR schedule is sized by it \(the shard "
+                                         r"stream has no length, so max_epochs cannot size it\); set "
+                                         r"--trainer.max_steps N$"):
+        fit(-1)
+    trainer = fit(5)  # ends with max_epochs 2 (6 samples) or max_steps: the schedule spans max_steps either way
+    sched = trainer.lr_scheduler_configs[0].scheduler
+    if cls == "ScaffoldModule":
+        total = dict(zip(sched.lr_lambdas[0].__code__.co_freevars,
+                         (c.cell_contents for c in sched.lr_lambdas[0].__closure__)))["total"]
+    else:
+        total = sched.total_steps
+    assert total == 5
