@@ -227,7 +227,7 @@ def main() -> None:
     headroom(module, dm)
     teacher_vs_student(module, dm, args.teacher_batches)
     if args.fit_steps > 0:
-        perfect_knowledge(module, AerialDataModule(num_dense=args.dense, **settings), args.fit_steps)
+        perfect_knowledge(module, AerialDataModule(num_dense=args.dense, eval_dense=True, **settings), args.fit_steps)
 
 
 if __name__ == "__main__":

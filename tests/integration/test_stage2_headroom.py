@@ -38,3 +38,19 @@ def test_fit_starts_at_the_gaussians_and_fits_the_views():
     fitted = bench.fit_gaussians(module, g, views, images, steps=30)
     assert mse(fitted) < 0.5 * mse(g)
     assert not fitted.means.requires_grad and fitted.valid is g.valid
+
+
+def test_the_perfect_knowledge_section_reads_test_samples_with_their_dense_views(tmp_path, monkeypatch):
+    # Evaluation samples decode no dense views unless data.eval_dense: section 3 fits to them, so it must ask.
+    bench = _bench()
+    (tmp_path / "index.json").write_text("{}")
+    (tmp_path / "last.ckpt").write_bytes(b"")
+    seen = []
+    monkeypatch.setattr(bench, "load_module", lambda ckpt: None)
+    monkeypatch.setattr(bench, "headroom", lambda module, dm: None)
+    monkeypatch.setattr(bench, "teacher_vs_student", lambda module, dm, batches: None)
+    monkeypatch.setattr(bench, "perfect_knowledge", lambda module, dm, steps: seen.append(dm))
+    monkeypatch.setattr("sys.argv", ["stage2_headroom.py", str(tmp_path / "last.ckpt"), "--data", str(tmp_path),
+                                     "--fit-steps", "1"])
+    bench.main()
+    assert len(seen) == 1 and seen[0].hp.eval_dense and seen[0].hp.num_dense == 8

@@ -125,6 +125,8 @@ class SampleBuilder:
         context_weighting: how ``context_range`` draws: "uniform", or "square" (probability proportional to the
             count squared, AnySplat's ``DynamicBatchSampler``).
         batch_size: samples per batch, so that all samples of a batch (in this worker) draw the same count.
+        eval_dense: evaluation samples carry (and decode) their dense views. Either way ``num_dense`` sizes the pool
+            of non-held-out views the context is spread over, so the context views do not depend on this.
         compact: compact tensors for the trip to the device: images uint8 ``[0, 255]``, depth and normals
             float16 (a third of the bytes; :func:`to_float32` restores the usual batch on the device).
     """
@@ -134,7 +136,7 @@ class SampleBuilder:
                  window: int | None = None, with_depth: bool = True, with_normals: bool = True, hold: int = 8,
                  patch: int = 14, seed: int = 0, compact: bool = False,
                  context_range: tuple[int, int] | None = None, context_weighting: str = "uniform",
-                 batch_size: int = 1) -> None:
+                 batch_size: int = 1, eval_dense: bool = True) -> None:
         if num_context < 1 or num_targets < 1 or num_dense < 0:
             raise ValueError(f"view counts: expected num_context >= 1, num_targets >= 1, num_dense >= 0, got "
                              f"{num_context}, {num_targets}, {num_dense}")
@@ -143,7 +145,7 @@ class SampleBuilder:
         self.batch_size, self._built, self._batch_nc = max(1, int(batch_size)), 0, num_context
         self.size, self.mode, self.train, self.window = tuple(image_size), resize_mode, train, window
         self.with_depth, self.with_normals, self.hold, self.patch = with_depth, with_normals, hold, patch
-        self.seed, self.compact = seed, compact
+        self.seed, self.compact, self.eval_dense = seed, compact, eval_dense
         self._rng: np.random.Generator | None = None
         self._epoch = 0
         self._in_worker: bool | None = None
@@ -177,7 +179,8 @@ class SampleBuilder:
         views = meta["views"] if meta else None
         index = [v.get("index", i) for i, v in enumerate(views)] if views else None
         own = (meta.get("window") or {}).get("own") if meta else None
-        return select_eval(n, self.nc, self.nt, self.nd, self.hold, index=index, own=own)
+        sels = select_eval(n, self.nc, self.nt, self.nd, self.hold, index=index, own=own)
+        return sels if self.eval_dense else [Selection(s.context, s.target, []) for s in sels]
 
     def _load(self, sample: dict, view: dict) -> dict:
         h, w = view["height"], view["width"]
@@ -377,6 +380,12 @@ def _collate(samples: list[dict]) -> ViewBatch:
         if len({len(x["images"]) for x in grp}) > 1:
             raise ValueError(f"collate: the samples of one batch have {sorted(len(x['images']) for x in grp)} "
                              f"{g} views; a batch needs one count (batch_size 1, or draw counts per batch)")
+        if 0 < sum("depth" in x for x in grp) < len(grp):  # stacking would drop every sample's depth and mask
+            none = sorted({s["scene"] for s, x in zip(samples, grp) if "depth" not in x})
+            raise ValueError(f"collate: a batch mixes samples with and without ground-truth depth (without: "
+                             f"{', '.join(none)}), so it would lose every sample's depth; train or test shards "
+                             "without depth in a separate run, give all shards depth (or data.with_depth: false), or "
+                             "set data.batch_size (eval_batch_size) 1")
         opt = lambda k: _stack([x[k] for x in grp]) if all(k in x for x in grp) else None  # noqa: E731
         return Views(images=_stack([x["images"] for x in grp]), w2c=opt("w2c"), K=opt("K"),
                      depth=opt("depth"), mask=opt("mask"), normal=opt("normal"), index=opt("index"))

@@ -8,7 +8,8 @@ Selection works on trajectory positions ``0..n-1``:
   views' ``index`` in the scene, so a trajectory window holds out the same views as its whole scene, and only the
   targets in the window's own range are scored: overlapping windows score each once); targets are cut into chunks
   of T (the last chunk repeats its own views), and each chunk's context and dense views are spread evenly over the
-  non-held-out views nearest to it. Deterministic.
+  non-held-out views nearest to it. Deterministic. A sample with fewer non-held-out views than context views is
+  refused (:class:`TooFewViews`): its context would repeat views.
 """
 
 from __future__ import annotations
@@ -23,8 +24,9 @@ from anycity.geometry import camera_centers, crop_intrinsics, invert_rigid, resc
 
 
 class TooFewViews(ValueError):
-    """A training window too short for the distinct context + target views asked of it: a setting to change, so
-    ``skip_corrupt`` does not skip it as a corrupt sample."""
+    """A training window too short for the distinct context + target views asked of it, or an evaluation sample with
+    fewer non-held-out views than context views: a setting to change, so ``skip_corrupt`` does not skip it as a
+    corrupt sample."""
 
 
 @dataclass
@@ -102,6 +104,11 @@ def select_eval(n: int, num_context: int, num_targets: int, num_dense: int, hold
     test = [i for i in range(n) if index[i] % hold == 0 and lo <= index[i] < hi]
     if not train:
         raise ValueError(f"view selection: a {n}-view sample has no non-held-out views for llffhold={hold}")
+    if len(train) < num_context:  # _spread would repeat context views: a repeated pair scores rte 90 deg
+        raise TooFewViews(f"view selection: a {n}-view evaluation sample keeps {len(train)} views after "
+                          f"data.llffhold {hold} holds out every {hold}th, fewer than data.num_context {num_context}, "
+                          f"so context views would repeat; set data.num_context <= {len(train)}, or evaluate "
+                          "samples with more views (anycity data convert --max_views)")
     out = []
     for c in range(0, len(test), num_targets):
         part = test[c:c + num_targets]

@@ -9,6 +9,7 @@ YAML (LightningCLI)::
 
 from __future__ import annotations
 
+import copy
 import math
 import os
 import signal
@@ -117,7 +118,11 @@ class AerialDataModule(pl.LightningDataModule):
         train_context_weighting: "uniform", or "square" (probability proportional to the count squared, as
             AnySplat draws its counts).
         num_targets: target views per sample (rendered and scored).
-        num_dense: dense teacher views per sample for Stage II distillation; 0 disables the dense set.
+        num_dense: dense teacher views per training sample for Stage II distillation; 0 disables the dense set.
+            Evaluation samples carry none unless ``eval_dense`` (evaluation reads none), but their context views are
+            spread over the ``max(2 x num_context, num_dense)`` non-held-out views nearest the targets either way.
+        eval_dense: validation/test samples decode their ``num_dense`` dense views too (for diagnostics that read
+            them, e.g. ``benchmarks/stage2_headroom.py --fit-steps``); the context and target views are the same.
         image_size: output ``[H, W]`` in pixels.
         resize_mode: "crop" (scale to cover, centre-crop to exactly image_size) or "keep" (keep the aspect ratio,
             about H*W pixels, sides multiples of ``patch_size``; all scenes of a batch must share an aspect ratio).
@@ -131,7 +136,8 @@ class AerialDataModule(pl.LightningDataModule):
         shuffle_buffer: sample shuffle buffer for training.
         window: training sliding-window length in views (None: 2 x the largest view group), within one sample
             (shards hold trajectory windows of 24 views by default, see ``anycity data synth --window``).
-        llffhold: evaluation targets are the views with index % llffhold == 0.
+        llffhold: evaluation targets are the views with index % llffhold == 0 (>= 2). An evaluation sample needs
+            at least ``num_context`` other views.
         with_depth: load depth and masks when the shards have them.
         with_normals: give batches camera-frame normals: the shards' own when stored (``anycity data synth
             --normals``), else derived from depth (no loss consumes them; False reads ~1.5x faster at 448 px).
@@ -147,8 +153,9 @@ class AerialDataModule(pl.LightningDataModule):
         predict_images: a folder of one scene's own photos (2 or more ``.jpg``/``.png``/``.webp``, no poses) that
             ``anycity predict`` reconstructs; None: ``predict`` reconstructs the test scenes. More photos than
             ``predict_chunk_size`` are reconstructed in overlapping chunks, aligned and merged (:mod:`anycity.city`).
-        predict_chunk_size: photos per forward pass of ``predict_images`` (2..64; 16 measured better than one pass
-            of 32 with the quickstart model, and the camera refinement costs grow as its square).
+        predict_chunk_size: photos per forward pass of ``predict_images`` (2..64, and 3 or more when the folder
+            needs more than one chunk; 16 measured better than one pass of 32 with the quickstart model, and the
+            camera refinement costs grow as its square).
         predict_chunk_overlap: photos shared by consecutive chunks (their alignment uses them).
         predict_order: photo order for chunking: "auto" (EXIF capture time when every photo has one, else file name),
             "time", "name" or "tokens" (a neighbour graph of the network's own global tokens from one low-resolution
@@ -170,10 +177,13 @@ class AerialDataModule(pl.LightningDataModule):
                  compact_batches: bool = False, predict_images: str | None = None, predict_chunk_size: int = 16,
                  predict_chunk_overlap: int = 4, predict_order: str = "auto", predict_resize: str = "keep",
                  predict_loop: bool = False, train_num_context: tuple[int, int] | None = None,
-                 train_context_weighting: str = "uniform") -> None:
+                 train_context_weighting: str = "uniform", eval_dense: bool = False) -> None:
         super().__init__()
         if not 1 <= num_context <= 64:
             raise ValueError(f"num_context: expected 1..64 views, got {num_context}")
+        if llffhold < 2:  # 0 divides by zero in every sample, 1 holds out every view
+            raise ValueError(f"llffhold: expected >= 2 (every llffhold-th view of a scene is held out for evaluation; "
+                             f"8 is the usual), got {llffhold}")
         context_count_probs(train_num_context, train_context_weighting)  # a typo fails here, not in a worker
         if resize_mode not in ("crop", "keep"):
             raise ValueError(f"resize_mode: expected 'crop' or 'keep', got {resize_mode!r}")
@@ -219,7 +229,7 @@ class AerialDataModule(pl.LightningDataModule):
                              self.hp.resize_mode, train, self.hp.window, self.hp.with_depth, self.hp.with_normals,
                              self.hp.llffhold, self.hp.patch_size, self.hp.seed, self.hp.compact_batches,
                              self.hp.train_num_context if train else None, self.hp.train_context_weighting,
-                             self.hp.batch_size)
+                             self.hp.batch_size, eval_dense=self.hp.eval_dense)
 
     def _loader(self, split: str, first_epoch: int = 0) -> DataLoader:
         train = split == "train"
@@ -237,10 +247,13 @@ class AerialDataModule(pl.LightningDataModule):
     def _rank(self) -> int | None:
         return getattr(self.trainer, "global_rank", None)
 
-    def train_dataloader(self) -> DataLoader:
+    def train_dataloader(self) -> DataLoader | _FixedBatches:
+        self._check_windows()
+        overfit = getattr(self.trainer, "overfit_batches", 0)  # N batches (an int); a fraction stays Lightning's
+        if isinstance(overfit, int) and overfit > 0:
+            return _FixedBatches(self._loader("train"), overfit)
         # resumed (``--ckpt_path``): start at the interrupted run's epoch and skip the samples it already trained on
         # in it, so the resumed run sees the stream an uninterrupted one would (exact with num_workers=0)
-        self._check_windows()
         done, epoch = _batches_trained(self.trainer), 0
         if done and self.hp.epoch_samples:
             workers = max(1, self.hp.num_workers)  # each worker drops its own last partial batch
@@ -395,3 +408,21 @@ class _SkipFirst(torch.utils.data.IterableDataset):
 
 
 _END = object()
+
+
+class _FixedBatches:
+    """``trainer.overfit_batches``: the first ``n`` batches of ``loader``, read once and given (as copies) on every
+    iteration, so every epoch trains on the same tensors. Lightning takes the first batches of a fresh iterator each
+    epoch, and each pass over the shard stream differs (the shard shuffle and the view draws move on)."""
+
+    def __init__(self, loader: DataLoader, n: int) -> None:
+        it = iter(loader)
+        self.batches = [b for _, b in zip(range(n), it)]
+        del it, loader  # the loader's workers (persistent) end with it
+
+    def __len__(self) -> int:
+        return len(self.batches)
+
+    def __iter__(self):
+        for b in self.batches:
+            yield copy.deepcopy(b)  # a step that changes its batch in place leaves the next epoch's alone

@@ -1,4 +1,5 @@
 import io
+import itertools
 import os
 import shutil
 import tarfile
@@ -346,3 +347,61 @@ def test_a_run_resumed_with_workers_and_varied_context_counts_skips_whole_batche
     batches = [(tuple(b.scene), b.context.num_views, round(b.context.images.sum().item(), 3)) for b in loader]
     assert len(batches) == 8
     assert signatures(resumed) == sorted(batches[3:])  # the same batches; workers take turns in another order
+
+
+def test_evaluation_samples_decode_no_dense_views_and_keep_their_context(synth_root):
+    """Stage II's counts (4 context, 4 targets, 12 dense): validation/test batches decoded 12 dense views that
+    evaluation never reads. They are gone, and the context views are still spread over the max(2 x 4, 12) nearest
+    non-held-out views (num_dense 0 would pick [1, 3, 6, 9] and change every figure)."""
+    from anycity.data.views import select_eval
+
+    dm = _dm(synth_root, num_context=4, num_targets=4, num_dense=12, batch_size=1)
+    for split in ("val", "test"):
+        batches = list(getattr(dm, f"{split}_dataloader")())
+        assert len(batches) == 1 and batches[0].dense is None  # one 16-view scene per split
+        assert batches[0].context.index.tolist() == [[1, 5, 9, 13]]
+        assert batches[0].target.index.tolist() == [[0, 8, 0, 8]]
+    assert select_eval(16, 4, 4, 0)[0].context == [1, 3, 6, 9]
+    for n in (16, 24, 96):  # the builder's selections: select_eval's, less the dense views
+        sels = SampleBuilder(4, 4, 12, train=False, eval_dense=False).selections(n)
+        assert [(s.context, s.target, s.dense) for s in sels] == [(s.context, s.target, []) for s in
+                                                                   select_eval(n, 4, 4, 12)]
+    kept = next(iter(_dm(synth_root, num_context=4, num_targets=4, num_dense=12, eval_dense=True).test_dataloader()))
+    assert kept.dense.num_views == 12 and kept.context.index.tolist() == [[1, 5, 9, 13]]
+
+
+def test_a_batch_mixing_samples_with_and_without_depth_is_refused(synth_root):
+    """A sample without depth (a COLMAP conversion) in a batch of synthetic ones: collate dropped every sample's depth
+    and mask, so the batch lost its depth loss, depth metrics and region figures without a word."""
+    from anycity.data.pipeline import collate
+
+    items = list(make_pipeline(shard_urls(synth_root, "train"), SampleBuilder(2, 1, 0, (16, 16), train=False),
+                               train=False))[:2]
+    bare = {**items[1], "scene": "colmap_x"}
+    bare.update({g: {k: v for k, v in items[1][g].items() if k not in ("depth", "mask", "normal")}
+                 for g in ("context", "target")})
+    with pytest.raises(ValueError, match=r"^collate: a batch mixes samples with and without ground-truth depth "
+                                         r"\(without: colmap_x\).*separate run.*batch_size \(eval_batch_size\) 1$"):
+        collate([items[0], bare])
+    assert collate(items).context.depth.shape[0] == 2 and collate(items).target.mask.shape[0] == 2
+    assert collate([bare, bare]).context.depth is None
+
+
+@pytest.mark.parametrize("workers", [0, 2])
+def test_overfit_batches_trains_on_the_same_batch_every_epoch(synth_root, workers):
+    """configs/debug/overfit.yaml: Lightning takes the first batches of a fresh iterator each epoch, and each pass over
+    the stream drew other shards and views, so "overfit one batch" trained on a new batch every step."""
+    from types import SimpleNamespace
+
+    for kw in ({"resampled": False, "shuffle_buffer": 0}, {}):  # overfit.yaml's data settings, and the defaults
+        dm = _dm(synth_root, num_workers=workers, epoch_samples=8, **kw)
+        dm.trainer = SimpleNamespace(overfit_batches=2)
+        loader = dm.train_dataloader()
+        epochs = [list(itertools.islice(loader, 3)) for _ in range(3)]  # an epoch is as long as the loader says
+        for e in epochs[1:]:
+            for a, b in zip(epochs[0], e):
+                assert a.scene == b.scene and torch.equal(a.context.images, b.context.images)
+                assert torch.equal(a.target.w2c, b.target.w2c) and torch.equal(a.dense.depth, b.dense.depth)
+        assert len(loader) == 2 and [len(e) for e in epochs] == [2, 2, 2]
+        epochs[1][0].context.images.zero_()  # a step that changes its batch leaves the next epoch's alone
+        assert torch.equal(next(iter(loader)).context.images, epochs[0][0].context.images)

@@ -190,6 +190,27 @@ def test_the_sample_check_skips_what_cannot_be_non_finite(synth_root, monkeypatc
              skip=("images",))
 
 
+@pytest.mark.parametrize("hold", [0, 1, -8])
+def test_an_llffhold_below_two_is_refused_in_one_line(synth_root, hold):
+    """llffhold 0 parsed and then failed every sample as 'corrupt ... integer modulo by zero'; 1 holds out every
+    view, reported as corrupt samples too."""
+    with pytest.raises(ValueError, match=rf"^llffhold: expected >= 2 \(every llffhold-th view .*\), got {hold}$"):
+        _dm(synth_root, llffhold=hold)
+    assert len(list(_dm(synth_root, llffhold=2).test_dataloader())) > 0
+
+
+def test_an_evaluation_sample_with_fewer_views_than_the_context_stops_in_one_line(synth_root):
+    """num_context 16 on a 16-view test scene (views 0 and 8 held out): the context silently repeated views and a
+    perfect camera prediction scored AUC 0.98. Stopped, naming the sample and the largest count that fits, even with
+    skip_corrupt (a setting, not a corrupt sample)."""
+    dm = _dm(synth_root, num_context=16, skip_corrupt=True)
+    with pytest.raises(ValueError, match=r"^shard .* sample .*: view selection: a 16-view evaluation sample keeps 14 "
+                                         r"views after data.llffhold 8 .*data.num_context <= 14[^\n]*$"):
+        list(dm.test_dataloader())
+    assert dm.num_skipped == 0
+    assert len(list(_dm(synth_root, num_context=14).test_dataloader())) == 1
+
+
 class _Raw:
     """A builder that passes the raw sample on (to get one sample as the pipeline reads it)."""
 

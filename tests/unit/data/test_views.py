@@ -55,6 +55,20 @@ def test_select_eval_llffhold():
     assert sels == select_eval(24, 4, 2, 6)
 
 
+def test_select_eval_refuses_a_context_it_would_have_to_repeat():
+    """Fewer non-held-out views than num_context: the context silently repeated views ([1, 1, 2, 2]), and a repeated
+    pair scored rte 90 deg and failed pose AUC for a perfect prediction. Refused in one line naming the view count,
+    llffhold, data.num_context and the fix; a setting (TooFewViews), so skip_corrupt does not skip it."""
+    for n, nc, index, left in ((3, 4, [64, 65, 66], 2), (16, 15, None, 14)):
+        with pytest.raises(ValueError, match=rf"^view selection: a {n}-view evaluation sample keeps {left} views after "
+                                              rf"data.llffhold 8 .*fewer than data.num_context {nc}.*set "
+                                              rf"data.num_context <= {left}[^\n]*$") as e:
+            select_eval(n, nc, 4, 12, index=index)
+        assert type(e.value).__name__ == "TooFewViews"
+    for s in select_eval(16, 14, 2, 0):  # every non-held-out view: allowed, each once
+        assert sorted(set(s.context)) == s.context == [i for i in range(16) if i % 8]
+
+
 @pytest.mark.parametrize("mode,size", [("crop", (32, 32)), ("crop", (20, 50)), ("keep", (28, 28))])
 def test_resize_keeps_projection(mode, size):
     h, w = 40, 60
