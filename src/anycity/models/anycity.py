@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import math
 from collections.abc import Iterator
 
 import torch
@@ -20,7 +21,7 @@ from anycity.models.video_prior import WanVideoPrior, build_video_prior
 SCAFFOLD_PREFIXES = ("aggregator.", "camera_head.", "depth_head.", "gaussian_head.")
 REFINEMENT_PREFIXES = ("completion.", "video_prior.")
 IMAGE_DTYPES = (torch.float32, torch.bfloat16, torch.float16)
-IMAGE_MAX = 1.0 + 1e-3  # [0, 1] images, with room for a resize's rounding
+IMAGE_MIN, IMAGE_MAX = -1e-3, 1.0 + 1e-3  # [0, 1] images, with room for a resize's rounding
 
 
 def _float32_region(device: torch.device) -> contextlib.AbstractContextManager:
@@ -30,6 +31,23 @@ def _float32_region(device: torch.device) -> contextlib.AbstractContextManager:
     if available(device.type) if available is not None else device.type != "meta":
         return torch.autocast(device.type, enabled=False)
     return contextlib.nullcontext()
+
+
+def _check_range(images: Tensor) -> None:
+    """One-line error for ``images`` with values outside [0, 1] (a resize's rounding allowed) or NaN/inf, with the
+    fix that fits what they look like: [-1, 1], mean/std-normalised (ImageNet), 0-255."""
+    lo, hi = torch.stack(torch.aminmax(images.detach())).tolist()  # one reduction, one host sync
+    if not (math.isfinite(lo) and math.isfinite(hi)):  # aminmax spreads a NaN to both
+        got = "NaN" if math.isnan(lo) else f"a minimum of {lo:.4g} and a maximum of {hi:.4g}"
+        raise ValueError(f"images: expected finite values in [0, 1], got {got}; find the non-finite pixels "
+                         "(~torch.isfinite(images)) and fix the loading or preprocessing that made them")
+    if lo < IMAGE_MIN:
+        fix = ("they look like [-1, 1]; use (x + 1) / 2" if lo >= -1 + IMAGE_MIN and hi <= IMAGE_MAX
+               else "they look mean/std-normalised (e.g. ImageNet); undo the normalisation: x * std + mean")
+        raise ValueError(f"images: expected values in [0, 1], got a minimum of {lo:.4g} (maximum {hi:.4g}); {fix}")
+    if hi > IMAGE_MAX:
+        fix = "images look like 0-255; divide by 255" if hi > 2 else "clamp them to [0, 1]"
+        raise ValueError(f"images: expected values in [0, 1], got a maximum of {hi:.4g}; {fix}")
 
 
 class AnyCityNet(nn.Module):
@@ -114,7 +132,7 @@ class AnyCityNet(nn.Module):
     # -- forward ---------------------------------------------------------------------------------------------
     def check_images(self, images: Tensor) -> None:
         """One-line errors for what the network cannot read: ``images`` not ``[B, V, 3, H, W]`` float32/bf16/fp16
-        in [0, 1] with H, W multiples of the patch size, or the network's weights cast away from float32."""
+        in [0, 1] (finite) with H, W multiples of the patch size, or the network's weights cast away from float32."""
         p = self.cfg.patch_size
         if not isinstance(images, Tensor) or images.dim() != 5 or images.shape[2] != 3:
             got = tuple(images.shape) if isinstance(images, Tensor) else type(images).__name__
@@ -136,10 +154,7 @@ class AnyCityNet(nn.Module):
                              "keep float32 weights and run under torch.autocast (Lightning: trainer.precision "
                              "bf16-mixed, not bf16-true)")
         if not images.is_meta:
-            top = float(images.detach().amax())  # one reduction: cheap next to the network
-            if top > IMAGE_MAX:
-                fix = "images look like 0-255; divide by 255" if top > 2 else "clamp them to [0, 1]"
-                raise ValueError(f"images: expected values in [0, 1], got a maximum of {top:.4g}; {fix}")
+            _check_range(images)  # one reduction: cheap next to the network
 
     def forward(self, images: Tensor, refine: bool = True) -> dict:
         self.check_images(images)

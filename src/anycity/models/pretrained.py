@@ -43,7 +43,7 @@ LAYOUT_HINTS = {
 class LoadReport:
     """What :func:`load_pretrained` did. ``missing``: network keys the file did not provide (the completion
     branch and, for VGGT, the Gaussian head are expected here); ``unexpected``: file keys the network has no
-    place for; ``mismatched``: ``(key, file shape, network shape)`` skipped."""
+    place for; ``mismatched``: ``(key, file shape, network shape)`` skipped (not in ``missing``)."""
 
     loaded: list[str] = field(default_factory=list)
     missing: list[str] = field(default_factory=list)
@@ -60,7 +60,15 @@ class LoadReport:
 
         read = f"read {self.picked}; " if self.picked else ""
         return (f"{read}loaded {len(self.loaded)} tensors; missing: {top(self.missing)}; unexpected: "
-                f"{top(self.unexpected)}; shape mismatches: {len(self.mismatched)}")
+                f"{top(self.unexpected)}; shape mismatches: {self._mismatches()}")
+
+    def _mismatches(self, shown: int = 3) -> str:
+        """``2 (k file [21, 32] vs net [36, 32], ...)``: the count and the first ``shown`` keys with both shapes."""
+        if not self.mismatched:
+            return "0"
+        named = ", ".join(f"{k} file {list(theirs)} vs net {list(ours)}" for k, theirs, ours in self.mismatched[:shown])
+        more = f", +{len(self.mismatched) - shown} more" if len(self.mismatched) > shown else ""
+        return f"{len(self.mismatched)} ({named}{more}; skipped, left as built)"
 
     __str__ = summary
 
@@ -193,5 +201,5 @@ def load_pretrained(net: nn.Module, path: str | Path | dict, kind: str = "vggt")
     if kind == "anysplat" and is_anysplat and hasattr(net, "cfg"):  # decode the cameras as the checkpoint trained
         net.cfg = replace(net.cfg, focal_decode="anysplat")
     report.loaded = sorted(usable)
-    report.missing = sorted(k for k in own if k not in usable)
+    report.missing = sorted(k for k in own if k not in sd)  # a shape mismatch is in the file: listed apart
     return report

@@ -97,6 +97,10 @@ class SmallVideoPrior(nn.Module):
         super().__init__()
         if stride not in (4, 8, 16, 32):
             raise ValueError(f"SmallVideoPrior: stride must be 4, 8, 16 or 32, got {stride}")
+        if dim < 2 or dim % 2 or dim % num_heads:  # the frame embedding is sin-cos pairs: 2 * (dim // 2) channels
+            raise ValueError(f"net.prior_dim: the small video prior needs an even width that its {num_heads} "
+                             f"attention head(s) divide, got {dim}; use a multiple of 64 "
+                             f"(e.g. {64 * max(1, round(dim / 64))})")
         self.out_dim, self.stride = dim, stride
         self.stem = nn.Sequential(nn.Conv2d(3, dim // 2, 4, 4), nn.GELU(),
                                   nn.Conv2d(dim // 2, dim, stride // 4, stride // 4))

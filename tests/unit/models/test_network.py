@@ -343,9 +343,20 @@ def test_camera_video_gives_each_view_a_residual_that_knows_its_place_in_the_cli
     (torch.rand(1, 2, 3, 32, 32) * 255, r"^images: expected values in \[0, 1\], got a maximum of .*; images look like "
                                         r"0-255; divide by 255$"),
     (torch.rand(1, 2, 3, 32, 32) + 0.2, r"maximum of 1\.\d+; clamp them to \[0, 1\]$"),
+    (torch.rand(1, 2, 3, 32, 32) * 2 - 1, r"^images: expected values in \[0, 1\], got a minimum of -\S+ "
+                                          r"\(maximum \S+\); they look like \[-1, 1\]; use \(x \+ 1\) / 2$"),
+    ((torch.rand(1, 2, 3, 32, 32) - torch.tensor([0.485, 0.456, 0.406])[:, None, None])
+     / torch.tensor([0.229, 0.224, 0.225])[:, None, None],
+     r"^images: expected values in \[0, 1\], got a minimum of -[12]\S* \(maximum 2\S*\); they look "
+     r"mean/std-normalised \(e\.g\. ImageNet\); undo the normalisation: x \* std \+ mean$"),
+    (torch.rand(1, 2, 3, 32, 32).index_fill_(3, torch.tensor([5]), float("nan")),
+     r"^images: expected finite values in \[0, 1\], got NaN; find the non-finite pixels"),
+    (torch.rand(1, 2, 3, 32, 32).index_fill_(3, torch.tensor([5]), float("inf")),
+     r"^images: expected finite values in \[0, 1\], got a minimum of .* and a maximum of inf; "),
 ])
 def test_images_of_another_dtype_or_range_are_one_line(tiny, bad, match):
-    """float64 images were a conv dtype error, 0-255 floats ran on silently into a garbage reconstruction."""
+    """float64 images were a conv dtype error, 0-255 floats ran on silently into a garbage reconstruction; [-1, 1]
+    and NaN images did too (only the maximum was checked), and ImageNet-normalised ones were told to divide by 255."""
     with pytest.raises(ValueError, match=match):
         tiny(bad)
 
@@ -353,6 +364,7 @@ def test_images_of_another_dtype_or_range_are_one_line(tiny, bad, match):
 def test_images_just_above_one_and_half_precision_images_still_run(tiny):
     x = torch.rand(1, 2, 3, 32, 32)
     x[0, 0, 0, 0, 0] = 1.0005  # a resize's rounding
+    x[0, 1, 0, 0, 0] = -0.0005
     with torch.no_grad():
         for images in (x, x.bfloat16(), x.half()):
             assert tiny(images, refine=False)["depth"].dtype == torch.float32

@@ -77,10 +77,29 @@ def test_load_vggt_state_dict_reports_and_copies(tmp_path):
     rep = load_pretrained(dst, path, kind="vggt")
     assert rep.unexpected == ["point_head.norm.weight"]
     assert rep.mismatched == [("depth_head.norm.bias", (7,), tuple(dst.depth_head.norm.bias.shape))]
-    assert {k.split(".")[0] for k in rep.missing} == {"gaussian_head", "completion", "video_prior", "depth_head"}
-    assert [k for k in rep.missing if k.startswith("depth_head.")] == ["depth_head.norm.bias"]
+    assert {k.split(".")[0] for k in rep.missing} == {"gaussian_head", "completion", "video_prior"}
     assert torch.equal(dst.aggregator.frame_blocks[0].attn.qkv.weight, src.aggregator.frame_blocks[0].attn.qkv.weight)
     assert "unexpected: point_head.* x1" in rep.summary()
+
+
+def test_the_report_names_shape_mismatches_and_counts_them_apart_from_missing():
+    """The printed report said only 'shape mismatches: 2' (no key, no shapes), and counted those keys as missing
+    too although the file had them: AnySplat weights into another SH degree read 'missing: gaussian_head.* x4'."""
+    torch.manual_seed(0)
+    src, dst = build_network("tiny", completion=False, sh_degree=0), build_network("tiny", completion=False)
+    sd = {k: v for k, v in src.state_dict().items() if k not in OURS_ONLY}
+    rep = load_pretrained(dst, sd, kind="vggt")
+    assert rep.missing == sorted(OURS_ONLY)
+    w, b = "gaussian_head.scratch.output_conv2.2.weight", "gaussian_head.scratch.output_conv2.2.bias"
+    n_w, n_b = list(dst.state_dict()[w].shape), list(dst.state_dict()[b].shape)
+    assert rep.summary().endswith(f"; missing: gaussian_head.* x2; unexpected: none; shape mismatches: 2 ({w} file "
+                                  f"{list(src.state_dict()[w].shape)} vs net {n_w}, {b} file "
+                                  f"{list(src.state_dict()[b].shape)} vs net {n_b}; skipped, left as built)")
+    sd.update({k: torch.zeros(1) for k in ("depth_head.norm.bias", "depth_head.norm.weight", "camera_head.x")})
+    sd["camera_head.embed_pose.weight"] = torch.zeros(1)
+    many = load_pretrained(build_network("tiny", completion=False), sd, kind="vggt").summary()
+    assert "shape mismatches: 5 (" in many and many.endswith(", +2 more; skipped, left as built)")
+    assert many.count(" vs net ") == 3 and "\n" not in many
 
 
 def test_load_anysplat_lightning_checkpoint(tmp_path):

@@ -22,6 +22,16 @@ def test_small_prior_tokens():
         prior(torch.rand(1, 1, 3, 8, 8))
 
 
+@pytest.mark.parametrize("dim, fix", [(65, 64), (1, 64), (200, 192)])
+def test_a_small_prior_width_it_cannot_use_is_refused_at_build(dim, fix):
+    """net.prior_dim 65 built, then the first forward was a bare 'size of tensor a (65) must match ... (64)' (the
+    sin-cos frame embedding has 2 * (dim // 2) channels); 1 was a conv error, 200 an error naming 'Attention'."""
+    with pytest.raises(ValueError, match=rf"^net.prior_dim: the small video prior needs an even width .*got {dim}; "
+                                         rf"use a multiple of 64 \(e.g. {fix}\)$"):
+        build_network("tiny", prior_dim=dim)
+    assert build_network("tiny", prior_dim=66).video_prior.out_dim == 66  # even widths other than 64k still build
+
+
 def test_build_video_prior_errors():
     with pytest.raises(ValueError, match="wan_dir"):
         build_video_prior("wan")
