@@ -41,11 +41,13 @@ class PredictionExport(BasePredictionWriter):
     of the Gaussian's own chunk. Chunk predictions are consumed here
     (emptied in place), so ``trainer.predict`` does not keep every chunk's Gaussians in memory: they spill into the
     hidden folder ``.<scene>.anycity_city_work/`` beside the scene's (:func:`anycity.city.scene.work_dir`), removed
-    when the scene is written or the run stops; one that a killed run left is removed by the next run of the scene.
+    when the scene is written or the run stops; one that a killed run left is removed by the next run of the scene,
+    and a run of the same scene still writing it is refused (its folder is locked).
     The chunks' renders and inputs are written to the hidden ``.<scene>.anycity_city_views/`` beside it and moved
     into the scene folder when the scene is written, so a city that does not finish (a chunk fails, SIGTERM,
     ``--trainer.limit_predict_batches`` below the chunk count) leaves nothing in its scene folder; a run that ends
-    with a city unfinished says so in a warning.
+    with a city unfinished says so in a warning. A voxel merge (``net.voxel_size``) with several chunks is refused in
+    :meth:`on_predict_start`, before the network runs: the chunks are aligned and merged on pixel-aligned Gaussians.
 
     ``trainer.log_dir`` (the default ``out_dir``'s parent) is a collective under DDP: it is read once, in
     :meth:`setup`, which every rank runs, never per sample (ranks export different numbers of samples). A run that
@@ -109,6 +111,7 @@ class PredictionExport(BasePredictionWriter):
         self.unfinished = None
         if self._root is None:  # a Trainer that skipped setup (none does): still once, on every rank
             self._root = self.root(trainer)
+        _refuse_voxel_merged_chunks(trainer, pl_module)
 
     def on_predict_batch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule, outputs: Any, batch: Any,
                              batch_idx: int, dataloader_idx: int = 0) -> None:
@@ -265,6 +268,30 @@ class PredictionExport(BasePredictionWriter):
             self._bar.close()
             self._bar = None
         return dropped
+
+
+def _refuse_voxel_merged_chunks(trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+    """Refuse ``net.voxel_size`` for a photo folder predicted in several chunks, before the network runs: the chunks
+    are aligned and merged on pixel-aligned Gaussians (:meth:`anycity.city.ChunkedScene.add`), which used to refuse
+    only after chunk 0's network pass and camera refinement. The plan is the predict dataset's ``chunks``
+    (:class:`anycity.lit.datamodule.AerialDataModule`'s photo chunks; duck-typed: callbacks do not import lit)."""
+    from anycity.data.photos import MAX_VIEWS
+
+    voxel = getattr(getattr(getattr(pl_module, "net", None), "cfg", None), "voxel_size", None)
+    loaders = getattr(trainer, "predict_dataloaders", None)
+    if voxel is None or loaders is None:
+        return
+    for loader in loaders if isinstance(loaders, (list, tuple)) else [loaders]:
+        plan = getattr(getattr(loader, "dataset", None), "chunks", None)
+        if isinstance(plan, list) and len(plan) > 1:
+            n = len({v for views in plan for v in views})
+            refine = getattr(pl_module, "hparams", {}).get("camera_refine_steps", 0)  # it needs unmerged ones too
+            one_pass = (f" or raise --data.predict_chunk_size to {n} (one pass"
+                        f"{', with --model.camera_refine_steps 0' if refine else ''})") if n <= MAX_VIEWS else ""
+            raise ValueError(f"--model.net.voxel_size {voxel}: the {n} photos of --data.predict_images are "
+                             f"predicted in {len(plan)} chunks, which are aligned and merged on pixel-aligned "
+                             f"Gaussians, and voxel merging is single-pass only; drop --model.net.voxel_size"
+                             f"{one_pass}")
 
 
 def _views_dir(folder: Path, fresh: bool = False) -> Path:

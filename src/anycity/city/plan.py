@@ -50,10 +50,23 @@ def order_photos(paths: list[Path], by: str = "auto") -> tuple[list[int], str]:
     if all(times) and len(set(times)) == len(times):
         return sorted(by_name, key=lambda i: times[i]), "time"
     if by == "time":
-        missing = next((paths[i].name for i, t in enumerate(times) if not t), None)
-        raise ValueError(f"predict_order 'time': {missing or 'two photos'} has no (distinct) EXIF capture time; "
-                         "use predict_order 'name' or 'auto'")
+        raise ValueError(f"predict_order 'time': {_time_problem(paths, times, by_name)}; use predict_order 'name' "
+                         "or 'auto'")
     return by_name, "name"
+
+
+def _time_problem(paths: list[Path], times: list[str | None], by_name: list[int]) -> str:
+    """Why capture times cannot order ``paths``: the first photo (in name order) without one, else the first two
+    that share one."""
+    missing = next((paths[i].name for i in by_name if not times[i]), None)
+    if missing:
+        return f"{missing} has no EXIF capture time"
+    first: dict[str, int] = {}
+    for i in by_name:
+        if times[i] in first:
+            return f"{paths[first[times[i]]].name} and {paths[i].name} share the capture time {times[i]}"
+        first[times[i]] = i
+    raise AssertionError("unreachable: every photo has a distinct capture time")
 
 
 def order_from_descriptors(desc: Tensor) -> list[int]:
@@ -101,7 +114,8 @@ def token_descriptors(net, load, num: int, batch: int = 16) -> Tensor:
 
 def plan_chunks(num: int, size: int, overlap: int, loop: bool = False) -> list[list[int]]:
     """Cut positions ``0..num-1`` into chunks of ``size`` consecutive positions, each sharing ``overlap`` with the
-    next; the last chunk is shifted back to stay full (it then shares more). One chunk when ``num <= size``.
+    next; the last chunk is shifted back to stay full (it then shares more). One chunk when ``num <= size`` (any
+    ``overlap >= 0``: it is not used); more need ``size >= MIN_SHARED + 1`` and ``MIN_SHARED <= overlap < size``.
 
     ``loop=True`` (the last photos see the first ones again, e.g. a closed orbit) appends, whenever there is more
     than one chunk, a loop-closure chunk of the last ``size // 2`` and the first ``size - size // 2`` positions: it
@@ -109,10 +123,17 @@ def plan_chunks(num: int, size: int, overlap: int, loop: bool = False) -> list[l
     (:func:`anycity.city.posegraph.align_chunks` drops it with a warning where it disagrees with the chain)."""
     if size < 2:
         raise ValueError(f"predict_chunk_size: expected >= 2 photos per chunk, got {size}")
-    if not 0 <= overlap < size:
-        raise ValueError(f"predict_chunk_overlap: expected 0..{size - 1} (below the chunk size), got {overlap}")
-    if num <= size:
+    if overlap < 0:
+        raise ValueError(f"predict_chunk_overlap: expected >= 0 photos shared by consecutive chunks, got {overlap}")
+    if num <= size:  # one pass: the overlap is not used
         return [list(range(num))]
+    if size <= MIN_SHARED:  # each chunk shares MIN_SHARED photos with the next and must add one of its own
+        raise ValueError(f"predict_chunk_size: {num} photos in chunks of {size} cannot be aligned (consecutive "
+                         f"chunks share {MIN_SHARED} photos, so a chunk needs {MIN_SHARED + 1} or more); raise "
+                         f"predict_chunk_size to {MIN_SHARED + 1} or more")
+    if overlap >= size:
+        raise ValueError(f"predict_chunk_overlap: expected {MIN_SHARED}..{size - 1} (below the chunk size "
+                         f"{size}), got {overlap}")
     if overlap < MIN_SHARED:  # said before the network runs over every chunk, not after
         raise ValueError(f"predict_chunk_overlap: {num} photos in chunks of {size} need an overlap of at least "
                          f"{MIN_SHARED} (consecutive chunks are aligned on the photos they share), got {overlap}")

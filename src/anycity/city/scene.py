@@ -9,7 +9,9 @@ then holds at most the PLY body and the PLY: 2x the scene).
 Given the output folder, the spill files live in the hidden :func:`work_dir` beside it (on the disk the scene is
 written to, not in ``$TMPDIR``, which is RAM on a tmpfs ``/tmp``); ``finish`` stages its outputs there too, so each
 is published by a rename. The folder is removed when the scene is written or the run fails; one that a killed run
-left is removed by the next run of that scene (its chunks came from another run, so they are never reused).
+left is removed by the next run of that scene (its chunks came from another run, so they are never reused). A run
+holds an exclusive ``flock`` on its folder, so a second run of the same scene started while the first is still
+running is refused instead of deleting the first one's spill (the kernel drops the lock of a killed run).
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 import shutil
 import tempfile
 import warnings
@@ -33,7 +36,13 @@ from anycity.city.posegraph import align_chunks
 from anycity.export.cameras import save_cameras
 from anycity.structures import Gaussians
 
+try:
+    import fcntl
+except ImportError:  # not POSIX: spill folders are not guarded against a concurrent run
+    fcntl = None
+
 WORK_SUFFIX = ".anycity_city_work"
+_HELD: dict[str, int] = {}  # spill folder -> descriptor holding its lock, for this process's ChunkedScenes
 
 
 def work_dir(folder: str | Path) -> Path:
@@ -62,7 +71,7 @@ class ChunkedScene:
         points_per_side: depth points per view side used for alignment.
         global_pass: run the pose graph after the pairwise fits (else chain them).
         out: the folder :meth:`finish` will write; the spill goes to :func:`work_dir` beside it (a killed run's
-            one is removed first, with a warning).
+            one is removed first, with a warning; one that another running process holds is refused).
         workdir: without ``out``, where a new temporary spill folder is made; neither = ``$TMPDIR`` (RAM on a
             tmpfs ``/tmp``: pass ``out`` for a large scene).
         fit: keyword options of :func:`anycity.city.align.robust_sim3`.
@@ -76,7 +85,7 @@ class ChunkedScene:
         self.pix = grid_pixels(*self.hw, points_per_side)
         self.geometry: list[ChunkGeometry | None] = [None] * len(chunks)
         self.K: dict[int, Tensor] = {}
-        self.spill = _spill_dir(out, workdir)
+        self.spill, self._lock_fd = _spill_dir(out, workdir)
         self.spilled: dict[int, Path] = {}
         self.global_pass, self.fit = global_pass, fit
 
@@ -158,8 +167,11 @@ class ChunkedScene:
         return w2c
 
     def close(self) -> None:
-        """Remove the spill files."""
+        """Remove the spill files, then release the spill folder's lock."""
         shutil.rmtree(self.spill, ignore_errors=True)
+        if self._lock_fd is not None and _HELD.get(str(self.spill)) == self._lock_fd:
+            os.close(_HELD.pop(str(self.spill)))
+        self._lock_fd = None
 
     def _report(self, S: Tensor, edges, rep: dict, ply: PlyStream) -> dict:
         s = sim3_parts(S)[0]
@@ -178,16 +190,59 @@ class ChunkedScene:
                 "units": "residuals in world units of chunk 0's frame"}
 
 
-def _spill_dir(out: str | Path | None, workdir: str | Path | None) -> Path:
-    """A new, empty spill folder: :func:`work_dir` of ``out``, else a temporary one in ``workdir``."""
+def _spill_dir(out: str | Path | None, workdir: str | Path | None) -> tuple[Path, int | None]:
+    """A new, empty spill folder and the descriptor holding its lock: :func:`work_dir` of ``out`` (locked), else a
+    temporary one in ``workdir`` (unique: no lock).
+
+    Raises:
+        ValueError: another process holds ``out``'s spill folder: a run of the same scene is still writing it.
+    """
     if out is None:
-        return Path(tempfile.mkdtemp(prefix="anycity_city_", dir=workdir))
+        return Path(tempfile.mkdtemp(prefix="anycity_city_", dir=workdir)), None
     spill = work_dir(out)
+    busy = ValueError(f"{out}: another anycity predict is writing this scene (its spill folder {spill} is in use); "
+                      "wait for it to end, or pass another --export.out_dir")
     if spill.exists():  # a killed run's: its chunks are not this run's, and the disk space is wanted back
+        held = _HELD.pop(str(spill), None)  # this process's own, never closed: as good as killed
+        if held is not None:
+            os.close(held)
+        try:
+            stale = _lock(spill)
+        except BlockingIOError:
+            raise busy from None
         warnings.warn(f"{spill}: removing the spill folder an interrupted run left", stacklevel=3)
         shutil.rmtree(spill)
-    spill.mkdir(parents=True)
-    return spill
+        if stale is not None:
+            os.close(stale)
+    try:
+        spill.mkdir(parents=True)
+        fd = _lock(spill)
+    except (FileExistsError, BlockingIOError):  # a run of the scene that started at the same moment
+        raise busy from None
+    if fd is not None:
+        _HELD[str(spill)] = fd
+    return spill, fd
+
+
+def _lock(folder: Path) -> int | None:
+    """An exclusive ``flock`` on ``folder``: the descriptor holding it, or None where the OS or the filesystem has
+    none (the folder is then not guarded).
+
+    Raises:
+        BlockingIOError: another process holds it.
+    """
+    if fcntl is None:
+        return None
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(fd)
+        raise
+    except OSError:  # e.g. a network filesystem without flock
+        os.close(fd)
+        return None
+    return fd
 
 
 def _finite(v):

@@ -183,3 +183,40 @@ def test_a_chunk_that_fails_leaves_no_spill_files(tmp_path):
     assert not (tmp_path / "out" / ".flight.anycity_city_work").exists()
     assert cb._city is None and cb._bar is None
     assert not (tmp_path / "out" / "flight" / "scene.ply").exists()
+
+
+def test_voxel_merging_with_several_chunks_is_refused_before_the_network_runs(tmp_path):
+    """--model.net.voxel_size with a folder of several chunks failed only after chunk 0's network pass and camera
+    refinement, in ChunkedScene.add's terms (tensor shapes), not naming the option to drop."""
+    import lightning.pytorch as pl
+
+    class Net(pl.LightningModule):
+        def __init__(self, voxel_size):
+            super().__init__()
+            self.net = SimpleNamespace(cfg=SimpleNamespace(voxel_size=voxel_size))
+            self.calls = 0
+
+        def predict_step(self, batch, batch_idx):
+            self.calls += 1
+            raise AssertionError("the network ran")
+
+    def predict(folder, model):
+        trainer = pl.Trainer(accelerator="cpu", devices=1, logger=False, enable_checkpointing=False,
+                             enable_progress_bar=False, enable_model_summary=False, default_root_dir=str(tmp_path),
+                             callbacks=[PredictionExport(out_dir=str(tmp_path / "out"))])
+        trainer.predict(model, datamodule=folder, return_predictions=False)
+
+    dm = _chunked_photo_folder(tmp_path / "city", 10, 8, 8, shade=20)
+    model = Net(0.05)
+    with pytest.raises(ValueError, match=r"^--model\.net\.voxel_size 0\.05: the 10 photos of --data\.predict_images "
+                                         r"are predicted in 4 chunks, .*voxel merging is single-pass only; drop "
+                                         r"--model\.net\.voxel_size or raise --data\.predict_chunk_size to 10 "
+                                         r"\(one pass\)$"):
+        predict(dm, model)
+    assert model.calls == 0
+    with pytest.raises(AssertionError, match="the network ran"):  # unmerged: no refusal
+        predict(dm, Net(None))
+    one = AerialDataModule(predict_images=str(tmp_path / "city"), image_size=(8, 8), patch_size=8,
+                           predict_chunk_size=16, num_workers=0)
+    with pytest.raises(AssertionError, match="the network ran"):  # one pass may merge voxels
+        predict(one, Net(0.05))

@@ -5,8 +5,10 @@ import torch
 
 from anycity.city import (
     ChunkedScene,
+    ChunkGeometry,
     PlyStream,
     align_chunks,
+    apply_sim3,
     order_from_descriptors,
     owners,
     plan_chunks,
@@ -341,3 +343,112 @@ def test_each_spill_file_is_deleted_once_its_rows_are_in_the_ply(tmp_path, monke
     scene.finish(tmp_path / "out")
     names = [f"chunk_{k:05d}.pt" for k in range(3)]
     assert spilled == [names, names[1:], names[2:], []]
+
+
+def _with_sky(chunks, rows: int = 1, seed: int = 7):
+    """The chunks with the first ``rows`` grid rows of every view pushed 5 to 50 times as far along their rays, by
+    other factors in each chunk: sky or horizon pixels of oblique photos, which each chunk's pass puts at its own
+    depth."""
+    from anycity.geometry.cameras import camera_centers
+
+    g, out = torch.Generator().manual_seed(seed), []
+    for c in chunks:
+        k, cc, p = 8 * rows, camera_centers(c.w2c), c.points.clone()
+        f = torch.empty(p.shape[0], k, dtype=torch.float64).uniform_(5, 50, generator=g)
+        p[:, :k] = cc[:, None] + (p[:, :k] - cc[:, None]) * f[..., None]
+        out.append(ChunkGeometry(c.views, c.w2c, p))
+    return out
+
+
+def _first_cameras(chunks, S, n):
+    """World cameras ``[n, 4, 4]`` from the first chunk holding each photo (a loop chunk holds none first)."""
+    own = {}
+    for k, c in enumerate(chunks):
+        for i, v in enumerate(c.views):
+            own.setdefault(v, w2c_to_world(c.w2c[i], S[k]))
+    return torch.stack([own[v] for v in range(n)])
+
+
+def test_far_points_that_disagree_between_chunks_do_not_loosen_the_fit():
+    """One grid row of sky points per view dragged the points' mean away: the inlier threshold (5 % of the median
+    distance to it) grew ~17x, the sky points became inliers and the cameras came out 5x worse."""
+    n = 60
+    w2c, pts = orbit_scene(n)
+    chunks, _ = oracle_chunks(w2c, pts, plan_chunks(n, 16, 4), rot_deg=0.3, centre_noise=0.01, depth_noise=0.01)
+    S, edges, _ = align_chunks(chunks)
+    S_sky, edges_sky, _ = align_chunks(_with_sky(chunks))
+    clean, sky = camera_errors(_first_cameras(chunks, S, n), w2c), camera_errors(_first_cameras(chunks, S_sky, n), w2c)
+    assert sky["rot_deg_mean"] < 1.5 * clean["rot_deg_mean"] and sky["pos_rel_max"] < 1.5 * clean["pos_rel_max"], (
+        clean, sky)
+    assert all(b.fit.threshold < 1.5 * a.fit.threshold for a, b in zip(edges, edges_sky))
+
+
+def test_sky_points_do_not_hide_a_broken_loop_chunk():
+    """A loop chunk whose halves are a random Sim(3) apart was kept with one row of sky points (the inflated
+    threshold blinded the pose graph's check): 31 degrees mean rotation error, only a loop-correction warning."""
+    n = 120
+    w2c, pts = orbit_scene(n, arc=1.0)
+    chunks, _ = oracle_chunks(w2c, pts, plan_chunks(n, 16, 4, loop=True), rot_deg=0.09, centre_noise=0.003,
+                              depth_noise=0.003)
+    L, h, E = chunks[-1], 8, random_sim3(torch.Generator().manual_seed(9))
+    w, p = L.w2c.clone(), L.points.clone()
+    w[h:], p[h:] = w2c_to_world(w[h:], E), apply_sim3(E, p[h:])
+    chunks[-1] = ChunkGeometry(L.views, w, p)
+    with pytest.warns(UserWarning, match="the loop-closure chunk 10 .* disagrees with the chain"):
+        S, _, rep = align_chunks(_with_sky(chunks))
+    assert rep["dropped_pairs"] == [[0, 10]]
+    err = camera_errors(_first_cameras(chunks, S, n), w2c)
+    assert err["rot_deg_mean"] < 0.5 and err["pos_rel_max"] < 0.02, err
+
+
+def test_chunks_of_two_are_refused_naming_the_chunk_size():
+    """Chunks of 2 were accepted, but no overlap worked for more than 2 photos, and the two overlap errors
+    contradicted each other (overlap 1: "need at least 2"; overlap 2: "expected 0..1")."""
+    for overlap in (0, 1, 2, 4):
+        with pytest.raises(ValueError, match=r"^predict_chunk_size: 5 photos in chunks of 2 cannot be aligned .*"
+                                             r"raise predict_chunk_size to 3 or more$"):
+            plan_chunks(5, 2, overlap)
+    assert plan_chunks(2, 2, 0) == [[0, 1]]  # one pass of 2 still works
+    assert plan_chunks(5, 3, 2) == [[0, 1, 2], [1, 2, 3], [2, 3, 4]]
+    with pytest.raises(ValueError, match=r"^predict_chunk_overlap: expected 2\.\.2 \(below the chunk size 3\), got 3$"):
+        plan_chunks(5, 3, 3)
+
+
+def test_the_overlap_of_a_folder_that_fits_one_pass_is_not_checked():
+    """A folder that fits one pass was refused over the overlap it never uses (chunk size 3, default overlap 4)."""
+    assert plan_chunks(3, 3, 4) == [[0, 1, 2]]
+    assert plan_chunks(10, 16, 16) == [list(range(10))]
+    with pytest.raises(ValueError, match=r"^predict_chunk_overlap: expected >= 0 .*got -1$"):
+        plan_chunks(3, 3, -1)
+
+
+def _timed_jpegs(folder, times):
+    import numpy as np
+    from PIL import Image
+
+    for i, t in enumerate(times):
+        exif = Image.Exif()
+        if t:
+            exif[306] = t  # DateTime
+        Image.fromarray(np.zeros((8, 8, 3), np.uint8)).save(folder / f"DJI_{i:04d}.jpg", exif=exif)
+    return sorted(folder.iterdir())
+
+
+def test_order_by_time_names_the_photos_that_share_a_capture_time(tmp_path):
+    """It said "two photos has no (distinct) EXIF capture time": in a folder of 2,000 photos, which two?"""
+    from anycity.city import order_photos
+
+    files = _timed_jpegs(tmp_path, ["2024:05:01 10:00:00", "2024:05:01 10:00:02", "2024:05:01 10:00:04",
+                                    "2024:05:01 10:00:02", "2024:05:01 10:00:04"])
+    assert order_photos(files, "auto") == ([0, 1, 2, 3, 4], "name")
+    with pytest.raises(ValueError, match=r"^predict_order 'time': DJI_0001\.jpg and DJI_0003\.jpg share the capture "
+                                         r"time 2024:05:01 10:00:02; use predict_order 'name' or 'auto'$"):
+        order_photos(files, "time")
+
+
+def test_order_by_time_names_a_photo_without_a_capture_time(tmp_path):
+    from anycity.city import order_photos
+
+    files = _timed_jpegs(tmp_path, ["2024:05:01 10:00:00", None, "2024:05:01 10:00:04"])
+    with pytest.raises(ValueError, match=r"^predict_order 'time': DJI_0001\.jpg has no EXIF capture time; use "):
+        order_photos(files, "time")
