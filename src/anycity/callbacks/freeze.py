@@ -23,21 +23,32 @@ def require_matches(module: nn.Module, patterns: list[str], what: str) -> None:
 
 
 def freeze_by_patterns(module: nn.Module, patterns: list[str], unfreeze: list[str] | None = None) -> list[str]:
-    """Set ``requires_grad=False`` on every parameter whose name matches one of ``patterns``.
+    """Set ``requires_grad=False`` on every parameter whose name matches one of ``patterns`` and none of
+    ``unfreeze``.
 
     Args:
         module: the model (names as in ``module.named_parameters()``).
         patterns: glob patterns, e.g. ``"net.aggregator.*"``.
-        unfreeze: patterns re-enabled afterwards (exceptions inside a frozen group, e.g. LoRA ``"*lora_*"``).
+        unfreeze: exceptions inside the group ``patterns`` match (e.g. LoRA ``"*lora_*"``): those parameters are
+            left as they are, not frozen. Nothing is set trainable, so a parameter frozen elsewhere (e.g. Stage
+            II's scaffold) stays frozen.
     Returns:
         The names frozen.
     Raises:
-        ValueError: a pattern that matches no parameter (a typo would silently train everything).
+        ValueError: a pattern that matches no parameter (a typo would silently train everything), or an
+            ``unfreeze`` pattern that matches none of the parameters ``patterns`` match (it would do nothing).
     """
-    require_matches(module, [*patterns, *(unfreeze or [])], "freeze: pattern")
+    unfreeze = unfreeze or []
+    require_matches(module, [*patterns, *unfreeze], "freeze: pattern")
+    grouped = {n for n, _ in module.named_parameters() if any(fnmatchcase(n, pat) for pat in patterns)}
+    for u in unfreeze:
+        if not any(fnmatchcase(n, u) for n in grouped):
+            raise ValueError(f"freeze.unfreeze: pattern {u!r} matches none of the parameters freeze.patterns "
+                             f"{patterns} freeze, so it would change nothing (it only exempts parameters from those "
+                             "patterns); fix it, add the pattern it belongs under to freeze.patterns, or drop it")
     frozen = []
     for n, p in module.named_parameters():
-        if any(fnmatchcase(n, pat) for pat in patterns) and not any(fnmatchcase(n, u) for u in unfreeze or []):
+        if n in grouped and not any(fnmatchcase(n, u) for u in unfreeze):
             p.requires_grad_(False)
             frozen.append(n)
     return frozen
@@ -54,7 +65,8 @@ class FreezeModules(Callback):
     Args:
         patterns: glob patterns over ``pl_module.named_parameters()`` names, e.g. ``["net.aggregator.*"]``.
             Empty list = no-op. A pattern that matches nothing raises ``ValueError``.
-        unfreeze: patterns kept trainable inside the frozen set (e.g. ``["*lora_*"]``).
+        unfreeze: patterns not frozen inside the set ``patterns`` match (e.g. ``["*lora_*"]``); one that matches
+            none of that set, or any given without ``patterns``, raises ``ValueError``.
         allow_random_init: freeze scaffold weights (``net.aggregator|camera_head|depth_head|gaussian_head.*``) in a
             fit whose module loads none (neither ``model.pretrained`` nor ``model.init_from``): they stay at their
             random init. Refused unless true (e.g. the frozen ablations at quickstart scale, trained from scratch).
@@ -69,6 +81,10 @@ class FreezeModules(Callback):
 
     def setup(self, trainer: pl.Trainer, pl_module: pl.LightningModule, stage: str) -> None:
         if not self.patterns:
+            if self.unfreeze:
+                raise ValueError(f"freeze.unfreeze: {self.unfreeze} given without freeze.patterns, so it would change "
+                                 "nothing (it only exempts parameters from those patterns, and unfreezes nothing "
+                                 "frozen elsewhere); set freeze.patterns or drop freeze.unfreeze")
             return
         self.frozen = freeze_by_patterns(pl_module, self.patterns, self.unfreeze)
         if stage == "fit" and not self.allow_random_init:

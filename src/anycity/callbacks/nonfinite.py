@@ -8,7 +8,8 @@ AdamW then leaves those parameters and their moments untouched) and counts the s
 
 Under ``16-mixed`` the precision plugin's GradScaler checks the gradients itself and skips a step with an inf or
 a NaN: it overflows them on purpose about once per ``growth_interval`` steps to find its scale. There the guard
-leaves gradients to the scaler (those steps are not counted against ``max_skips``) and checks the loss only.
+leaves gradients to the scaler (those steps are not counted against ``max_skips``) and checks the loss only: the
+loss of every micro-batch the step accumulates (``accumulate_grad_batches``), not only the last one's.
 """
 
 from __future__ import annotations
@@ -54,14 +55,18 @@ class NonFiniteGuard(Callback):
         self.enabled, self.max_skips = enabled, max_skips
         self.skipped = 0
         self._run = [0, 0]  # this run's (skipped, taken) steps: a resumed count says nothing about them
-        self._loss: Tensor | None = None
+        self._bad_loss: Tensor | None = None  # any non-finite loss among this step's micro-batches (0-dim bool)
 
     def on_before_backward(self, trainer: pl.Trainer, pl_module: pl.LightningModule, loss: Tensor) -> None:
-        self._loss = loss  # read after backward, in on_before_optimizer_step
+        # OR-ed over the micro-batches of gradient accumulation (read in on_before_optimizer_step): under a
+        # GradScaler the loss is all the guard checks, so an earlier micro-batch's NaN must not be overwritten.
+        # A tensor, so the device syncs once per step, not once per micro-batch
+        bad = ~torch.isfinite(loss.detach()).all()
+        self._bad_loss = bad if self._bad_loss is None else self._bad_loss | bad
 
     def _bad_ranks(self, trainer: pl.Trainer, pl_module: pl.LightningModule, optimizer) -> int:
-        # under a GradScaler this loss is the scaled one, which scaling does not overflow in float32
-        bad = self._loss is not None and not bool(torch.isfinite(self._loss.detach()).all())
+        # under a GradScaler the losses are the scaled ones, which scaling does not overflow in float32
+        bad = self._bad_loss is not None and bool(self._bad_loss)
         scaler = getattr(trainer.precision_plugin, "scaler", None)  # 16-mixed: checks the gradients itself
         if not bad and scaler is None:
             # the gradients this step applies (read from the optimiser: 0.04 ms, walking the modules 0.6)
@@ -73,9 +78,10 @@ class NonFiniteGuard(Callback):
 
     def on_before_optimizer_step(self, trainer: pl.Trainer, pl_module: pl.LightningModule, optimizer) -> None:
         if not self.enabled:
+            self._bad_loss = None
             return
         bad = self._bad_ranks(trainer, pl_module, optimizer)
-        self._loss = None
+        self._bad_loss = None
         self._run[0 if bad else 1] += 1
         if bad:
             optimizer.zero_grad(set_to_none=True)
@@ -88,7 +94,7 @@ class NonFiniteGuard(Callback):
         pl_module.log("train/nonfinite_skipped", float(self.skipped), on_step=True, on_epoch=False)
 
     def on_train_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
-        self._run = [0, 0]
+        self._run, self._bad_loss = [0, 0], None
 
     def on_train_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
         skipped, taken = self._run

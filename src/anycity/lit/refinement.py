@@ -312,7 +312,13 @@ class RefinementModule(AnyCityModule):
             shown = _take_views(dense, idx)
             with torch.no_grad():
                 t_out = self.forward_net(dense.images, refine=False)
-                t_g = t_out.get("scaffold_gaussians") or t_out["gaussians"]
+                t_out = {**t_out, "gaussians": t_out.get("scaffold_gaussians") or t_out["gaussians"]}
+            # the teacher reads other views than the student and can overflow alone: skip the step on every DDP rank
+            # as for the student (the NaN loss is built here, outside no_grad, so backward reaches every parameter)
+            if (bad := self.nonfinite_forward(t_out)) is not None:
+                return bad
+            with torch.no_grad():
+                t_g = t_out["gaussians"]
                 w2c_td, s_t = self.target_cameras(t_out["w2c"], dense, dense)  # its frame: dense view 0's
                 teacher = _scaled(self.render(t_g, _take(w2c_td, idx), shown.K, shown.hw, ctx.images), s_t)
             w2c_sd, s_s = self.target_cameras(out["w2c"], ctx, shown)

@@ -20,8 +20,11 @@ def align_scale_shift(pred: Tensor, target: Tensor, mask: Tensor) -> tuple[Tenso
     Args:
         pred, target: ``[M, H, W]``; mask: ``[M, H, W]`` float weights (0/1).
     Returns:
-        ``s, t`` each ``[M]`` (``s = 1, t = 0`` where fewer than 2 valid pixels or no variance). ``s >= 0``: a
-        negative fit (an inverted map) is clamped to ``s = 0`` with ``t`` the mean target, the best constant.
+        ``s, t`` each ``[M]`` (``s = 1, t = 0`` where fewer than 2 valid pixels or no variance). ``s >= 0``: where
+        the fit is negative (an inverted map) the alignment is shift-only, ``s = 1`` and ``t`` its least-squares
+        shift, so the residual still depends on (and its gradient corrects) the prediction. A constant target
+        (valid pixels), whose fit's sign is rounding noise, keeps ``s = max(fit, 0)``: about 0, and ``t`` that
+        constant.
     """
     w = mask
     n = w.sum((-1, -2))
@@ -30,8 +33,13 @@ def align_scale_shift(pred: Tensor, target: Tensor, mask: Tensor) -> tuple[Tenso
     det = n * spp - sp * sp
     ok = (n >= 2) & (det.abs() > 1e-12 * n.clamp_min(1) ** 2)
     safe = torch.where(ok, det, torch.ones_like(det))
-    # an exact identity (value and gradient) wherever the fit's s >= 0; t below is computed from the clamped s
-    s = torch.where(ok, (n * spt - sp * st) / safe, torch.ones_like(det)).clamp_min(0.0)
+    s = torch.where(ok, (n * spt - sp * st) / safe, torch.ones_like(det))
+    # a negative fit falls back to s = 1, not to the best constant s = 0, whose residual (so its gradient) does not
+    # depend on pred; a constant target keeps s = 0 (its fit's sign is rounding noise). Value and gradient stay
+    # exact where s >= 0. t below is computed from this s
+    lo, hi = torch.where(w > 0, target, torch.inf), torch.where(w > 0, target, -torch.inf)
+    varied = lo.amin((-1, -2)) < hi.amax((-1, -2))
+    s = torch.where((s < 0) & varied, torch.ones_like(s), s.clamp_min(0.0))
     t = torch.where(ok, (st - s * sp) / n.clamp_min(1), torch.zeros_like(det))
     return s, t
 
@@ -65,9 +73,10 @@ def depth_z_loss(
     """Scale-and-shift aligned log-inverse depth L1 + gradient matching.
 
     Both depths go to ``u = log(1 / z)``; the prediction is aligned per image by least squares
-    (``s * u_pred + t``, ``s >= 0``), so any ``pred = c * gt^k`` with ``k > 0`` gives zero loss; an inverted map
-    (``k < 0``) is scored against the best constant. Invalid pixels (mask 0, ground truth <= 0 or not finite,
-    prediction <= 0, or confidence below ``conf_threshold``) are ignored, whatever values they hold.
+    (``s * u_pred + t``), so any ``pred = c * gt^k`` with ``k > 0`` gives zero loss; an inverted map (``k < 0``,
+    a negative least-squares ``s``) is aligned by shift only (``s = 1``), so it scores > 0 with a gradient towards
+    the ground truth. Invalid pixels (mask 0, ground truth <= 0 or not finite, prediction <= 0, or confidence below
+    ``conf_threshold``) are ignored, whatever values they hold.
 
     Args:
         pred_depth, gt_depth: ``[..., 1, H, W]`` z-depth (> 0 where valid).

@@ -57,3 +57,16 @@ def test_freezing_scaffold_weights_a_module_loads_is_allowed():
     with pytest.raises(ValueError, match="freeze.patterns: 4 scaffold weights"):
         FreezeModules(["net.aggregator.*"]).setup(None, Tiny(), "fit")
     FreezeModules(["net.head.*"]).setup(None, Tiny(), "fit")  # not the scaffold (the prior, say): no weights needed
+
+
+def test_an_unfreeze_pattern_that_exempts_nothing_is_an_error():
+    """unfreeze only exempts parameters from freeze.patterns (it sets nothing trainable); one matching none of them,
+    or given without patterns (which returned before reading it), silently did nothing."""
+    with pytest.raises(ValueError, match=r"freeze.unfreeze: pattern 'net.head.\*' matches none of the parameters "):
+        freeze_by_patterns(Tiny(), ["net.aggregator.*"], unfreeze=["net.head.*"])  # a parameter, not a frozen one
+    with pytest.raises(ValueError, match=r"freeze.unfreeze: \['net.head.\*'\] given without freeze.patterns"):
+        FreezeModules([], unfreeze=["net.head.*"]).setup(None, Tiny(), "fit")
+    m = Tiny()
+    with pytest.raises(ValueError, match="net.agregator"):  # a typo: as for a freeze pattern
+        freeze_by_patterns(m, ["net.aggregator.*"], unfreeze=["net.agregator.1.*"])
+    assert all(p.requires_grad for p in m.parameters())  # refused before anything was frozen

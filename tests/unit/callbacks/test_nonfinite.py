@@ -106,7 +106,7 @@ class _Fp16(pl.LightningModule):
         return torch.utils.data.DataLoader(torch.utils.data.TensorDataset(x), batch_size=8)
 
 
-def _fit_16_mixed(model, steps):
+def _fit_16_mixed(model, steps, accumulate=1):
     from lightning.pytorch.plugins import MixedPrecision
 
     # growth_interval 2 stands in for the default 2000: the scaler doubles its scale until the gradients overflow
@@ -119,8 +119,8 @@ def _fit_16_mixed(model, steps):
 
     guard = NonFiniteGuard(max_skips=1)
     trainer = pl.Trainer(max_steps=steps, accelerator="cpu", plugins=[MixedPrecision("16-mixed", "cpu", scaler=scaler)],
-                         logger=False, enable_checkpointing=False, enable_progress_bar=False,
-                         enable_model_summary=False, callbacks=[guard, _Scales()])
+                         accumulate_grad_batches=accumulate, logger=False, enable_checkpointing=False,
+                         enable_progress_bar=False, enable_model_summary=False, callbacks=[guard, _Scales()])
     trainer.fit(model)
     return guard, sum(b < a for a, b in zip(scales, scales[1:]))
 
@@ -136,3 +136,18 @@ def test_the_grad_scalers_overflow_steps_are_left_to_it_under_16_mixed():
 def test_a_nan_loss_is_still_skipped_under_16_mixed():
     guard, _ = _fit_16_mixed(_Fp16(nan_step=1), steps=3)
     assert guard.skipped == 1
+
+
+def test_a_nan_loss_on_an_earlier_micro_batch_is_skipped_under_16_mixed_with_accumulation():
+    """With accumulate_grad_batches > 1 the guard kept only the last micro-batch's loss: a NaN on the first made the
+    GradScaler skip the step unseen (not counted, max_skips never reached, the run 'trained' nothing)."""
+
+    class _NanFirstMicroBatch(_Fp16):
+        def training_step(self, batch, batch_idx):
+            loss = super().training_step(batch, batch_idx)
+            return loss * float("nan") if batch_idx == 2 else loss  # the first of step 1's two micro-batches
+
+    guard, _ = _fit_16_mixed(_NanFirstMicroBatch(), steps=3, accumulate=2)
+    assert guard.skipped == 1
+    guard, _ = _fit_16_mixed(_Fp16(), steps=3, accumulate=2)  # the flag is reset at every step
+    assert guard.skipped == 0

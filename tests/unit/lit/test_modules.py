@@ -337,6 +337,38 @@ def test_joint_protocol_scores_and_region_metrics_are_logged(batch):
         assert present, name  # at least one region is non-empty
 
 
+def _sample(v: Views, i: int, views=slice(None)) -> Views:
+    """Sample ``i`` of ``v`` (batch of 1), at ``views``."""
+    return Views(*(None if x is None else x[i:i + 1, views] for x in (v.images, v.w2c, v.K, v.depth, v.mask,
+                                                                      v.normal, v.index)))
+
+
+def test_joint_renders_of_a_padded_chunk_do_not_depend_on_the_padding():
+    """Evaluation pads a sample's last chunk with its own targets ([2, 4, 2]); joint fed the repeats through the
+    network as extra input images, so the scores of the distinct targets depended on the padding."""
+    from anycity.lit import protocols as P
+
+    torch.manual_seed(0)
+    m = RefinementModule(eval_align="none", render_backend="torch").eval()
+    two = [_views(2, 0, [1, 3]), _views(2, 5, [1, 3])]
+    ctx = Views(*(torch.cat([getattr(v, f) for v in two]) for f in ("images", "w2c", "K", "depth", "mask")),
+                index=torch.tensor([[1, 3], [1, 3]]))
+    tgt = _views(3, 1, [2, 4, 5])
+    tgt = Views(*(torch.cat([x[:, [0, 1, 0]], x]) for x in (tgt.images, tgt.w2c, tgt.K, tgt.depth, tgt.mask)),
+                index=torch.tensor([[2, 4, 2], [2, 4, 5]]))  # sample 0 padded with its first target
+    with torch.no_grad():
+        padded, s = P.joint(m, ctx, tgt)
+        alone = [P.joint(m, _sample(ctx, 0), _sample(tgt, 0, slice(0, 2))), P.joint(m, _sample(ctx, 1),
+                                                                                      _sample(tgt, 1))]
+    assert set(padded) == {"scaffold", "refined"} and s.shape == (2,)
+    for name, r in padded.items():
+        assert r.rgb.shape == (2, 3, 3, H, W) and r.depth.shape == (2, 3, 1, H, W)
+        assert torch.equal(r.rgb[0, :2], alone[0][0][name].rgb[0]) and torch.equal(r.rgb[1], alone[1][0][name].rgb[0])
+        assert torch.equal(r.depth[0, :2], alone[0][0][name].depth[0])
+        assert torch.equal(r.rgb[0, 2], r.rgb[0, 0])  # the repeat: the render of its first occurrence
+    torch.testing.assert_close(s, torch.cat([alone[0][1], alone[1][1]]))
+
+
 def test_joint_depth_scale_is_the_ratio_of_camera_spreads_wherever_the_predicted_world_sits():
     from types import SimpleNamespace
 
@@ -593,3 +625,27 @@ def test_pretrained_gaps_of_a_weights_folder_read_names_only(tmp_path, monkeypat
     monkeypatch.setattr(pretrained, "read_state_dict", no_full_read)
     assert pretrained_scaffold_gaps(net, str(tmp_path / "snapshot"), "vggt") == expected
     assert expected and all(not k.startswith("aggregator.") for k in expected)
+
+
+def test_a_non_finite_d2s_teacher_gives_the_nan_loss_every_rank_skips_instead_of_raising(batch):
+    """The D2S teacher (the frozen scaffold on the dense views) skipped the student's finiteness check: a NaN in its
+    Gaussians made render() raise on that rank alone, while the other DDP ranks waited in backward."""
+    from dataclasses import replace
+
+    torch.manual_seed(0)
+    m = _no_log(RefinementModule(render_backend="torch"))
+    forward = m.net.forward
+
+    def nan_teacher(images, refine=True):
+        out = forward(images, refine=refine)
+        if refine:  # the student's forward stays finite
+            return out
+        g = out["gaussians"]
+        g = replace(g, means=g.means.clone().index_fill_(1, torch.tensor([0]), float("nan")))
+        return {**out, "gaussians": g, "scaffold_gaussians": g}
+
+    m.net.forward = nan_teacher
+    loss = m.training_step(batch, 0)
+    assert torch.isnan(loss)
+    loss.backward()  # built with grad enabled: DDP's reducer sees every trainable parameter
+    assert all(p.grad is not None for p in m.parameters() if p.requires_grad)

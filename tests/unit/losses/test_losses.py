@@ -276,7 +276,8 @@ def test_depth_loss_scores_an_inverted_map_and_leaves_a_positive_fit_bitwise_unc
     # near and far swapped: the least-squares scale in log-inverse depth is -1, which fitted it exactly (loss 0)
     inverted = depth_z_loss(5.0 / gt, gt)
     u = -torch.log(gt)
-    assert inverted["depth_l1"].item() == pytest.approx((u - u.mean()).abs().mean().item(), rel=1e-5)  # best constant
+    # aligned by shift only (s = 1): the residual is -2 (u - mean u)
+    assert inverted["depth_l1"].item() == pytest.approx(2 * (u - u.mean()).abs().mean().item(), rel=1e-5)
     assert inverted["total"].item() > 0.2
     # a right-way-up map (s > 0): value and gradient exactly as before
     mask = torch.rand(1, 1, 1, 32, 32, generator=g) > 0.2
@@ -286,6 +287,34 @@ def test_depth_loss_scores_an_inverted_map_and_leaves_a_positive_fit_bitwise_unc
     assert torch.equal(new, old)
     new.backward(), old.backward()
     assert torch.equal(a.grad, b.grad)
+
+
+def test_depth_loss_gives_an_inverted_map_a_gradient_towards_the_ground_truth():
+    """A negative least-squares scale was clamped to s = 0 (the best constant): the inverted map scored > 0, but its
+    residual no longer depended on the prediction, so L_depth had exactly zero gradient to correct it with."""
+    g = torch.Generator().manual_seed(0)
+    gt = torch.rand(1, 1, 1, 32, 32, generator=g) * 4 + 1
+    pred = (5.0 / gt).requires_grad_()
+    loss = depth_z_loss(pred, gt)["total"]
+    loss.backward()
+    assert pred.grad.abs().sum() > 0
+    with torch.no_grad():  # a small step along the gradient lowers the loss: it points towards the ground truth
+        assert depth_z_loss(pred - 0.1 * pred.grad / pred.grad.abs().max(), gt)["total"] < loss
+    # per image: shift-only where the fit is negative, the plain least-squares fit (bitwise) where it is not
+    x = torch.rand(2, 8, 8, generator=g) + 0.1
+    y = torch.stack([-1.5 * x[0] + 0.3, 2.5 * x[1] - 0.7]) + 0.01 * torch.rand(2, 8, 8, generator=g)
+    m = torch.ones_like(x)
+    s, t = align_scale_shift(x, y, m)
+    assert s[0] == 1
+    torch.testing.assert_close(t[0], (y[0] - x[0]).mean())
+    n, sp, st = m.sum((-1, -2)), x.sum((-1, -2)), y.sum((-1, -2))
+    spp, spt = (x * x).sum((-1, -2)), (x * y).sum((-1, -2))
+    s_fit = (n * spt - sp * st) / (n * spp - sp * sp)
+    assert s[1] == s_fit[1] and t[1] == (st[1] - s_fit[1] * sp[1]) / n[1]
+    # a constant ground truth (any fit's sign is rounding noise) still scores about 0, whatever the prediction
+    for seed in range(8):
+        pred = torch.rand(1, 1, 1, 32, 32, generator=torch.Generator().manual_seed(seed)) + 1
+        assert depth_z_loss(pred, torch.full_like(pred, 2.0))["total"] < 1e-5
 
 
 def test_depth_loss_ignores_non_finite_values_at_masked_pixels():
