@@ -59,3 +59,24 @@ def test_dockerfile_cluster_properties():
     ignored = (ROOT / ".dockerignore").read_text().split()
     assert {".git", ".venv*", "runs", "data"} <= set(ignored)  # .venv*: every venv the README names
     assert "torch==2.13.0" in (ROOT / "Makefile").read_text()  # the pin the default BASE matches
+
+
+def _user_step(text: str) -> str:
+    """The shell commands of the Dockerfile's RUN step that creates the job's user, up to ``useradd``."""
+    run = next(block for block in text.split("\nRUN ")[1:] if "useradd" in block)
+    commands = [c.strip().rstrip("\\").strip() for c in run.split("&&")]
+    return " && ".join(c for c in commands if "pip install" not in c and not c.startswith(("mkdir", "chown", "chmod")))
+
+
+@pytest.mark.parametrize("taken", [True, False])
+def test_dockerfile_user_step_frees_a_taken_uid(tmp_path, taken):
+    # Ubuntu 24.04 bases ship "ubuntu" with uid 1000: a bare useradd --uid 1000 fails the build there.
+    log = tmp_path / "calls"
+    found = "echo ubuntu:x:1000:1000::/home/ubuntu:/bin/bash" if taken else "return 2"
+    stubs = (f'getent() {{ echo "getent $*" >> {log}; {found}; }}\n'
+             f'userdel() {{ echo "userdel $*" >> {log}; }}\nuseradd() {{ echo "useradd $*" >> {log}; }}\n')
+    script = stubs + _user_step(DOCKERFILE.read_text())
+    subprocess.run(["bash", "-euo", "pipefail", "-c", script], check=True)
+    calls = log.read_text().splitlines()
+    assert calls[-1] == "useradd --create-home --uid 1000 anycity"
+    assert ("userdel ubuntu" in calls) == taken
