@@ -192,7 +192,8 @@ class PredictionExport(BasePredictionWriter):
         folder = self.root(trainer) / f"{batch['scene'][0]}".replace("/", "_")
         if k == 0:
             self._drop_city(bar=False)  # a city that never reached its last chunk: its files go (the bar is this one's)
-            self._city = ChunkedScene(info["plan"], info["names"], info["hw"], out=folder)
+            self._city = ChunkedScene(info["plan"], info["names"], info["hw"], out=folder,
+                                      ordered_by=info.get("ordered_by"))
             self._city_scene = (batch["scene"][0], folder, _views_dir(folder, fresh=True), info["count"])
             self._share_sums, self._share_count = None, 0
             if self._bar is None or self._bar.n:  # not started by on_predict_batch_start
@@ -234,7 +235,9 @@ class PredictionExport(BasePredictionWriter):
                 _print_shares(batch["scene"][0], {key: v / n for key, v in self._share_sums.items()},
                               " of their chunk")
             worst = max((p["rms_residual"] for p in rep["pairs"]), default=0.0)
-            print(f"anycity predict: {rep['num_photos']} photos in {rep['num_chunks']} chunks -> {folder}/scene.ply "
+            order = f" (ordered by {rep['ordered_by']})" if rep.get("ordered_by") else ""
+            print(f"anycity predict: {rep['num_photos']} photos{order} in {rep['num_chunks']} chunks -> "
+                  f"{folder}/scene.ply "
                   f"({rep['gaussians']} Gaussians); worst pairwise rms residual {worst:.4g}, pose graph rms "
                   f"{rep['pose_graph'].get('final_rms', 0.0):.4g} (details: chunks.json)")
             self.written.append(folder)

@@ -74,13 +74,14 @@ class ChunkedScene:
             one is removed first, with a warning; one that another running process holds is refused).
         workdir: without ``out``, where a new temporary spill folder is made; neither = ``$TMPDIR`` (RAM on a
             tmpfs ``/tmp``: pass ``out`` for a large scene).
+        ordered_by: what ordered the photos ("time", "name", "tokens"), recorded in ``chunks.json``.
         fit: keyword options of :func:`anycity.city.align.robust_sim3`.
     """
 
     def __init__(self, chunks: list[list[int]], names: list[str], hw: tuple[int, int], points_per_side: int = 8,
                  global_pass: bool = True, workdir: str | Path | None = None, out: str | Path | None = None,
-                 **fit) -> None:
-        self.chunks, self.names, self.hw = chunks, names, tuple(hw)
+                 ordered_by: str | None = None, **fit) -> None:
+        self.chunks, self.names, self.hw, self.ordered_by = chunks, names, tuple(hw), ordered_by
         self.owner = owners(chunks)
         self.pix = grid_pixels(*self.hw, points_per_side)
         self.geometry: list[ChunkGeometry | None] = [None] * len(chunks)
@@ -184,7 +185,8 @@ class ChunkedScene:
                   "median_residual": e.fit.median * float(s[e.a]),
                   "inlier_threshold": e.fit.threshold * float(s[e.a]),
                   "pose_graph_rms": _finite(e.graph_rms * float(s[e.a]))} for e in edges]
-        return {"num_photos": len(self.names), "num_chunks": len(self.chunks), "chunks": chunks, "pairs": pairs,
+        return {"num_photos": len(self.names), "ordered_by": self.ordered_by, "num_chunks": len(self.chunks),
+                "chunks": chunks, "pairs": pairs,
                 "pose_graph": {k: _finite(v) for k, v in rep.items()},
                 "gaussians": ply.count, "dropped": ply.dropped,
                 "units": "residuals in world units of chunk 0's frame"}

@@ -83,7 +83,8 @@ def worker_init_fn(then=None, rank: int | None = None) -> _IgnoreSignalsInWorker
 
 class _PhotoChunks(torch.utils.data.Dataset):
     """The chunks of a photo folder, loaded one at a time. One chunk: the plain photo-folder sample; several: each
-    carries ``"chunk": {"index", "count", "views", "plan", "names", "hw"}`` for the exporter to align and merge."""
+    carries ``"chunk": {"index", "count", "views", "plan", "names", "hw", "ordered_by"}`` for the exporter to align
+    and merge (``ordered_by``: what ordered the photos, "time", "name" or "tokens")."""
 
     def __init__(self, photos, chunks: list[list[int]]) -> None:
         self.photos, self.chunks = photos, chunks
@@ -97,7 +98,8 @@ class _PhotoChunks(torch.utils.data.Dataset):
                 "names": [self.photos.names[v] for v in views]}
         if len(self.chunks) > 1:
             item["chunk"] = {"index": k, "count": len(self.chunks), "views": views, "plan": self.chunks,
-                             "names": self.photos.names, "hw": tuple(self.photos.hw)}
+                             "names": self.photos.names, "hw": tuple(self.photos.hw),
+                             "ordered_by": self.photos.ordered_by}
         return item
 
 

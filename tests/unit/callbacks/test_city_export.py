@@ -65,6 +65,7 @@ def test_photo_folder_chunks_merge_into_one_scene(tmp_path, capsys):
     assert err["w2c_max_abs"] < 1e-4, err  # float32 chunks
     rep = json.loads((out / "chunks.json").read_text())
     assert rep["num_chunks"] == 4 and rep["gaussians"] == n * h * w
+    assert rep["ordered_by"] == "name"  # PNGs carry no capture time: "auto" fell back to the names, and says so
     for kind in ("renders", "inputs"):  # photo v's images as inputs/NNN.png, written by the chunk that owns it
         assert sorted(p.name for p in (out / kind).iterdir()) == [f"{v:03d}.png" for v in range(n)]
     photo = {v: b["images"][0, j] for b in batches for j, v in enumerate(b["chunk"]["views"])}
@@ -80,7 +81,8 @@ def test_photo_folder_chunks_merge_into_one_scene(tmp_path, capsys):
     share = summary({k: torch.from_numpy(v) for k, v in extras.items()})
     assert (f"city: {share['supported']:.0%} of Gaussians observation-supported (>= 2 views of their chunk, kept), "
             f"{share['completed']:.0%} completed by Stage II, {share['unsupported']:.0%} seen by < 2 views of their "
-            f"chunk") in capsys.readouterr().out
+            f"chunk") in (printed := capsys.readouterr().out)
+    assert f"{n} photos (ordered by name) in 4 chunks" in printed
     merged = load_ply(out / "scene.ply")
     assert merged.scales.min() > 0.01 * min(rep["chunks"][k]["scale_to_world"] for k in range(4)) * (1 - 1e-4)
 
