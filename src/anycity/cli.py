@@ -48,6 +48,27 @@ def merge_ckpt_net(asked: dict | None, stored: dict | None, preset: str) -> tupl
     return merged, ignored
 
 
+def resumed_settings_ignored(asked: dict, stored: dict) -> list[str]:
+    """``"key is stored, not asked"`` for each ``model.init_args`` key whose value the config asks differently
+    from the resumed checkpoint's: Lightning rebuilds the module from the checkpoint's hyperparameters, so a resumed
+    fit keeps its own (a new ``lr`` or ``init_from`` is silently not used). Not compared: ``net``
+    (:func:`merge_ckpt_net` says what it keeps), :data:`TEST_TIME_KEYS`, and ``pretrained`` (the checkpoint's
+    weights replace that file's, and the run keeps its own on record)."""
+    norm = lambda v: tuple(v) if isinstance(v, list) else v  # noqa: E731 - YAML lists, stored tuples
+    return [f"{k} is {stored[k]!r}, not {v!r}" for k, v in asked.items()
+            if k not in ("net", "pretrained", *TEST_TIME_KEYS) and k in stored and norm(v) != norm(stored[k])]
+
+
+def _warn_resumed_settings(ckpt: str, asked: dict, stored: dict) -> None:
+    ignored = resumed_settings_ignored(asked, stored)
+    if ignored:
+        from lightning.pytorch.utilities import rank_zero_warn
+
+        rank_zero_warn(f"--ckpt_path {ckpt}: a resumed fit continues with the model settings it was started with, "
+                       f"so model.init_args {'; '.join(ignored)}; to change them, start a new run (another "
+                       "--trainer.default_root_dir, or RUN_DIR for the SLURM jobs) instead of resuming this one")
+
+
 def _as_dict(value):
     """A parsed config value as plain data (jsonargparse Namespaces as dicts)."""
     return value.as_dict() if hasattr(value, "as_dict") else value
@@ -274,6 +295,7 @@ def _cli_class():
             init = self.config.get(f"{sub}.model.init_args") if sub else None
             keep = {k: init[k] for k in TEST_TIME_KEYS if init is not None and k in init}
             asked_net = (init.get("net") if init is not None else None) or {}
+            asked_init = dict(_as_dict(init) or {}) if init is not None else {}
             asked_class = self.config.get(f"{sub}.model.class_path") if sub else None
             import torch
 
@@ -311,6 +333,8 @@ def _cli_class():
                 rank_zero_warn(f"--ckpt_path {ckpt}: its network is built as it was trained, so model.net "
                                f"{'; '.join(ignored)} (only {', '.join(NET_TEST_TIME_KEYS)} may differ from the "
                                f"checkpoint's, and {', '.join(NET_MOVED_PATH_KEYS)} only as a moved file)")
+            if sub == "fit":
+                _warn_resumed_settings(ckpt, asked_init, _as_dict(now))
             if sub != "fit":  # the checkpoint holds the weights: the pretrained file is neither read nor needed (a
                 # resumed fit keeps it, so that the checkpoints it writes still say what the run started from)
                 self.config[f"{sub}.model.init_args.pretrained"] = None

@@ -355,3 +355,20 @@ def test_a_pose_prior_the_checkpoint_was_trained_without_is_ignored_naming_it(ti
         build_cli(["test", *_tiny_args(tiny_shards, tmp_path / "t", configs=stage2[:2], extra=[
             *stage2[2:], *FAST_EVAL, "--model.init_args.net.pose_prior", str(prior),
             "--ckpt_path", str(s2 / "checkpoints" / "last.ckpt")])])
+
+
+def test_a_resumed_fit_names_the_model_settings_it_keeps_from_its_checkpoint(tiny_shards, tmp_path):
+    # Lightning rebuilds the module from the checkpoint's hyperparameters: a new lr (or Stage II's init_from, as a
+    # resubmitted SLURM job passes) was silently not used
+    from anycity.cli import resumed_settings_ignored
+
+    assert resumed_settings_ignored({"lr": 1e-3, "net": {"x": 1}, "camera_refine_steps": 5, "size": [1, 2]},
+                                    {"lr": 5e-4, "net": {"x": 2}, "camera_refine_steps": 0, "size": (1, 2)}) == [
+        "lr is 0.0005, not 0.001"]
+    run = tmp_path / "r"
+    build_cli(["fit", *_tiny_args(tiny_shards, run, steps=2)])
+    last = str(run / "checkpoints" / "last.ckpt")
+    with pytest.warns(UserWarning, match=r"a resumed fit continues .* model.init_args lr is 0.001, not 0.0005"):
+        cli = build_cli(["fit", *_tiny_args(tiny_shards, run, steps=3, extra=["--model.init_args.lr", "5e-4"]),
+                         "--ckpt_path", last])
+    assert cli.model.hparams.lr == 1e-3 and cli.trainer.global_step == 3
