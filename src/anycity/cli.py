@@ -31,12 +31,16 @@ NET_MOVED_PATH_KEYS = ("pose_prior",)
 
 def merge_ckpt_net(asked: dict | None, stored: dict | None, preset: str) -> tuple[dict, list[str]]:
     """The ``model.net`` overrides to build a checkpoint's network with: the checkpoint's (``stored``), and the
-    :data:`NET_TEST_TIME_KEYS` the config ``asked`` for (and :data:`NET_MOVED_PATH_KEYS` where both name a file).
+    :data:`NET_TEST_TIME_KEYS` the config ``asked`` for (a null ``wan_dir``/``wan_empty_prompt`` keeps the stored
+    path), and :data:`NET_MOVED_PATH_KEYS` where both name a file.
     Also ``"key is used, not asked"`` for each other key asked for that the checkpoint's network does not have."""
     from anycity.models.presets import preset_config
 
     asked, merged = dict(asked or {}), dict(stored or {})
-    merged.update({k: v for k, v in asked.items() if k in NET_TEST_TIME_KEYS})
+    # a config's null path is "not set here" (stage2.yaml ships wan_dir: null), not "drop the stored one";
+    # voxel_size null is "no voxel merge", a choice
+    merged.update({k: v for k, v in asked.items() if k in NET_TEST_TIME_KEYS
+                   and (v is not None or k == "voxel_size" or merged.get(k) is None)})
     merged.update({k: asked[k] for k in NET_MOVED_PATH_KEYS if asked.get(k) is not None and merged.get(k) is not None})
     try:
         used = preset_config(preset, **merged)

@@ -372,3 +372,15 @@ def test_a_resumed_fit_names_the_model_settings_it_keeps_from_its_checkpoint(tin
         cli = build_cli(["fit", *_tiny_args(tiny_shards, run, steps=3, extra=["--model.init_args.lr", "5e-4"]),
                          "--ckpt_path", last])
     assert cli.model.hparams.lr == 1e-3 and cli.trainer.global_step == 3
+
+
+def test_a_null_wan_dir_in_the_config_keeps_the_checkpoints_path():
+    # configs/stage2.yaml ships wan_dir: null, so `anycity predict -c configs/stage2.yaml --ckpt_path X` dropped the
+    # path the checkpoint was trained with and stopped with "needs wan_dir"
+    from anycity.cli import merge_ckpt_net
+
+    stored = {"wan_dir": "weights/Wan", "wan_empty_prompt": "weights/e.pt", "voxel_size": 0.1}
+    net, _ = merge_ckpt_net({"wan_dir": None, "wan_empty_prompt": None, "voxel_size": None}, stored, "tiny")
+    assert net == {"wan_dir": "weights/Wan", "wan_empty_prompt": "weights/e.pt", "voxel_size": None}  # null: no merge
+    net, _ = merge_ckpt_net({"wan_dir": "here/Wan"}, stored, "tiny")
+    assert net["wan_dir"] == "here/Wan"  # a moved folder still wins
