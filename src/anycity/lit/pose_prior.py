@@ -35,15 +35,37 @@ class PosePriorModule(pl.LightningModule):
         self.log("train/loss", loss, prog_bar=True, batch_size=batch.context.images.shape[0])
         return loss
 
-    def _rre(self, batch: ViewBatch, stage: str) -> None:
+    def _rre(self, batch: ViewBatch) -> None:
         rre, _ = relative_pose_errors(self.net(batch.context.images), batch.context.w2c)
-        self.log(f"{stage}/rre", rre.mean(), batch_size=batch.context.images.shape[0], sync_dist=True)
+        b = batch.context.images.shape[0]
+        self._rre_sums += torch.stack([rre.mean().detach().float() * b, rre.new_tensor(float(b))])
+
+    def _log_rre(self, stage: str) -> None:
+        """Log ``{stage}/rre``, the batch-size-weighted mean over every rank's batches, with one all-gather that
+        every rank joins, also one that held no evaluation sample (``sync_dist`` logging would have left it out of
+        the collective and hung the others); nothing when no rank had one."""
+        sums = self._rre_sums
+        if self.trainer.world_size > 1:
+            sums = self.all_gather(sums).reshape(-1, 2).sum(0)
+        if float(sums[1]) > 0:
+            self.log(f"{stage}/rre", sums[0] / sums[1])
+
+    def on_validation_epoch_start(self) -> None:
+        self._rre_sums = torch.zeros(2, device=self.device)
+
+    on_test_epoch_start = on_validation_epoch_start
 
     def validation_step(self, batch: ViewBatch, batch_idx: int) -> None:
-        self._rre(batch, "val")
+        self._rre(batch)
 
     def test_step(self, batch: ViewBatch, batch_idx: int) -> None:
-        self._rre(batch, "test")
+        self._rre(batch)
+
+    def on_validation_epoch_end(self) -> None:
+        self._log_rre("val")
+
+    def on_test_epoch_end(self) -> None:
+        self._log_rre("test")
 
     def configure_optimizers(self) -> dict:
         opt = torch.optim.AdamW(self.parameters(), self.hparams.lr, weight_decay=self.hparams.weight_decay)

@@ -353,3 +353,38 @@ def test_the_lr_schedule_is_sized_by_max_steps_and_refuses_a_run_ended_by_epochs
     else:
         total = sched.total_steps
     assert total == 5
+
+
+def test_the_pose_prior_rre_is_gathered_by_every_rank_even_one_without_evaluation_samples(monkeypatch):
+    """``self.log(..., sync_dist=True)`` in the step leaves a rank that held no validation sample out of the
+    epoch-end reduction (the others then wait in it forever); every rank now joins one all-gather of (sum, count)."""
+    from types import SimpleNamespace
+
+    from anycity.lit.pose_prior import PosePriorModule
+    from anycity.structures import ViewBatch
+
+    m = PosePriorModule()
+    logged, gathered = {}, []
+    monkeypatch.setattr(m, "log", lambda name, value, **k: logged.__setitem__(name, float(value)))
+    other_rank = torch.tensor([3.0 * 2, 2.0])  # two samples at a mean error of 3 degrees
+    monkeypatch.setattr(m, "all_gather", lambda t: gathered.append(t) or torch.stack([t, other_rank]))
+    m._trainer = SimpleNamespace(world_size=2)
+    m.on_validation_epoch_start()  # this rank gets no batch
+    m.on_validation_epoch_end()
+    assert len(gathered) == 1 and logged == {"val/rre": pytest.approx(3.0)}
+
+    m._trainer, logged = SimpleNamespace(world_size=1), {}
+    w2c = torch.eye(4).repeat(1, 3, 1, 1)
+    w2c[:, 1:, 0, 3] = torch.tensor([0.5, 1.0])
+    batch = ViewBatch(context=SimpleNamespace(images=torch.rand(1, 3, 3, 32, 32), w2c=w2c), target=None)
+    from anycity.metrics.pose import relative_pose_errors
+
+    with torch.no_grad():  # as Lightning runs test_step
+        m.on_test_epoch_start()
+        m.test_step(batch, 0)
+        m.on_test_epoch_end()
+        expected = float(relative_pose_errors(m.net(batch.context.images), w2c)[0].mean())
+    assert logged["test/rre"] == pytest.approx(expected)
+    m.on_test_epoch_start()
+    m.on_test_epoch_end()  # no rank had a sample: nothing logged
+    assert set(logged) == {"test/rre"}
