@@ -16,8 +16,9 @@ class DDPProbe(Callback):
     """Args:
         out_dir: where ``<split>_rank<r>.jsonl`` (one line per scored target view) and ``params_rank<r>.pt`` go.
         poison_rank, poison_step: the rank and optimiser step to poison (-1: never).
-        poison: "loss" (the loss becomes NaN after backward), "grad" (one gradient becomes inf) or "input" (the
-            context images become NaN, so the whole forward is NaN).
+        poison: "loss" (the loss becomes NaN after backward), "grad" (one gradient becomes inf) or "forward" (the
+            camera token is inf for that step, so the whole forward is NaN, as an overflow makes it; NaN images are
+            refused by the network's input check instead).
     """
 
     def __init__(self, out_dir: str, poison_rank: int = -1, poison_step: int = -1, poison: str = "grad") -> None:
@@ -28,8 +29,17 @@ class DDPProbe(Callback):
         return trainer.global_rank == self.poison_rank and trainer.global_step == self.poison_step
 
     def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
-        if self._hit(trainer) and self.poison == "input":
-            batch.context.images.fill_(math.nan)
+        if self._hit(trainer) and self.poison == "forward":
+            token = pl_module.net.aggregator.camera_token
+            self._saved = token.detach().clone()
+            with torch.no_grad():
+                token.fill_(math.inf)
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
+        if getattr(self, "_saved", None) is not None:  # the step was skipped: the ranks' weights agree again
+            with torch.no_grad():
+                pl_module.net.aggregator.camera_token.copy_(self._saved)
+            self._saved = None
 
     def on_before_backward(self, trainer, pl_module, loss) -> None:
         if self._hit(trainer) and self.poison == "loss":

@@ -118,11 +118,11 @@ def test_two_process_chain_stage1_stage2_test_predict(ddp_shards, tmp_path):
 
 
 @pytest.mark.slow
-def test_a_nan_batch_on_one_rank_is_skipped_by_every_rank(ddp_shards, tmp_path):
-    """A NaN input batch makes the whole forward NaN on rank 1 (rendering it would raise there alone)."""
+def test_a_non_finite_forward_on_one_rank_is_skipped_by_every_rank(ddp_shards, tmp_path):
+    """An overflow makes the whole forward NaN on rank 1 (rendering it would raise there alone)."""
     probe = tmp_path / "probe"
     log = _run(["fit", "-c", str(CFG / "stage1.yaml"), "-c", str(CFG / "debug" / "cpu_ddp.yaml"), "--data.root",
                 str(ddp_shards), "-c", str(_overlay(tmp_path, "s1", probe, poison_rank=1, poison_step=1,
-                                                poison="input"))], tmp_path)
+                                                poison="forward"))], tmp_path)
     assert "skipped optimiser step 1" in log and _skips(tmp_path / "s1") == 1.0
     assert_params_equal(probe)
