@@ -27,10 +27,16 @@ def load_scene(path: str | Path):
     path = Path(path)
     ply = path / "scene.ply" if path.is_dir() else path
     if path.is_dir() and not ply.is_file():
-        raise FileNotFoundError(f"{path}: no scene.ply inside; pass a folder written by `anycity predict` "
-                                "(predictions/<scene>/) or a .ply file")
+        inside = sorted(p.parent.name for p in path.glob("*/scene.ply"))  # the --export.out_dir of a predict
+        hint = (f"it holds the scene folder(s) {', '.join(inside[:3])}{' ...' if len(inside) > 3 else ''}: pass one "
+                f"of them, e.g. {path / inside[0]}" if inside else
+                "pass a scene folder written by `anycity predict` (<--export.out_dir>/<scene>/) or a .ply file")
+        raise FileNotFoundError(f"{path}: no scene.ply inside; {hint}")
     if not ply.is_file():
         raise FileNotFoundError(f"{path}: does not exist; pass a predict scene folder or a scene.ply")
+    if ply.suffix.lower() != ".ply":  # e.g. the .splat or cameras.json an export wrote: not damaged, just not read
+        raise ValueError(f"{path}: reads a predict scene folder or its scene.ply, not a {ply.suffix or 'suffix-less'} "
+                         f"file; pass {ply.parent} (if it holds scene.ply) or the scene.ply itself")
     cam_file = ply.parent / "cameras.json"
     return load_ply(ply), (load_cameras(cam_file) if cam_file.is_file() else None)
 

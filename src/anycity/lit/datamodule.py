@@ -202,6 +202,9 @@ class AerialDataModule(pl.LightningDataModule):
             # photos reads no shards, so a config's root may point nowhere then)
             raise FileNotFoundError(f"data.root {root}: no such folder; fix the path, or write shards there with "
                                     f"anycity data synth --out {root} (or anycity data convert)")
+        if predict_images is not None and not Path(predict_images).is_dir():  # as data.root: before any output
+            raise FileNotFoundError(f"predict_images: {predict_images} is not a folder; pass a folder holding one "
+                                    "scene's photos")
         self.save_hyperparameters()
         self.hp = self.hparams
         self.skip_counter = SkipCounter()

@@ -216,3 +216,10 @@ class _Raw:
 
     def __call__(self, sample):
         return [sample]
+
+
+def test_a_missing_photo_folder_is_refused_when_the_datamodule_is_built(tmp_path):
+    # before the run writes its config and logs (it replaced the previous run's config.yaml, then failed)
+    with pytest.raises(FileNotFoundError, match=r"^predict_images: .*nowhere is not a folder; pass a folder"):
+        AerialDataModule(predict_images=str(tmp_path / "nowhere"))
+    AerialDataModule(predict_images=str(tmp_path))  # a folder: the photos themselves are read by predict

@@ -253,3 +253,20 @@ def test_every_format_keeps_the_rows_the_ply_keeps(tmp_path):
     assert sorted(PlyData.read(str(save_points_ply(tmp_path / "p.ply", g)))["vertex"]["x"]) == sorted(kept)
     pts = (save_colmap(tmp_path / "c", w2c, K, 48, 32, ["a", "b", "c"], g) / "points3D.txt").read_text()
     assert len([line for line in pts.splitlines() if not line.startswith("#")]) == 3
+
+
+def test_a_wrong_input_is_told_which_folder_or_file_to_pass_instead(tmp_path):
+    from anycity.export.cli import load_scene
+
+    d, _, _, _ = _predict_dir(tmp_path)
+    # the predict's --export.out_dir itself: its scene folders are named (the hint said predictions/<scene>/)
+    with pytest.raises(FileNotFoundError, match=rf"no scene.ply inside; it holds the scene folder\(s\) sceneA: pass "
+                                                rf"one of them, e.g. {d}$"):
+        load_scene(d.parent)
+    with pytest.raises(FileNotFoundError, match=r"no scene.ply inside; pass a scene folder written by"):
+        load_scene(tmp_path)  # no scene folder directly inside
+    # one of the package's own exports, not damaged: named as the wrong kind of file, not "re-export it"
+    assert export_main(["--from", str(d), "--format", "splat", "--out", str(tmp_path / "o")]) == 0
+    for wrong in (tmp_path / "o" / "scene.splat", d / "cameras.json"):
+        with pytest.raises(ValueError, match=r"not a \.(splat|json) file; pass .* or the scene.ply itself$"):
+            load_scene(wrong)
