@@ -110,6 +110,19 @@ def configured_trainer(trainer: dict):
                            checkpoint_callbacks=callbacks)
 
 
+def check_accelerator(trainer: dict | None) -> None:
+    """Refuse ``trainer.accelerator: gpu``/``cuda`` (the paper configs') on a machine without CUDA in one line,
+    before the Trainer is built: Lightning's own "No supported gpu backend found!" comes as a 40-line traceback."""
+    accelerator = str((_as_dict(trainer) or {}).get("accelerator") or "").lower()
+    if accelerator in ("gpu", "cuda"):
+        import torch
+
+        if not torch.cuda.is_available():
+            raise ValueError(f"trainer.accelerator {accelerator}: this machine has no CUDA GPU (torch "
+                             f"{torch.__version__}); pass --trainer.accelerator cpu --trainer.precision 32-true, "
+                             "or use configs/quickstart.yaml, which runs on CPU")
+
+
 def check_run_folder(trainer: dict | None) -> None:
     """Refuse a ``trainer.default_root_dir`` that a CSV or TensorBoard logger's ``save_dir`` contradicts: Lightning
     writes the checkpoints and logs under the logger's folder, so a config (an ablation on the quickstart) or a
@@ -346,6 +359,7 @@ def _cli_class():
         def before_instantiate_classes(self) -> None:
             sub = self.subcommand
             config = self.config[sub] if sub else self.config
+            check_accelerator(config.get("trainer"))
             check_run_folder(config.get("trainer"))
             if sub in ("validate", "test", "predict"):
                 require_weights(sub, config)

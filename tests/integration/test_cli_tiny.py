@@ -384,3 +384,14 @@ def test_a_null_wan_dir_in_the_config_keeps_the_checkpoints_path():
     assert net == {"wan_dir": "weights/Wan", "wan_empty_prompt": "weights/e.pt", "voxel_size": None}  # null: no merge
     net, _ = merge_ckpt_net({"wan_dir": "here/Wan"}, stored, "tiny")
     assert net["wan_dir"] == "here/Wan"  # a moved folder still wins
+
+
+def test_the_paper_configs_on_a_machine_without_cuda_stop_in_one_line(tiny_shards, tmp_path, capsys, monkeypatch):
+    # configs/stage1.yaml and stage2.yaml ask for accelerator: gpu; Lightning's refusal was a 40-line traceback
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    rc = main(["fit", "-c", "configs/stage1.yaml", "--data.root", str(tiny_shards),
+               "--trainer.default_root_dir", str(tmp_path / "r")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and err[-1].startswith("anycity: error: trainer.accelerator gpu: this machine has no CUDA GPU")
+    assert "--trainer.accelerator cpu --trainer.precision 32-true" in err[-1]
+    assert not (tmp_path / "r").exists()  # before the run wrote anything
