@@ -1,9 +1,10 @@
 """A folder of one scene's own photos (no poses) -> the network's input, for ``anycity predict``.
 
-Predict keeps each photo's aspect ratio (``mode="keep"``: about H*W pixels, both sides multiples of the patch, no
-centre crop). A folder of mixed aspect ratios is resized to the most common one (the others are scaled to cover it
-and centre-cropped), with a warning naming them. Any number of photos loads lazily, chunk by chunk
-(:class:`PhotoFolder`); ``anycity.city`` plans the chunks.
+Predict keeps each photo's aspect ratio (``mode="keep"``: about H*W pixels, both sides multiples of the patch, the
+photo scaled uniformly and centre-cropped by under one patch, so pixels stay square). A folder of mixed aspect
+ratios is resized to the most common one (the others are scaled to cover it and centre-cropped), with a warning
+naming them. Any number of photos loads lazily, chunk by chunk (:class:`PhotoFolder`); ``anycity.city`` plans the
+chunks.
 """
 
 from __future__ import annotations
@@ -145,7 +146,7 @@ class PhotoFolder:
     Args:
         folder: one scene's photos (2 or more).
         size: ``(H, W)``: the pixel budget (``mode="keep"``) or the exact size (``"crop"``).
-        mode: "keep" (predict's default: each aspect ratio kept, no crop) or "crop".
+        mode: "keep" (predict's default: each aspect ratio kept, cropped by under one patch) or "crop".
         patch: side multiple for "keep".
         order: "auto" (capture time when every photo has one, else file name), "time" or "name" (for "tokens",
             load by name, then :meth:`reorder`).

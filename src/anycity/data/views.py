@@ -131,16 +131,20 @@ def jpeg_reduction(h: int, w: int, nh: int, nw: int) -> int:
 
 def resize_plan(h: int, w: int, size: tuple[int, int], mode: str = "crop", patch: int = 14
                 ) -> tuple[int, int, int, int]:
-    """Resized size ``(nh, nw)`` before the centre crop and the output size ``(H, W)`` (see :func:`resize_view`)."""
+    """Resized size ``(nh, nw)`` before the centre crop and the output size ``(H, W)`` (see :func:`resize_view`).
+
+    ``"keep"``: the output has about ``H*W`` pixels, the photo's aspect ratio to the nearest patch multiple on each
+    side; the photo is scaled uniformly to cover it and the remainder (under one patch) centre-cropped, so pixels
+    stay square. Scaling each side to its multiple separately stretched them (a 16:9 photo at the quickstart's 48 px
+    budget and patch 8: 64x32, 12 % wider), which the network, which predicts square pixels, cannot represent."""
     H, W = size
-    if mode == "crop":
-        s = max(H / h, W / w)
-        return max(H, round(h * s)), max(W, round(w * s)), H, W
     if mode == "keep":
         s = (H * W / (h * w)) ** 0.5
-        nw, nh = max(patch, round(w * s / patch) * patch), max(patch, round(h * s / patch) * patch)
-        return nh, nw, nh, nw
-    raise ValueError(f"resize mode: expected 'crop' or 'keep', got {mode!r}")
+        H, W = max(patch, round(h * s / patch) * patch), max(patch, round(w * s / patch) * patch)
+    elif mode != "crop":
+        raise ValueError(f"resize mode: expected 'crop' or 'keep', got {mode!r}")
+    s = max(H / h, W / w)
+    return max(H, round(h * s)), max(W, round(w * s)), H, W
 
 
 def resize_view(image: np.ndarray, K: np.ndarray, size: tuple[int, int], mode: str = "crop", patch: int = 14,
@@ -151,7 +155,7 @@ def resize_view(image: np.ndarray, K: np.ndarray, size: tuple[int, int], mode: s
     Args:
         image: ``[h, w, 3]`` uint8; K: ``[3, 3]`` pixels of the ``src_hw`` image.
         mode: "crop" scales to cover ``size`` then centre-crops (exact output size); "keep" keeps the aspect
-            ratio with about ``H*W`` pixels and both sides multiples of ``patch``.
+            ratio with about ``H*W`` pixels and both sides multiples of ``patch`` (cropping under one patch).
         depth/normal/mask: ``[h, w]``, ``[h, w, 3]``, ``[h, w]`` resampled with nearest neighbours (the source
             pixel under each output pixel's centre).
         src_hw: the ``(h, w)`` that K describes (default: the image's); arrays of another size covering the same

@@ -127,7 +127,8 @@ class AerialDataModule(pl.LightningDataModule):
             them, e.g. ``benchmarks/stage2_headroom.py --fit-steps``); the context and target views are the same.
         image_size: output ``[H, W]`` in pixels.
         resize_mode: "crop" (scale to cover, centre-crop to exactly image_size) or "keep" (keep the aspect ratio,
-            about H*W pixels, sides multiples of ``patch_size``; all scenes of a batch must share an aspect ratio).
+            about H*W pixels, sides multiples of ``patch_size``, cropped by under one patch so pixels stay square;
+            all scenes of a batch must share an aspect ratio).
         patch_size: side multiple for ``resize_mode: keep``.
         batch_size: training samples per batch.
         eval_batch_size: validation/test samples per batch (default: batch_size).
@@ -165,7 +166,8 @@ class AerialDataModule(pl.LightningDataModule):
         predict_loop: the last photos see the first ones again (a closed orbit): add a loop-closure chunk of both
             ends, so the alignment's pose graph has a cycle.
         predict_resize: "keep" (each photo's aspect ratio, about image_size's pixel count, sides multiples of
-            patch_size, no crop; mixed aspect ratios go to the most common one, with a warning) or "crop".
+            patch_size, cropped by under one patch so pixels stay square; mixed aspect ratios go to the most
+            common one, with a warning) or "crop".
     """
 
     def __init__(self, root: str | None = None, train_shards: str | list[str] | None = None,

@@ -90,6 +90,21 @@ def test_resize_keeps_projection(mode, size):
     assert abs(uv[0] - (sx + 0.5)) < 1.5 and abs(uv[1] - (sy + 0.5)) < 1.5
 
 
+@pytest.mark.parametrize("src,size,patch,out", [((539, 960), (48, 48), 8, (32, 64)),
+                                                 ((2250, 4000), (448, 448), 14, (336, 602))])
+def test_keep_mode_keeps_pixels_square(src, size, patch, out):
+    """"keep" scaled each side to its patch multiple separately: a 16:9 photo at 48 px and patch 8 became 64x32,
+    its pixels 12 % wider than tall, which the network (square pixels) cannot represent and the exports carried
+    (fx/fy 2.0). Now it is scaled uniformly to cover the output and centre-cropped by under one patch."""
+    h, w = src
+    K = np.array([[0.8 * w, 0, w / 2], [0, 0.8 * w, h / 2], [0, 0, 1]])  # square pixels
+    img, K2, *_ = resize_view(np.zeros((h, w, 3), np.uint8), K, size, "keep", patch)
+    assert img.shape[:2] == out
+    assert K2[0, 0] / K2[1, 1] == pytest.approx(1.0, abs=5e-3)  # still square (rounding of the cover size only)
+    scale = K2[0, 0] / K[0, 0]
+    assert max(h * scale - out[0], w * scale - out[1]) < patch  # cropped by less than one patch
+
+
 def test_normalise_frame_and_scale():
     eyes = [[10, 0, 20], [0, 12, 22], [-10, 0, 21], [0, -9, 20]]
     w2c = torch.tensor(np.stack([look_at(e, [0, 0, 0]) for e in eyes]))
