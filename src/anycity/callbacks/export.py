@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any
 
 import lightning.pytorch as pl
+import torch
 from lightning.pytorch.callbacks import BasePredictionWriter
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 
@@ -168,6 +169,7 @@ class PredictionExport(BasePredictionWriter):
                 if self.save_renders:
                     for kind, imgs in (("renders", renders.rgb[i]), ("inputs", images[i])):
                         save_view_pngs(stage, kind, imgs, range(len(imgs)))
+            _warn_non_square_pixels(folder.name, K[i])
             if prov is not None:
                 _print_shares(folder.name, _shares(prov, g.valid, slice(i, i + 1), slice(None))[0])
             self.written.append(folder)
@@ -223,6 +225,7 @@ class PredictionExport(BasePredictionWriter):
             self._city = None
             try:
                 self.city_report = city.finish(folder)
+                _warn_non_square_pixels(folder.name, torch.stack([city.K[v] for v in sorted(city.K)]))
                 for kind in ("renders", "inputs"):
                     if (views_dir / kind).is_dir():
                         publish(views_dir / kind, folder / kind)
@@ -271,6 +274,23 @@ class PredictionExport(BasePredictionWriter):
             self._bar.close()
             self._bar = None
         return dropped
+
+
+NON_SQUARE_TOL = 0.05  # fx / fy further from 1 than this is named in a warning
+
+
+def _warn_non_square_pixels(scene: str, K: torch.Tensor) -> None:
+    """Warn when the predicted intrinsics ``K [V, 3, 3]`` give pixels further from square than
+    :data:`NON_SQUARE_TOL` (fx / fy): photos have square pixels, so the network's two fields of view disagree with
+    the image's shape (e.g. a model trained on square images only, run on 16:9 photos), and every export carries it."""
+    ratio = (K[..., 0, 0] / K[..., 1, 1]).double()
+    worst = float(ratio[(ratio - 1).abs().argmax()])
+    if abs(worst - 1) > NON_SQUARE_TOL:
+        warnings.warn(f"anycity predict: {scene}: the predicted cameras have non-square pixels (fx / fy up to "
+                      f"{worst:.2f}; photos have 1.00), so its cameras.json and every export carry that; the model "
+                      "was probably trained on images of another aspect ratio (the quickstart's are square): train "
+                      "on this aspect, or pass --data.predict_resize crop with a square --data.image_size",
+                      stacklevel=2)
 
 
 def _refuse_voxel_merged_chunks(trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:

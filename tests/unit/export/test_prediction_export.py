@@ -117,3 +117,20 @@ def test_a_scene_that_fails_part_way_leaves_no_scene_folder(tmp_path, monkeypatc
     monkeypatch.undo()
     _export(tmp_path, _prediction(valid=False))  # the next run writes the whole folder
     assert sorted(p.name for p in (tmp_path / "s").iterdir()) == ["cameras.json", "scene.ply"]
+
+
+def test_predicted_cameras_with_non_square_pixels_are_named_in_a_warning(tmp_path):
+    # a model trained on square images predicts equal fields of view: on 2:1 photos fx/fy = 2, and every export
+    # (COLMAP, nerfstudio) carried it without a word
+    p = _prediction(valid=False)
+    p["K"][..., 0, 0] = 40.0
+    with pytest.warns(UserWarning, match=r"^anycity predict: s: the predicted cameras have non-square pixels \(fx / "
+                                         r"fy up to 2.00; photos have 1.00\)"):
+        _export(tmp_path / "wide", p)
+    p = _prediction(valid=False)
+    p["K"][..., 0, 0] = 20.8  # within 5 %: rounding, not a wrong camera (the test above checks no warning at 1.0)
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        _export(tmp_path / "near", p)
