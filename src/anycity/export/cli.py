@@ -18,6 +18,21 @@ from anycity.export.views import view_png
 FORMATS = ("splat", "colmap", "nerfstudio", "ply")
 
 
+def refuse_unknown_flags(parser, argv: list[str] | None) -> list[str] | None:
+    """``argv`` unchanged, or argparse's one-line error naming a mistyped flag and the nearest real one: argparse
+    reports a required flag that was mistyped as missing ("the following arguments are required: --format"),
+    never naming the typo."""
+    import difflib
+
+    known = [s for action in parser._actions for s in action.option_strings]
+    for arg in argv or []:
+        flag = arg.split("=", 1)[0]
+        if flag.startswith("--") and flag != "--" and flag not in known:
+            near = difflib.get_close_matches(flag, known, n=1, cutoff=0.75)
+            parser.error(f"unrecognized argument {flag}" + (f"; did you mean {near[0]}?" if near else ""))
+    return argv
+
+
 def load_scene(path: str | Path):
     """``(gaussians, cameras)`` of a predict folder or a ``scene.ply``; ``cameras`` is the ``cameras.json`` dict
     or None."""
@@ -141,7 +156,7 @@ def export_main(argv: list[str]) -> int:
                    "SIBR's included")
     p.add_argument("--out", default=None, help="output folder (default: <from>/export_<format>)")
     p.add_argument("--overwrite", action="store_true", help="write into an --out folder that is not empty")
-    a = p.parse_args(argv)
+    a = p.parse_args(refuse_unknown_flags(p, argv))
     src = Path(a.src)
     out = Path(a.out) if a.out else (src if src.is_dir() else src.parent) / f"export_{a.format}"
     check_writable_folder(out, "--out")

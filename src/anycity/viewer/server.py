@@ -15,6 +15,7 @@ import numpy as np
 import torch
 from PIL import Image
 
+from anycity.export.cli import refuse_unknown_flags
 from anycity.viewer.scene import ViewScene, load_view_scene, ramp, splat_arrays
 
 COLOURINGS = ("colour", "obs_views (blue 0 -> red 4+ views)", "completion (blue kept -> red completed)")
@@ -232,13 +233,13 @@ def _port(text: str) -> int:
 def view_main(argv: list[str]) -> int:
     p = argparse.ArgumentParser(prog="anycity view", description="Open a predicted scene in the browser (viser).",
                                 allow_abbrev=False)
-    p.add_argument("path", help="scene.ply or a predict output folder (predictions/<scene>/)")
+    p.add_argument("path", help="scene.ply or a scene folder predict wrote (<--export.out_dir>/<scene>/)")
     p.add_argument("--host", default="127.0.0.1",
                    help="interface to listen on (default: %(default)s; 0.0.0.0 serves the network)")
     p.add_argument("--port", type=_port, default=8080,
                    help="port (default: %(default)s; 0: any free one; a busy one moves up)")
     p.add_argument("--no_cameras", "--no-cameras", action="store_true", help="hide the camera frustums")
-    a = p.parse_args(argv)
+    a = p.parse_args(refuse_unknown_flags(p, argv))
     server, scene = build_server(a.path, a.host, a.port, cameras=not a.no_cameras)
     print(f"anycity view: {scene.gaussians.num_gaussians:,} Gaussians at http://{a.host}:{server.get_port()} "
           "(Ctrl-C to stop)", flush=True)

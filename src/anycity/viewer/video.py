@@ -13,6 +13,7 @@ import torch
 from torch import Tensor
 
 from anycity.atomic import atomic_path, check_writable_folder
+from anycity.export.cli import refuse_unknown_flags
 from anycity.viewer.scene import ViewScene, load_view_scene
 
 
@@ -215,7 +216,7 @@ def render_video_main(argv: list[str]) -> int:
     p.add_argument("--width", type=_int_at_least(2), default=None, help="frame width (default: the input width)")
     p.add_argument("--fps", type=_int_at_least(1), default=24, help="frames per second (default: %(default)s)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
-    a = p.parse_args(argv)
+    a = p.parse_args(refuse_unknown_flags(p, argv))
     src = Path(a.path)
     out = Path(a.out) if a.out else (src if src.is_dir() else src.parent) / "flythrough.mp4"
     check_video_out(out)

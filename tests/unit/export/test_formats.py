@@ -270,3 +270,19 @@ def test_a_wrong_input_is_told_which_folder_or_file_to_pass_instead(tmp_path):
     for wrong in (tmp_path / "o" / "scene.splat", d / "cameras.json"):
         with pytest.raises(ValueError, match=r"not a \.(splat|json) file; pass .* or the scene.ply itself$"):
             load_scene(wrong)
+
+
+@pytest.mark.parametrize("argv,typo,near", [
+    (["export", "--from", "x", "--fromat", "splat"], "--fromat", "--format"),
+    (["render-video", "x", "--widht", "64"], "--widht", "--width"),
+    (["view", "x", "--prot", "8080"], "--prot", "--port"),
+    (["export", "--bogus"], "--bogus", None)])
+def test_a_mistyped_flag_is_named_with_the_nearest_one(argv, typo, near, capsys):
+    # argparse called a mistyped required flag missing ("the following arguments are required: --format")
+    from anycity.cli import main
+
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert e.value.code == 2 and err.endswith(f"error: unrecognized argument {typo}" +
+                                              (f"; did you mean {near}?" if near else ""))
