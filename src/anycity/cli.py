@@ -111,13 +111,16 @@ def configured_trainer(trainer: dict):
 
 
 def check_accelerator(trainer: dict | None) -> None:
-    """Refuse ``trainer.accelerator: gpu``/``cuda`` (the paper configs') on a machine without CUDA in one line,
-    before the Trainer is built: Lightning's own "No supported gpu backend found!" comes as a 40-line traceback."""
+    """Refuse ``trainer.accelerator: gpu``/``cuda`` (the paper configs') on a machine without CUDA (or, for
+    ``gpu``, Apple's MPS, which Lightning also takes for it) in one line, before the Trainer is built: Lightning's
+    own "No supported gpu backend found!" comes as a 40-line traceback."""
     accelerator = str((_as_dict(trainer) or {}).get("accelerator") or "").lower()
     if accelerator in ("gpu", "cuda"):
         import torch
 
-        if not torch.cuda.is_available():
+        mps = accelerator == "gpu" and getattr(torch.backends, "mps", None) is not None and \
+            torch.backends.mps.is_available()
+        if not torch.cuda.is_available() and not mps:
             raise ValueError(f"trainer.accelerator {accelerator}: this machine has no CUDA GPU (torch "
                              f"{torch.__version__}); pass --trainer.accelerator cpu --trainer.precision 32-true, "
                              "or use configs/quickstart.yaml, which runs on CPU")

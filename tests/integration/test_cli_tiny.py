@@ -389,6 +389,7 @@ def test_a_null_wan_dir_in_the_config_keeps_the_checkpoints_path():
 def test_the_paper_configs_on_a_machine_without_cuda_stop_in_one_line(tiny_shards, tmp_path, capsys, monkeypatch):
     # configs/stage1.yaml and stage2.yaml ask for accelerator: gpu; Lightning's refusal was a 40-line traceback
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    monkeypatch.setattr(torch.backends.mps, "is_available", lambda: False)  # Lightning's "gpu" on a Mac
     rc = main(["fit", "-c", "configs/stage1.yaml", "--data.root", str(tiny_shards),
                "--trainer.default_root_dir", str(tmp_path / "r")])
     err = capsys.readouterr().err.strip().splitlines()
