@@ -29,6 +29,12 @@ NET_TEST_TIME_KEYS = ("voxel_size", "wan_dir", "wan_empty_prompt")
 NET_MOVED_PATH_KEYS = ("pose_prior",)
 
 
+def _same_value(a, b) -> bool:
+    """A config value equals a stored one, YAML lists and stored/dataclass tuples alike."""
+    norm = lambda v: tuple(v) if isinstance(v, list) else v  # noqa: E731
+    return norm(a) == norm(b)
+
+
 def merge_ckpt_net(asked: dict | None, stored: dict | None, preset: str) -> tuple[dict, list[str]]:
     """The ``model.net`` overrides to build a checkpoint's network with: the checkpoint's (``stored``), and the
     :data:`NET_TEST_TIME_KEYS` the config ``asked`` for (a null ``wan_dir``/``wan_empty_prompt`` keeps the stored
@@ -46,9 +52,8 @@ def merge_ckpt_net(asked: dict | None, stored: dict | None, preset: str) -> tupl
         used = preset_config(preset, **merged)
     except ValueError:
         return merged, []  # the network's own construction reports it
-    norm = lambda v: tuple(v) if isinstance(v, list) else v  # noqa: E731 - YAML lists, dataclass tuples
     ignored = [f"{k} is {getattr(used, k)!r}, not {v!r}" for k, v in asked.items()
-               if k not in NET_TEST_TIME_KEYS and hasattr(used, k) and norm(v) != norm(getattr(used, k))]
+               if k not in NET_TEST_TIME_KEYS and hasattr(used, k) and not _same_value(v, getattr(used, k))]
     return merged, ignored
 
 
@@ -58,9 +63,8 @@ def resumed_settings_ignored(asked: dict, stored: dict) -> list[str]:
     fit keeps its own (a new ``lr`` or ``init_from`` is silently not used). Not compared: ``net``
     (:func:`merge_ckpt_net` says what it keeps), :data:`TEST_TIME_KEYS`, and ``pretrained`` (the checkpoint's
     weights replace that file's, and the run keeps its own on record)."""
-    norm = lambda v: tuple(v) if isinstance(v, list) else v  # noqa: E731 - YAML lists, stored tuples
     return [f"{k} is {stored[k]!r}, not {v!r}" for k, v in asked.items()
-            if k not in ("net", "pretrained", *TEST_TIME_KEYS) and k in stored and norm(v) != norm(stored[k])]
+            if k not in ("net", "pretrained", *TEST_TIME_KEYS) and k in stored and not _same_value(v, stored[k])]
 
 
 def _warn_resumed_settings(ckpt: str, asked: dict, stored: dict) -> None:

@@ -34,6 +34,14 @@ def _is_photo(path: Path) -> bool:
     return path.suffix.lower() in PHOTO_SUFFIXES and not path.name.startswith(".")  # not a Mac's ._x.jpg
 
 
+def check_photo_folder(folder: str | Path) -> Path:
+    """``folder`` as a Path, or a one-line error when it is not a folder (``data.predict_images``)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise FileNotFoundError(f"predict_images: {folder} is not a folder; pass a folder holding one scene's photos")
+    return folder
+
+
 def list_photos(folder: str | Path) -> list[Path]:
     """The photos of ``folder`` (:data:`PHOTO_SUFFIXES`, any case; at least 2), sorted by name.
 
@@ -41,9 +49,7 @@ def list_photos(folder: str | Path) -> list[Path]:
     photo. Any other file (camera raw, HEIF, TIFF, BMP, a video, ...) but the sidecars of :data:`SIDECAR_SUFFIXES` is
     named in a warning, as it is not read.
     """
-    folder = Path(folder)
-    if not folder.is_dir():
-        raise FileNotFoundError(f"predict_images: {folder} is not a folder; pass a folder holding one scene's photos")
+    folder = check_photo_folder(folder)
     visible = sorted(p for p in folder.iterdir() if not p.name.startswith("."))
     files = [p for p in visible if _is_photo(p)]
     unread = [p.name for p in visible

@@ -20,7 +20,7 @@ import torch
 from lightning.pytorch.utilities import rank_zero_warn
 from torch.utils.data import DataLoader
 
-from anycity.data.photos import scene_name
+from anycity.data.photos import check_photo_folder, scene_name
 from anycity.data.pipeline import SampleBuilder, SkipCounter, collate, context_count_probs, make_pipeline, to_float32
 from anycity.data.writer import read_index, shard_urls
 from anycity.structures import ViewBatch
@@ -204,9 +204,8 @@ class AerialDataModule(pl.LightningDataModule):
             # photos reads no shards, so a config's root may point nowhere then)
             raise FileNotFoundError(f"data.root {root}: no such folder; fix the path, or write shards there with "
                                     f"anycity data synth --out {root} (or anycity data convert)")
-        if predict_images is not None and not Path(predict_images).is_dir():  # as data.root: before any output
-            raise FileNotFoundError(f"predict_images: {predict_images} is not a folder; pass a folder holding one "
-                                    "scene's photos")
+        if predict_images is not None:  # as data.root: before the run writes any output
+            check_photo_folder(predict_images)
         self.save_hyperparameters()
         self.hp = self.hparams
         self.skip_counter = SkipCounter()
