@@ -77,9 +77,24 @@ def test_datamodule_skips_by_default(tmp_path):
     assert AerialDataModule(root=str(tmp_path)).hparams.skip_corrupt is True
 
 
-def test_an_evaluation_says_how_many_samples_every_rank_skipped(tmp_path):
+def _two_ranks(monkeypatch, other_rank: list[str]):
+    """torch.distributed as rank 0 of 2 sees it, the other rank's ``all_gather_object`` giving ``other_rank``."""
+    import torch.distributed as dist
+
+    monkeypatch.setattr(dist, "is_initialized", lambda: True)
+    monkeypatch.setattr(dist, "get_world_size", lambda group=None: 2)
+
+    def all_gather_object(out, obj, group=None):
+        out[0], out[1] = obj, other_rank
+
+    monkeypatch.setattr(dist, "all_gather_object", all_gather_object)
+
+
+def test_an_evaluation_says_how_many_samples_every_rank_skipped(tmp_path, monkeypatch):
     """Skips were said every 50 training steps, from rank 0's count alone: a test run (its step fixed at the
-    checkpoint's) could skip held-out targets and never say so."""
+    checkpoint's) could skip held-out targets and never say so. The ranks' counts were then summed, which counted a
+    shard that every rank reads (training) once per rank, and under ddp_spawn (one skip folder shared by the ranks)
+    every skip world-size times: now it is the number of distinct skipped things over all ranks."""
     from types import SimpleNamespace
 
     from anycity.lit import ScaffoldModule
@@ -88,9 +103,29 @@ def test_an_evaluation_says_how_many_samples_every_rank_skipped(tmp_path):
     for i in range(3):
         counter.add(f"sample {i}", ValueError("non-finite values"))
     m = ScaffoldModule()
-    two_ranks = SimpleNamespace(reduce=lambda t, reduce_op: t * 2 if reduce_op == "sum" else None)
-    m._trainer = SimpleNamespace(datamodule=SimpleNamespace(num_skipped=counter.count, skip_counter=counter),
-                                 strategy=two_ranks)
-    with pytest.warns(UserWarning, match=r"^test: 6 corrupt sample\(s\) skipped so far on all ranks \(skip_corrupt: "
-                                         r"true\); these figures leave them out\. Rank 0's list: .*skips$"):
-        m._report_skips("test")
+    m._trainer = SimpleNamespace(world_size=2, datamodule=SimpleNamespace(num_skipped=counter.count,
+                                                                          skip_counter=counter))
+    for other_rank, n in ((["sample 1", "sample 7"], 4), (["sample 0", "sample 1", "sample 2"], 3), ([], 3)):
+        _two_ranks(monkeypatch, other_rank)
+        with pytest.warns(UserWarning, match=rf"^test: {n} corrupt sample\(s\) skipped so far on all ranks "
+                                             r"\(skip_corrupt: true\); these figures leave them out\. Rank 0's list: "
+                                             r".*skips$"):
+            assert m._report_skips("test") == n
+
+
+def test_an_evaluation_that_scored_nothing_on_any_rank_says_so(tmp_path, monkeypatch):
+    """A stream whose whole share of the held-out samples is corrupt ends quietly (another rank or worker scores
+    the rest); when no rank scored anything, the evaluation stops with one line instead of logging no figures."""
+    from types import SimpleNamespace
+
+    from anycity.lit import ScaffoldModule
+
+    counter = SkipCounter(tmp_path / "skips")
+    counter.add("sample 0", ValueError("non-finite values"))
+    m = ScaffoldModule()
+    m._trainer = SimpleNamespace(world_size=1, datamodule=SimpleNamespace(num_skipped=1, skip_counter=counter),
+                                 strategy=SimpleNamespace(reduce=lambda t, reduce_op: t))
+    with pytest.warns(UserWarning, match="1 corrupt sample"), pytest.raises(
+            ValueError, match=r"^val: no sample was scored on any rank \(1 corrupt sample\(s\) or shard\(s\) skipped, "
+                              r"skip_corrupt: true\); fix or re-create the val shards$"):
+        m._log_metrics(m.val_metrics, "val")

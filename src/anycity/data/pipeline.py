@@ -2,9 +2,13 @@
 
 Training streams are resampled (each rank and worker draws shards with replacement from a deterministic
 per-(seed, rank, worker, epoch) stream, so DDP needs no shard splitting) and cut into epochs by ``with_epoch``;
-``resampled=False`` instead shuffles the shard list and uses ``split_by_node`` + ``split_by_worker``.
+with ``resampled=False`` an epoch is one pass: every stream reads the shards in the same per-epoch shuffled order
+and keeps its own sample of each run of (world x workers) samples, so the streams split the pass evenly, by sample.
 Evaluation streams read every shard in order and keep every (world x workers)-th sample, so every rank gets a
 balanced, deterministic share even with a single shard.
+
+Every stage is a module-level function or class, so that spawned DataLoader workers (macOS and Windows, and
+Linux's forkserver default from Python 3.14) can unpickle the pipeline.
 
 Reading is lazy (:mod:`anycity.data.tario`): a local shard's members stay on disk until a sample's views are
 chosen, then only those are read and decoded (JPEGs larger than needed at 1/2-1/8 scale). Each output buffer is
@@ -438,33 +442,120 @@ def check_finite(obj, where: str = "sample", path: str = "", skip: tuple[str, ..
 
 
 class _EpochStart:
-    """A resampled training stream's first stage. Each iteration of the pipeline is one epoch; this counts them from
+    """A training stream's first stage. Each iteration of the pipeline is one epoch; this counts them from
     ``first_epoch`` and seeds each epoch's random draws (shards, shuffle, views) from ``(seed, epoch)`` and the
     stream's rank and worker, so a run resumed in epoch ``e`` (``first_epoch=e``) draws what the uninterrupted run
     drew there, and no two ranks or workers shuffle alike. Rank 0's first worker keeps the seeds the stream had
-    before it counted epochs and streams."""
+    before it counted epochs and streams.
 
-    def __init__(self, shards: wds.ResampledShards, first_epoch: int, shuffle_rng: random.Random, seed: int,
-                 builder: SampleBuilder) -> None:
+    ``shards``: a ``wds.ResampledShards`` (resampled), or the list of shard urls, given whole in an order shuffled
+    from ``(seed, epoch)`` alone, the same on every stream (``resampled=False``; :class:`_PassShare` splits it)."""
+
+    def __init__(self, shards: wds.ResampledShards | list[str], first_epoch: int, shuffle_rng: random.Random,
+                 seed: int, builder: SampleBuilder) -> None:
         self.shards, self.epoch, self.shuffle_rng, self.seed, self.builder = shards, first_epoch - 1, shuffle_rng, \
             seed, builder
 
     def __call__(self):
         self.epoch += 1
-        self.shards.epoch = self.epoch - 1  # it counts its own epochs from -1, one per iteration
         rank, _, worker, _ = wds.utils.pytorch_worker_info()
         base = self.seed if self.epoch == 0 else f"{self.seed}:{self.epoch}"
         self.shuffle_rng.seed(f"{base}:{rank}:{worker}" if rank or worker else base)
         self.builder.begin_epoch(self.epoch)
-        return iter(self.shards)
+        if isinstance(self.shards, wds.ResampledShards):
+            self.shards.epoch = self.epoch - 1  # it counts its own epochs from -1, one per iteration
+            return iter(self.shards)
+        order = list(self.shards)
+        random.Random(f"{self.seed}:{self.epoch}:shards").shuffle(order)
+        return iter([{"url": u} for u in order])
+
+
+class _PassShare:
+    """webdataset stage of a ``resampled=False`` training stream: this stream's share of one pass. Every stream
+    reads the same samples in the same order and keeps sample ``slot`` of each run of (world x workers) consecutive
+    samples; an incomplete last run is dropped. So every stream gets floor(N / streams) samples, no sample goes to
+    two streams, and ranks get equal batch counts, whatever the number of shards. Refuses a pass that leaves a
+    stream fewer than ``batch_size`` samples (every epoch would have no batch)."""
+
+    def __init__(self, batch_size: int) -> None:
+        self.batch_size = batch_size
+
+    def __call__(self, src: Iterator[dict]) -> Iterator[dict]:
+        me, total = _stream_slot()
+        kept, runs, read = None, 0, 0
+        for read, s in enumerate(src, 1):
+            if (read - 1) % total == me:
+                kept = s
+            if read % total == 0:
+                runs += 1
+                yield kept
+        if runs < self.batch_size:
+            raise ValueError(f"resampled: false: the {read} training sample(s) over {total} stream(s) (ranks x "
+                             f"max(1, num_workers)) give each {runs}, fewer than batch_size {self.batch_size}, so "
+                             "every epoch would have no batch; set data.resampled: true, or lower num_workers or "
+                             "batch_size")
+
+
+def count_samples(urls: list[str]) -> int:
+    """The samples one pass of a ``resampled=False`` training stream reads from ``urls`` (a shard that cannot be
+    read gives none, a truncated one those before the cut)."""
+    return sum(1 for _ in tar_samples([{"url": str(u)} for u in urls], handler=lambda e: True))
+
+
+class _Handler:
+    """The pipeline's webdataset exception handler: ``TooFewViews`` (the settings, not the sample) raises; with
+    ``skip_corrupt`` anything else is skipped and counted in ``counter``, else raised as a ``ValueError`` naming the
+    shard."""
+
+    def __init__(self, skip_corrupt: bool, counter: SkipCounter | None, train: bool) -> None:
+        self.skip_corrupt, self.counter, self.train = skip_corrupt, counter, train
+
+    def __call__(self, exn: BaseException) -> bool:
+        if isinstance(exn, TooFewViews):  # the settings, not the sample: every sample would be skipped
+            raise exn
+        if self.skip_corrupt:
+            # every evaluation stream reads every shard: only the first one counts a shard's failure
+            if self.counter is not None and (self.train or _stream_slot()[0] == 0):
+                self.counter.add("shard", exn, what=f"shard: {str(exn)[:500]}")
+            return True
+        if isinstance(exn, (ValueError, FileNotFoundError)) and "shard" in str(exn):
+            raise exn
+        raise ValueError(f"corrupt or unreadable shard: {exn}") from exn
+
+
+class _Build:
+    """The pipeline's map stage: a raw sample -> ``builder``'s selections; with ``skip_corrupt`` a sample that fails
+    to build gives None (skipped), counted in ``counter`` and told to ``guard``."""
+
+    def __init__(self, builder: SampleBuilder, skip_corrupt: bool, counter: SkipCounter | None,
+                 guard: NoSampleGuard) -> None:
+        self.builder, self.skip_corrupt, self.counter, self.guard = builder, skip_corrupt, counter, guard
+
+    def __call__(self, sample: dict) -> list[dict] | None:
+        try:
+            out = self.builder(sample)
+        except TooFewViews as e:
+            raise TooFewViews(f"{sample_where(sample)}: {e}") from None
+        except Exception as e:
+            msg = str(e) if "shard" in str(e) else f"{sample_where(sample)}: {e}"
+            if self.skip_corrupt:
+                url, key = sample.get("__url__", "?"), sample.get("__key__", "?")
+                if self.counter is not None:
+                    self.counter.add(sample_where(sample), e, what=f"{url}\t{key}")
+                self.guard.sample_failed(url, key, msg)
+                return None
+            raise ValueError(msg) from e
+        self.guard.sample_built()
+        return out
 
 
 def make_pipeline(urls: list[str], builder: SampleBuilder, *, train: bool, resampled: bool = True,
                   epoch_samples: int | None = None, shuffle: int = 16, seed: int = 0,
                   skip_corrupt: bool = False, counter: SkipCounter | None = None,
                   first_epoch: int = 0) -> wds.DataPipeline:
-    """Shards -> per-sample dicts (batch with :func:`collate` in the DataLoader). A resampled training stream starts
-    at epoch ``first_epoch`` (a resumed run's; see :class:`_EpochStart`).
+    """Shards -> per-sample dicts (batch with :func:`collate` in the DataLoader). A training stream starts at epoch
+    ``first_epoch`` (a resumed run's; see :class:`_EpochStart`). ``epoch_samples`` cuts a resampled training
+    stream's epochs; with ``resampled=False`` an epoch is one pass, split by sample (:class:`_PassShare`).
 
     Raises ``FileNotFoundError`` for missing shard files, and (unless ``skip_corrupt``) ``ValueError`` naming the
     shard and key for corrupt samples; with ``skip_corrupt`` they are skipped and counted in ``counter``.
@@ -476,57 +567,28 @@ def make_pipeline(urls: list[str], builder: SampleBuilder, *, train: bool, resam
         if "://" not in u and not u.startswith("pipe:") and not Path(u).exists():
             raise FileNotFoundError(f"shard {u}: file not found; check the data root or re-run anycity data synth")
 
-    def handler(exn: BaseException) -> bool:
-        if isinstance(exn, TooFewViews):  # the settings, not the sample: every sample would be skipped
-            raise exn
-        if skip_corrupt:
-            # every evaluation stream reads every shard: only the first one counts a shard's failure, so that the
-            # sum over ranks counts it once
-            if counter is not None and (train or _stream_slot()[0] == 0):
-                counter.add("shard", exn, what=f"shard: {str(exn)[:500]}")
-            return True
-        if isinstance(exn, (ValueError, FileNotFoundError)) and "shard" in str(exn):
-            raise exn
-        raise ValueError(f"corrupt or unreadable shard: {exn}") from exn
-
-    guard = NoSampleGuard(urls)
-
-    def build(sample: dict):
-        try:
-            out = builder(sample)
-        except TooFewViews as e:
-            raise TooFewViews(f"{sample_where(sample)}: {e}") from None
-        except Exception as e:
-            msg = str(e) if "shard" in str(e) else f"{sample_where(sample)}: {e}"
-            if skip_corrupt:
-                url, key = sample.get("__url__", "?"), sample.get("__key__", "?")
-                if counter is not None:
-                    counter.add(sample_where(sample), e, what=f"{url}\t{key}")
-                guard.sample_failed(url, key, msg)
-                return None
-            raise ValueError(msg) from e
-        guard.sample_built()
-        return out
-
+    handler = _Handler(skip_corrupt, counter, train)
+    # a finite evaluation stream holds a share of the samples and cannot loop: no every-sample-failed rule there
+    guard = NoSampleGuard(urls, builds=train)
     shuffle_rng = random.Random(seed)
-    if train and resampled:
-        stages = [_EpochStart(wds.ResampledShards(urls, seed=seed, deterministic=True), first_epoch, shuffle_rng, seed,
-                              builder)]
-    elif train:
-        # same shuffled order on every rank (seeded by seed + epoch), then split by rank and worker
-        stages = [wds.SimpleShardList(urls), wds.detshuffle(bufsize=len(urls), initial=len(urls), seed=seed),
-                  wds.split_by_node, wds.split_by_worker]
+    if train:
+        shards = wds.ResampledShards(urls, seed=seed, deterministic=True) if resampled else urls
+        stages = [_EpochStart(shards, first_epoch, shuffle_rng, seed, builder)]
     else:
         stages = [wds.SimpleShardList(urls)]
     stages.append(functools.partial(tar_samples, handler=handler, guard=guard))
     if not train:
         stages.append(_eval_shard)
-    stages.append(guard.kept)  # after the evaluation share: the guard waits only for this stream's own samples
+    elif not resampled:
+        stages.append(_PassShare(builder.batch_size))
+    stages.append(guard.kept)  # after the stream's share: the guard waits only for this stream's own samples
     if train and shuffle > 1:
         stages.append(wds.shuffle(shuffle, initial=min(shuffle, 4), rng=shuffle_rng))
-    stages += [wds.map(build, handler=handler), _flatten]
+    stages += [wds.map(_Build(builder, skip_corrupt, counter, guard), handler=handler), _flatten]
+    if train and not resampled:
+        stages.append(guard.ended)
     pipe = wds.DataPipeline(*stages)
-    if train and epoch_samples:
+    if train and resampled and epoch_samples:
         pipe = pipe.with_epoch(epoch_samples)
     return pipe
 

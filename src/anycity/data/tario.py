@@ -75,14 +75,20 @@ def is_local(url: str) -> bool:
 
 def local_members(url: str) -> Iterator[dict]:
     """``{"fname", "data", "__url__"}`` per regular member of a local tar file, ``data`` a :class:`Member`
-    (bytes for small eager members). Raises ``tarfile.ReadError`` / ``ValueError`` on corrupt archives."""
+    (bytes for small eager members). Raises ``tarfile.ReadError`` / ``ValueError`` on corrupt archives, and
+    ``ValueError`` for a member that ends past the end of the file (truncated, or a header claiming an absurd size,
+    which reading would allocate)."""
     file = _File(url)
+    end = os.fstat(file.fd).st_size
     with open(url, "rb") as f, tarfile.open(fileobj=f, mode="r:") as tf:
         if tf.firstmember is None:  # an empty tar: Python 3.10's next() would seek to -1 (EINVAL)
             return
         while (m := tf.next()) is not None:
             if not m.isfile():
                 continue
+            if m.offset_data + m.size > end:
+                raise ValueError(f"shard {url}: member {m.name!r} claims {m.size} bytes at offset {m.offset_data}, "
+                                 f"past the end of the {end}-byte file (truncated or corrupt); re-create the shard")
             data: Member | bytes = Member(file, m.offset_data, m.size, m.name)
             if m.name.endswith(EAGER_SUFFIXES):
                 data = data.read()
@@ -103,10 +109,15 @@ class NoSampleGuard:
     A stream counts every sample it reads (:meth:`sample_read`: does a shard give samples at all?) but waits only
     for those it keeps (:meth:`kept`, after an evaluation stream's share of the samples): another worker's or
     rank's samples never fail here, and waiting for them let a stream whose every sample failed end quietly.
+
+    ``builds=False`` (a finite evaluation stream, which cannot draw forever) drops the second rule: a stream holds
+    only its 1/(ranks x workers) share of the samples, and one corrupt sample can be a stream's whole share while
+    the other streams score the rest; evaluation says instead when no rank scored anything
+    (``lit/base.AnyCityModule._log_metrics``).
     """
 
-    def __init__(self, urls: Iterable[str], attempts: int = 3) -> None:
-        self.urls, self.attempts = set(urls), attempts
+    def __init__(self, urls: Iterable[str], attempts: int = 3, builds: bool = True) -> None:
+        self.urls, self.attempts, self.builds = set(urls), attempts, builds
         self.why: dict[str, str] = {}
         self.read: dict[str, int] = {}
         self.visited: set[str] = set()
@@ -126,6 +137,12 @@ class NoSampleGuard:
             if not self.built:
                 self.build_fails.setdefault((s.get("__url__", "?"), s.get("__key__", "?")), 0)
             yield s
+
+    def ended(self, samples: Iterable) -> Iterator:
+        """webdataset stage, the last of a finite training stream (a pass of ``resampled=False``): at its end each
+        sample the stream kept has built or failed (none waits in a shuffle buffer), so one failure each is enough."""
+        yield from samples
+        self.check(attempts=1)
 
     def sample_built(self) -> None:
         self.built += 1
@@ -147,7 +164,7 @@ class NoSampleGuard:
                              f"{self.why[url]}); point --data.root at shards written by `anycity data synth` or "
                              "`anycity data convert`")
         need = self.attempts if attempts is None else attempts
-        if (self.built or not self.build_fails or not (self.visited | self.why.keys()) >= self.urls
+        if (not self.builds or self.built or not self.build_fails or not (self.visited | self.why.keys()) >= self.urls
                 or min(self.build_fails.values()) < need):
             return
         raise ValueError(f"shards: none of the {len(self.build_fails)} sample(s) in the {len(self.urls)} shard(s) "
@@ -187,7 +204,7 @@ def tar_samples(src: Iterable[dict], handler: Callable[[BaseException], bool],
                                           "no webdataset samples (members sharing a key) in it"))
             elif guard is not None:  # read as far as it goes (a truncated shard too)
                 guard.visited.add(url)
-        if guard is not None:  # the end of a finite (evaluation) stream
+        if guard is not None:  # the end of a finite stream (evaluation, or a pass of resampled: false)
             guard.check(attempts=1)
 
     samples = tariterators.group_by_keys(files(), handler=handler)

@@ -23,7 +23,7 @@ from lightning.pytorch.utilities import rank_zero_info, rank_zero_warn
 from torch import Tensor
 
 from anycity.callbacks.nonfinite import all_finite
-from anycity.lit.distributed import log_eval_metrics
+from anycity.lit.distributed import log_eval_metrics, union_over_ranks
 from anycity.lit.evaluation import (
     AlignMode,
     EvalMetrics,
@@ -443,20 +443,25 @@ class AnyCityModule(pl.LightningModule):
 
     def _log_metrics(self, metrics: EvalMetrics, split: str) -> None:
         # at epoch end on every rank: a rank without samples must still join the metric syncs (lit/distributed.py)
-        log_eval_metrics(self, metrics, split)
-        self._report_skips(split)
+        logged = log_eval_metrics(self, metrics, split)
+        skipped = self._report_skips(split)
+        if not logged:  # no rank scored a sample (the ranks agree on it: log_eval_metrics gathered the flags)
+            raise ValueError(f"{split}: no sample was scored on any rank ({skipped} corrupt sample(s) or shard(s) "
+                             f"skipped, skip_corrupt: true); fix or re-create the {split} shards")
 
-    def _report_skips(self, split: str) -> None:
-        """Say, at the end of every evaluation, how many corrupt samples ``skip_corrupt`` skipped so far summed over
-        the ranks (each counts its own): the figures leave them out, held-out targets included. Every rank calls
-        it (the sum is a collective)."""
+    def _report_skips(self, split: str) -> int:
+        """Say, at the end of every evaluation, how many distinct corrupt samples (or shards) ``skip_corrupt``
+        skipped so far on all ranks (the union of the ranks' lists, so that a shard every rank reads counts once):
+        the figures leave them out, held-out targets included. Every rank calls it (a collective); returns the
+        count."""
         dm = getattr(self.trainer, "datamodule", None)
-        if dm is None or not hasattr(dm, "num_skipped"):
-            return
-        n = int(self.trainer.strategy.reduce(torch.tensor(float(dm.num_skipped), device=self.device), reduce_op="sum"))
+        if dm is None or not hasattr(dm, "skip_counter"):
+            return 0
+        n = len(union_over_ranks(self, {r.get("what", r["where"]) for r in dm.skip_counter.records()}))
         if n:
             rank_zero_warn(f"{split}: {n} corrupt sample(s) skipped so far on all ranks (skip_corrupt: true); these "
                            f"figures leave them out. Rank 0's list: {dm.skip_counter.directory}")
+        return n
 
     def on_validation_epoch_end(self) -> None:
         self._log_metrics(self.val_metrics, "val")

@@ -19,9 +19,18 @@ import lightning.pytorch as pl
 import torch
 from lightning.pytorch.utilities import rank_zero_warn
 from torch.utils.data import DataLoader
+from webdataset.utils import pytorch_worker_info
 
 from anycity.data.photos import check_photo_folder, scene_name
-from anycity.data.pipeline import SampleBuilder, SkipCounter, collate, context_count_probs, make_pipeline, to_float32
+from anycity.data.pipeline import (
+    SampleBuilder,
+    SkipCounter,
+    collate,
+    context_count_probs,
+    count_samples,
+    make_pipeline,
+    to_float32,
+)
 from anycity.data.writer import read_index, shard_urls
 from anycity.structures import ViewBatch
 
@@ -59,14 +68,20 @@ class _IgnoreSignalsInWorkers:
     own worker handler, installed before this runs (so Lightning's never runs in a worker): it exits quietly when the
     loader's process ends the worker (``terminate()``) and dies by the signal otherwise. Ignored, workers outlived
     ``terminate()`` and hung the exit; reset to the default action, each died by the signal and torch printed "worker
-    killed by signal: Terminated" at exit. A module-level class, so spawned workers can unpickle it."""
+    killed by signal: Terminated" at exit. A module-level class, so spawned workers can unpickle it.
 
-    def __init__(self, then=None, rank: int | None = None) -> None:
-        self.then, self.rank = then, rank
+    ``streams``: the ``(rank, world size)`` the data streams of the loader's process read, set as ``RANK`` and
+    ``WORLD_SIZE`` in a worker that has neither: a spawned worker does not inherit ``torch.distributed``, and its
+    streams would otherwise all be rank 0 of 1 (every rank training on the same samples, scoring every one)."""
+
+    def __init__(self, then=None, rank: int | None = None, streams: tuple[int, int] | None = None) -> None:
+        self.then, self.rank, self.streams = then, rank, streams
 
     def __call__(self, worker_id: int) -> None:
         if hasattr(signal, "SIGUSR1"):  # not on Windows
             signal.signal(signal.SIGUSR1, signal.SIG_IGN)
+        if self.streams is not None and not ("RANK" in os.environ and "WORLD_SIZE" in os.environ):
+            os.environ["RANK"], os.environ["WORLD_SIZE"] = (str(x) for x in self.streams)
         if self.then is not None:
             self.then(worker_id)
         elif int(os.environ.get("PL_SEED_WORKERS", 0)):
@@ -75,10 +90,12 @@ class _IgnoreSignalsInWorkers:
             pl_worker_init_function(worker_id, rank=self.rank)
 
 
-def worker_init_fn(then=None, rank: int | None = None) -> _IgnoreSignalsInWorkers:
+def worker_init_fn(then=None, rank: int | None = None,
+                   streams: tuple[int, int] | None = None) -> _IgnoreSignalsInWorkers:
     """The ``worker_init_fn`` of every loader of :class:`AerialDataModule` (see :class:`_IgnoreSignalsInWorkers`);
-    ``then``: a loader's own one, run after it; ``rank``: the global rank, for Lightning's worker seeding."""
-    return then if isinstance(then, _IgnoreSignalsInWorkers) else _IgnoreSignalsInWorkers(then, rank)
+    ``then``: a loader's own one, run after it; ``rank``: the global rank, for Lightning's worker seeding;
+    ``streams``: the data streams' ``(rank, world size)``, for spawned workers."""
+    return then if isinstance(then, _IgnoreSignalsInWorkers) else _IgnoreSignalsInWorkers(then, rank, streams)
 
 
 class _PhotoChunks(torch.utils.data.Dataset):
@@ -133,9 +150,12 @@ class AerialDataModule(pl.LightningDataModule):
         batch_size: training samples per batch.
         eval_batch_size: validation/test samples per batch (default: batch_size).
         num_workers: DataLoader worker processes (0 decodes in the main process).
-        epoch_samples: training samples per epoch per rank (``with_epoch``; the stream is resampled).
-        resampled: draw training shards with replacement (True) or shuffle the shard list and split it with
-            ``split_by_node``/``split_by_worker`` (False; needs at least ranks x workers shards).
+        epoch_samples: training samples per epoch per rank (``with_epoch``) of the resampled stream; not used with
+            ``resampled: false``.
+        resampled: draw training shards with replacement (True), or make each epoch one pass over the training
+            samples in a shuffled shard order, split evenly by sample over ranks x workers (False: each sample at
+            most once per epoch, floor(samples / (ranks x workers)) per worker; the remainder waits for a later
+            epoch's order).
         shuffle_buffer: sample shuffle buffer for training.
         window: training sliding-window length in views (None: 2 x the largest view group), within one sample
             (shards hold trajectory windows of 24 views by default, see ``anycity data synth --window``).
@@ -197,7 +217,7 @@ class AerialDataModule(pl.LightningDataModule):
             raise ValueError(f"predict_order: expected 'auto', 'time', 'name' or 'tokens', got {predict_order!r}")
         if len(image_size) != 2 or min(image_size) < 8:
             raise ValueError(f"image_size: expected [H, W] with sides >= 8, got {image_size!r}")
-        _check_epoch(epoch_samples, num_workers, batch_size)
+        _check_epoch(epoch_samples if resampled else None, num_workers, batch_size)
         if (isinstance(root, str) and predict_images is None and "://" not in root and "{" not in root
                 and not Path(root).exists()):
             # here, not when the first batch is read: before the run writes its config and logs (a predict from
@@ -241,14 +261,14 @@ class AerialDataModule(pl.LightningDataModule):
         train = split == "train"
         workers = self.hp.num_workers
         # epoch_samples per rank, split over its workers (each rank draws its own resampled stream)
-        per_worker = math.ceil(self.hp.epoch_samples / max(1, workers)) if train else None
+        per_worker = math.ceil(self.hp.epoch_samples / max(1, workers)) if train and self.hp.resampled else None
         pipe = make_pipeline(self._urls(split), self._builder(train), train=train, resampled=self.hp.resampled,
                              epoch_samples=per_worker, shuffle=self.hp.shuffle_buffer, seed=self.hp.seed,
                              skip_corrupt=self.hp.skip_corrupt, counter=self.skip_counter, first_epoch=first_epoch)
         bs = self.hp.batch_size if train else (self.hp.eval_batch_size or self.hp.batch_size)
         return DataLoader(pipe, batch_size=bs, collate_fn=collate, num_workers=workers,
                           persistent_workers=workers > 0, pin_memory=self.hp.pin_memory, drop_last=train,
-                          worker_init_fn=worker_init_fn(rank=self._rank()))
+                          worker_init_fn=worker_init_fn(rank=self._rank(), streams=_stream_rank_world()))
 
     def _rank(self) -> int | None:
         return getattr(self.trainer, "global_rank", None)
@@ -261,17 +281,28 @@ class AerialDataModule(pl.LightningDataModule):
         # resumed (``--ckpt_path``): start at the interrupted run's epoch and skip the samples it already trained on
         # in it, so the resumed run sees the stream an uninterrupted one would (exact with num_workers=0)
         done, epoch = _batches_trained(self.trainer), 0
-        if done and self.hp.epoch_samples:
-            workers = max(1, self.hp.num_workers)  # each worker drops its own last partial batch
-            per_epoch = workers * (math.ceil(self.hp.epoch_samples / workers) // self.hp.batch_size)
+        per_epoch = self._batches_per_epoch() if done else None
+        if per_epoch is not None:
             epoch, done = divmod(done, max(1, per_epoch))
-        loader = self._loader("train", epoch if self.hp.resampled else 0)
+        loader = self._loader("train", epoch)
         if done:
             loader = DataLoader(_SkipFirst(loader.dataset, done, loader.batch_size), batch_size=loader.batch_size,
                                 collate_fn=loader.collate_fn, num_workers=loader.num_workers,
                                 persistent_workers=loader.persistent_workers, pin_memory=loader.pin_memory,
                                 drop_last=loader.drop_last, worker_init_fn=worker_init_fn(loader.worker_init_fn))
         return loader
+
+    def _batches_per_epoch(self) -> int | None:
+        """Training batches per epoch of this rank (None: a resampled stream without ``epoch_samples`` has one
+        endless epoch). Each worker drops its own last partial batch."""
+        workers = max(1, self.hp.num_workers)
+        if self.hp.resampled:
+            if not self.hp.epoch_samples:
+                return None
+            per_worker = math.ceil(self.hp.epoch_samples / workers)
+        else:  # one pass, split by sample over every rank's workers (data/pipeline._PassShare)
+            per_worker = count_samples(self._urls("train")) // (_stream_rank_world()[1] * workers)
+        return workers * (per_worker // self.hp.batch_size)
 
     def _check_windows(self) -> None:
         """Refuse, before training starts, context + target counts that a training window of the shards' index (or
@@ -351,6 +382,12 @@ class AerialDataModule(pl.LightningDataModule):
                                f"see {self.skip_counter.directory}")
                 self._reported = n
         return batch
+
+
+def _stream_rank_world() -> tuple[int, int]:
+    """``(rank, world size)`` as this process's data streams read them: RANK/WORLD_SIZE, else torch.distributed."""
+    rank, world, _, _ = pytorch_worker_info()
+    return rank, world
 
 
 def _check_epoch(epoch_samples: int | None, num_workers: int, batch_size: int) -> None:

@@ -31,6 +31,17 @@ def updated_anywhere(module, metrics: nn.ModuleDict | dict) -> list[str]:
     return [n for n, f in zip(names, flags.tolist()) if f > 0]
 
 
+def union_over_ranks(module, items: set[str]) -> set[str]:
+    """The union of every rank's ``items`` (one ``all_gather_object``; ``items`` itself without DDP). Every rank
+    calls it."""
+    world = getattr(getattr(module, "_trainer", None), "world_size", 1)
+    if world <= 1 or not (torch.distributed.is_available() and torch.distributed.is_initialized()):
+        return set(items)
+    gathered: list = [None] * torch.distributed.get_world_size()
+    torch.distributed.all_gather_object(gathered, sorted(items))
+    return {x for rank in gathered for x in rank}
+
+
 def _empty_update(m) -> None:
     """Give a metric that this rank never updated empty list states of the right dtypes: torchmetrics fills
     them with float32 placeholders, and a rank whose real state is int64 (PSNR's pixel counts) then gathers a

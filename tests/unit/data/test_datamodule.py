@@ -148,9 +148,12 @@ def test_a_stream_whose_every_sample_fails_to_build_stops_with_one_line(synth_ro
                                          "tried 3 time\\(s\\) each .*schema_version") as e:
         next(iter(pipe))
     assert "\n" not in str(e.value)
-    with pytest.raises(ValueError, match="builds, tried 1 time\\(s\\) each"):  # a finite evaluation stream
-        list(make_pipeline([str(u) for u in bad], SampleBuilder(2, 1, 0, (16, 16), train=False), train=False,
-                           skip_corrupt=True))
+    with pytest.raises(ValueError, match="builds, tried 1 time\\(s\\) each"):  # a pass of resampled: false
+        list(make_pipeline([str(u) for u in bad], SampleBuilder(2, 1, 0, (16, 16), batch_size=1), train=True,
+                           resampled=False, skip_corrupt=True))
+    # a finite evaluation stream ends (lit/base says when no rank scored anything)
+    assert list(make_pipeline([str(u) for u in bad], SampleBuilder(2, 1, 0, (16, 16), train=False), train=False,
+                              skip_corrupt=True)) == []
     mixed = make_pipeline([*map(str, bad), good[0]], SampleBuilder(2, 1, 0, (16, 16)), train=True,
                           epoch_samples=12, skip_corrupt=True)
     assert len(list(mixed)) == 12

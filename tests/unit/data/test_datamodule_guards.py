@@ -41,22 +41,20 @@ def test_an_epoch_that_leaves_a_worker_no_whole_batch_is_refused(synth_root, epo
 
 
 @pytest.mark.timeout(120)
-def test_an_eval_stream_whose_every_sample_fails_stops_with_two_workers(synth_root, tmp_path, monkeypatch):
-    """Each worker waited for the samples it hands to the others too (they never fail there), so with 2+ workers or
-    ranks the stream ended quietly with no batch."""
+def test_an_eval_stream_whose_every_sample_fails_ends_quietly_with_two_workers(synth_root, tmp_path, monkeypatch):
+    """An evaluation stream holds 1/(ranks x workers) of the samples: its whole share failing says nothing about the
+    others, so it ends without a batch (it used to raise, which stopped an evaluation the other streams could score);
+    an evaluation that scored nothing on any rank stops with one line (tests/reliability/test_bad_values.py)."""
     bad = _unbuildable(synth_root, tmp_path, "train")  # trajectory windows: several samples, so each worker has some
     for worker in (0, 1):  # webdataset reads WORKER / NUM_WORKERS as a DataLoader worker's id
         monkeypatch.setenv("WORKER", str(worker))
         monkeypatch.setenv("NUM_WORKERS", "2")
         pipe = make_pipeline(bad, SampleBuilder(2, 1, 0, (16, 16), train=False), train=False, skip_corrupt=True)
-        with pytest.raises(ValueError, match=r"^shards: none of the \d+ sample\(s\) in the \d+ shard\(s\) builds, "
-                                             r"tried 1 time\(s\) each"):
-            list(pipe)
+        assert list(pipe) == []  # ends quietly: other streams may score; lit/base says when none did
     monkeypatch.delenv("WORKER")
     monkeypatch.delenv("NUM_WORKERS")
     dm = _dm(synth_root, test_shards=bad, num_workers=2)
-    with pytest.raises(ValueError, match=r"none of the \d+ sample\(s\) in the \d+ shard\(s\) builds"):
-        list(dm.test_dataloader())
+    assert list(dm.test_dataloader()) == []
 
 
 def test_a_shard_pattern_as_root_is_not_read_as_val_or_test(synth_root):

@@ -168,3 +168,24 @@ def test_derived_normals_are_zero_not_nan_where_there_is_no_depth():
     ctx = SampleBuilder(2, 1, 0, (16, 16), train=False, with_normals=True)(sample)[0]["context"]
     assert torch.isfinite(ctx["normal"]).all() and (ctx["normal"] * ctx["mask"]).sum().isfinite()
     assert (ctx["normal"][:, :, :9] == 0).all() and (ctx["normal"][:, 2, 10:-1, 1:-1] != 0).all()
+
+
+@pytest.mark.parametrize("size", [10**13, 10**19])
+def test_a_member_claiming_more_bytes_than_the_shard_holds_is_a_corrupt_shard(tmp_path, size):
+    """A tar header claiming an absurd size: the eager ``cameras.json`` read allocated it (MemoryError at 1e13 bytes,
+    OverflowError at 1e19), which neither ``skip_corrupt`` nor the no-sample guard catches. The member is refused
+    when its header is read, naming the shard and the member."""
+    import tarfile
+
+    info = tarfile.TarInfo("s0.cameras.json")
+    info.size = size
+    shard = tmp_path / "huge.tar"
+    shard.write_bytes(info.tobuf(format=tarfile.PAX_FORMAT) + b'{"a": 1}' + b"\0" * 1024)
+    with pytest.raises(ValueError, match=rf"shard .*huge.tar: member 's0.cameras.json' claims {size} bytes at offset "
+                                         r"\d+, past the end of the \d+-byte file \(truncated or corrupt\)"):
+        list(tario.local_members(str(shard)))
+    builder = SampleBuilder(2, 1, 0, (16, 16), train=False)
+    with pytest.raises(ValueError, match=r"huge.tar.*member 's0.cameras.json' claims"):
+        list(make_pipeline([str(shard)], builder, train=False))
+    with pytest.raises(ValueError, match=r"none of the 1 shard\(s\) gives a sample .*huge.tar.*claims"):
+        list(make_pipeline([str(shard)], builder, train=False, skip_corrupt=True))
