@@ -1,6 +1,7 @@
 """Fuzz every reader of camera files users hand us: mutate a valid file (truncate, flip/insert/delete bytes,
-NaN/inf/huge/negative numbers, wrong JSON types); the outcome must be a parse whose cameras are finite and
-rigid, or the project's one-line ``ValueError``/``FileNotFoundError`` -- never another exception or a hang.
+NaN/inf/huge/negative numbers, wrong JSON types, lens terms included); the outcome must be a parse whose cameras
+are finite and rigid and stay so once the images are read and undistorted for the shards, or the project's one-line
+``ValueError``/``FileNotFoundError`` -- never another exception or a hang.
 
 ``make test``: 50 examples per reader; ``-m slow``: 1000 per reader (counts in tests/reliability/README.md).
 """
@@ -15,9 +16,10 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from anycity.data.parsers import PARSERS
-from anycity.data.parsers.base import GL_TO_CV
+from anycity.data.parsers.base import GL_TO_CV, to_records
 from anycity.data.parsers.guard import check_scene_cameras
 from anycity.data.raycast import look_at
+from anycity.geometry import camera_problem
 
 W, H, N = 32, 24, 3
 K = np.array([[30.0, 0, 16.0], [0, 31.0, 12.0], [0, 0, 1]])
@@ -67,6 +69,13 @@ def colmap_cameras_txt(root):
     return src, root / "sparse" / "cameras.txt"
 
 
+def colmap_lens_txt(root):
+    """An OPENCV camera: the fuzz reaches its lens terms (k1 k2 p1 p2), which the images are undistorted with."""
+    src, _ = colmap_txt(root)
+    (root / "sparse" / "cameras.txt").write_text(f"# c\n1 OPENCV {W} {H} 30 31 16 12 -0.25 0.05 0.002 -0.001\n")
+    return src, root / "sparse" / "cameras.txt"
+
+
 def colmap_cameras_bin(root):
     src, _ = colmap_bin(root)
     return src, root / "sparse" / "0" / "cameras.bin"
@@ -84,6 +93,14 @@ def _frames(prefix, scale=1.0):
 def nerfstudio(root):
     _images(root / "images", [f"f{i}.png" for i in range(N)])
     (root / "transforms.json").write_text(json.dumps({"fl_x": 30, "fl_y": 31, "cx": 16, "cy": 12, "w": W, "h": H,
+                                                      "frames": _frames("images/f")}))
+    return root, root / "transforms.json"
+
+
+def nerfstudio_lens(root):
+    _images(root / "images", [f"f{i}.png" for i in range(N)])
+    (root / "transforms.json").write_text(json.dumps({"fl_x": 30, "fl_y": 31, "cx": 16, "cy": 12, "w": W, "h": H,
+                                                      "k1": -0.25, "k2": 0.05, "p1": 0.002, "p2": -0.001,
                                                       "frames": _frames("images/f")}))
     return root, root / "transforms.json"
 
@@ -135,7 +152,8 @@ def bungeenerf(root):
 
 READERS = {"colmap_images_bin": ("colmap", colmap_bin), "colmap_cameras_bin": ("colmap", colmap_cameras_bin),
            "colmap_images_txt": ("colmap", colmap_txt), "colmap_cameras_txt": ("colmap", colmap_cameras_txt),
-           "transforms_json": ("nerfstudio", nerfstudio), "matrixcity_json": ("matrixcity", matrixcity),
+           "colmap_lens_txt": ("colmap", colmap_lens_txt), "transforms_json": ("nerfstudio", nerfstudio),
+           "transforms_json_lens": ("nerfstudio", nerfstudio_lens), "matrixcity_json": ("matrixcity", matrixcity),
            "blendedmvs_cam": ("blendedmvs", blendedmvs), "llff_poses_bounds": ("llff", llff),
            "bungeenerf_json": ("bungeenerf", bungeenerf)}
 
@@ -199,6 +217,23 @@ def _fuzz_one(reader, tmp_path_factory, ops):
             f"error does not name the file: {e!r}"
         return
     check_scene_cameras(scenes, src, fmt)  # a parse that succeeds returns only well-formed cameras
+    _check_stored(scenes, root)
+
+
+def _check_stored(scenes, root):
+    """The cameras the shards would store (lens terms undone): sound, with a focal near the parsed one (NaN lens
+    terms gave fx 4.6e-38 and black images), or a one-line error naming a file of the fixture."""
+    for sc in scenes:
+        try:
+            records = [v for rec in to_records(sc) for v in rec.views]
+        except (ValueError, FileNotFoundError) as e:
+            assert "\n" not in str(e) and (str(root) in str(e) or f"scene {sc.name}:" in str(e)), \
+                f"multi-line or unnamed error: {e!r}"
+            continue
+        for v, rec in zip(sc.views, records):
+            assert camera_problem(rec.w2c, rec.K) is None, rec.K
+            ratio = rec.K[0, 0] / v.K[0, 0] * (v.width / rec.width)
+            assert 0.1 < ratio < 10, (v.K, rec.K)
 
 
 def _make(n, deadline):

@@ -680,3 +680,111 @@ def test_every_jpeg_suffix_a_photo_folder_reads_is_stored_as_its_own_jpeg_bytes(
     (tmp_path / f"a{ext}").write_bytes(buf.tobytes())
     rec = _load_view(ParsedView("a", tmp_path / f"a{ext}", np.eye(4), K, W, H), None)
     assert rec.ext == "jpg" and rec.image == buf.tobytes()
+
+
+def _image_blocks(gt, points="1.0 2.0 -1"):
+    """``images.txt`` blocks: per image its line and its POINTS2D line ``points``, each ending in a newline."""
+    blocks = []
+    for i, g in enumerate(gt):
+        q = rotmat_to_quat(torch.tensor(g[:3, :3])).tolist()
+        blocks.append(" ".join(map(str, [i + 1, *q, *g[:3, 3], 1, f"v{i}.png"])) + "\n" + points + "\n")
+    return blocks
+
+
+@pytest.mark.parametrize("case", ["blank_between", "blank_between_no_points", "indented_comment", "comment_between",
+                                  "no_points", "points", "no_points_trimmed"])
+def test_colmap_images_txt_is_read_as_colmap_reads_it(tmp_path, case):
+    """Blank and comment lines are skipped before an image line only; the line after it is its POINTS2D, maybe
+    empty (COLMAP's ReadImagesText). Pairing lines two by two lost every other image when a blank line separated
+    the blocks, with a warning that they were not registered; an indented comment was an error."""
+    gt = [look_at([10 * np.cos(a), 10 * np.sin(a), 8], [0, 0, 0]) for a in np.linspace(0, 1.5, 6)]
+    blocks, empty = _image_blocks(gt), _image_blocks(gt, points="")
+    text = {"blank_between": "\n".join(blocks), "blank_between_no_points": "\n".join(empty),
+            "indented_comment": "  # Image list\n\t#   IMAGE_ID, QW, ...\n" + "".join(blocks),
+            "comment_between": "".join(blocks[:3]) + "# more images\n\n" + "".join(blocks[3:]),
+            "no_points": "".join(empty),  # anycity export's and the common known-pose layout
+            "points": "".join(blocks), "no_points_trimmed": "".join(empty).rstrip("\n") + "\n"}[case]
+    src = tmp_path / "scene"
+    _images(src / "images", [f"v{i}.png" for i in range(len(gt))])
+    (src / "sparse").mkdir()
+    comment = "  # Camera list" if case == "indented_comment" else "# Camera list"
+    (src / "sparse" / "cameras.txt").write_text(f"{comment}\n1 PINHOLE {W} {H} 30 31 16 12\n")
+    (src / "sparse" / "images.txt").write_text(text)
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no image named as not registered
+        convert("colmap", src, tmp_path / "out")
+    _check(tmp_path / "out", gt)
+
+
+@pytest.mark.parametrize("model,params", [("OPENCV", "30 31 16 12 0.1"), ("OPENCV", "30 31 16 12 0.1 0.01 0.001"),
+                                          ("FULL_OPENCV", "30 31 16 12 0.1 0.01 0 0 0.001"),
+                                          ("PINHOLE", "30 31 16 12 0.5"), ("SIMPLE_RADIAL", "30 16 12")])
+def test_a_cameras_txt_line_whose_parameter_count_does_not_fit_its_model_is_refused(tmp_path, model, params):
+    """A short OPENCV line crashed the conversion with OpenCV's assertion; a short FULL_OPENCV one was read."""
+    _colmap_scene(tmp_path / "scene", [f"v{i}.png" for i in range(N)])
+    (tmp_path / "scene" / "sparse" / "cameras.txt").write_text(f"# c\n1 {model} {W} {H} {params}\n")
+    want = {"OPENCV": 8, "FULL_OPENCV": 12, "PINHOLE": 4, "SIMPLE_RADIAL": 4}[model]
+    with pytest.raises(ValueError, match=rf"^{tmp_path}/scene/sparse/cameras\.txt: camera 1 \({model}\) has "
+                                         rf"{len(params.split())} parameters, {model} takes {want}; fix the line"):
+        convert("colmap", tmp_path / "scene", tmp_path / "out")
+
+
+def test_cameras_bin_reads_as_many_parameters_as_its_model_takes(tmp_path):
+    """The binary model has no count of its own: an OPENCV camera with 5 parameters written is a truncated file."""
+    src = tmp_path / "scene"
+    _images(src / "images", [f"v{i}.png" for i in range(N)])
+    _write_colmap_bin(src / "sparse" / "0", _gt(), model_id=4, params=(30.0, 31.0, 16.0, 12.0, 0.1))
+    (src / "sparse" / "0" / "images.bin").unlink()  # cameras.bin alone: its 5 doubles read as 8
+    (src / "sparse" / "0" / "images.bin").write_bytes(struct.pack("<Q", 0))
+    with pytest.raises(ValueError, match=r"scene: cannot parse as colmap: error: unpack requires a buffer of 64 "
+                                         r"bytes; the file is truncated or damaged"):
+        convert("colmap", src, tmp_path / "out")
+
+
+@pytest.mark.parametrize("fmt,lens,match", [
+    ("colmap", "OPENCV 30 31 16 12 nan 0 0 0", r"view 'v0\.png' of scene 'scene': lens distortion terms \[nan, 0\.0, "
+                                               r"0\.0, 0\.0\] are not finite; the camera file is damaged"),
+    ("colmap", "SIMPLE_RADIAL 30 16 12 inf", r"view 'v0\.png' .*lens distortion terms \[inf, 0\.0, 0\.0, 0\.0\] are "
+                                             "not finite"),
+    ("colmap", "OPENCV 30 31 16 12 1e30 0 0 0", r"images/v0\.png \(view v0\.png\): lens terms \[1e\+30, 0\.0, 0\.0, "
+                                                r"0\.0\] are not a lens: undistorting them takes the focal from 30, 31 "
+                                                r"px to 1\.214e\+31, 1\.254e\+31 px, over 10x; check the camera"),
+    ("colmap", "OPENCV 30 31 16 12 -1e30 0 0 0", r"images/v0\.png \(view v0\.png\): lens terms .* are not a lens: "
+                                                 r"undistorting them takes 100% of the pixels from outside the image"),
+    ("nerfstudio", {"k1": float("nan")}, r"view 'v0\.png' of scene 'scene': lens distortion terms \[nan, 0\.0, 0\.0, "
+                                         r"0\.0, 0\.0\] are not finite"),
+    ("nerfstudio", {"k1": 1e30}, r"images/v0\.png \(view v0\.png\): lens terms .* are not a lens: undistorting them "
+                                 "takes the focal from"),
+])
+def test_lens_terms_no_lens_has_are_refused_naming_the_view(tmp_path, fmt, lens, match):
+    """NaN/inf or absurd distortion was converted without a word: every image black and fx 4.6e-38 (NaN), or fx
+    1.2e31 (k1 = 1e30); k1 = -1e30 kept K and filled every image with its border."""
+    src = tmp_path / "scene"
+    if fmt == "colmap":
+        _colmap_scene(src, [f"v{i}.png" for i in range(N)])
+        (src / "sparse" / "cameras.txt").write_text(f"1 {lens.split()[0]} {W} {H} {lens.split(' ', 1)[1]}\n")
+    else:
+        _images(src / "images", [f"v{i}.png" for i in range(N)])
+        frames = [{"file_path": f"images/v{i}.png", "transform_matrix": (np.linalg.inv(g) @ GL_TO_CV).tolist()}
+                  for i, g in enumerate(_gt())]
+        (src / "transforms.json").write_text(json.dumps({"fl_x": 30, "fl_y": 31, "cx": 16, "cy": 12, "w": W, "h": H,
+                                                         **lens, "frames": frames}))
+    with pytest.raises(ValueError, match=match) as e:
+        convert(fmt, src, tmp_path / "out")
+    assert "\n" not in str(e.value) and str(src) in str(e.value)
+    assert not (tmp_path / "out" / "index.json").exists()
+
+
+def test_undistort_keeps_a_real_lens_and_names_where_it_refuses(tmp_path):
+    """A strong but real lens (a wide drone lens; OpenCV's rational model) still converts; an absurd one is named."""
+    from anycity.data.parsers.base import undistort
+
+    img = np.full((H, W, 3), 90, np.uint8)
+    for dist in ((-0.25, 0.05, 0.002, -0.001), (-0.25, 0.05, 0.002, -0.001, 0.01, 0.15, -0.02, 0.01), (2.0, 0, 0, 0)):
+        out, _, K_new = undistort(img, None, K, np.array(dist))
+        assert (out == 90).all() and 0.5 < K_new[0, 0] / K[0, 0] < 2
+    with pytest.raises(ValueError, match=r"^a\.png: lens terms \[0\.0, 0\.0, 0\.5, 0\.0\] are not a lens: undistorting "
+                                         r"them takes .*; check the camera file's distortion parameters"):
+        undistort(img, None, K, np.array([0.0, 0.0, 0.5, 0.0]), "a.png")

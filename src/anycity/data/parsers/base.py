@@ -75,23 +75,60 @@ def c2w_gl_to_w2c(c2w_gl: np.ndarray) -> np.ndarray:
 
 
 _HALF = np.array([[1.0, 0, -0.5], [0, 1, -0.5], [0, 0, 1]])  # K with +0.5 pixel centres -> OpenCV's integer ones
+MAX_FOCAL_CHANGE = 10.0  # undistorting a real lens changes the focal well inside this (a wide drone lens: 0.9x)
 
 
-def undistort(img: np.ndarray, depth: np.ndarray | None, K: np.ndarray,
-              dist: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+def undistort(img: np.ndarray, depth: np.ndarray | None, K: np.ndarray, dist: np.ndarray,
+              where: str = "image") -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
     """Resample ``img [H, W, 3]`` (bilinear) and ``depth [H, W]`` (nearest; z-depth is unchanged, the camera does
     not rotate) from the camera ``K`` with OpenCV distortion ``dist`` to a pinhole camera of the same size, which
     OpenCV's ``getOptimalNewCameraMatrix`` picks so every pixel sees the source (alpha 0: the borders are cropped, as
-    LaCT's DL3DV step does). Returns ``(img, depth, K_new)``. K uses pixel centres at +0.5, OpenCV integers."""
+    LaCT's DL3DV step does). Returns ``(img, depth, K_new)``. K uses pixel centres at +0.5, OpenCV integers.
+
+    Lens terms no lens has (non-finite; the focal changing over ``MAX_FOCAL_CHANGE`` times; most pixels taken from
+    outside the image) are refused in one line naming ``where`` (the view's file)."""
     h, w = img.shape[:2]
     K_cv = _HALF @ K
-    new_cv, _ = cv2.getOptimalNewCameraMatrix(K_cv, dist, (w, h), 0, (w, h))
-    mx, my = cv2.initUndistortRectifyMap(K_cv, dist, None, new_cv, (w, h), cv2.CV_32FC1)
+    bad = f"{where}: lens terms {np.asarray(dist).tolist()} are not a lens"
+    if not np.all(np.isfinite(dist)):
+        raise ValueError(f"{bad} (not finite); {_FIX_LENS}")
+    try:
+        new_cv, _ = cv2.getOptimalNewCameraMatrix(K_cv, dist, (w, h), 0, (w, h))
+        _check_focal(K_cv, new_cv, bad)
+        mx, my = cv2.initUndistortRectifyMap(K_cv, dist, None, new_cv, (w, h), cv2.CV_32FC1)
+    except cv2.error as e:
+        raise ValueError(f"{bad}: OpenCV cannot undistort with them ({' '.join(str(e).split())[-120:]}); "
+                         f"{_FIX_LENS}") from None
+    _check_maps(mx, my, bad)
     img = cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     if depth is not None:  # nearest rounds each map coordinate to the closest pixel (integer centres, as mx, my)
         depth = cv2.remap(depth.astype(np.float32), mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
                           borderValue=0)
     return img, depth, np.linalg.inv(_HALF) @ new_cv
+
+
+_FIX_LENS = "check the camera file's distortion parameters, or re-export it"
+
+
+def _check_focal(K_cv: np.ndarray, new_cv: np.ndarray, bad: str) -> None:
+    """Refuse a non-finite pinhole ``new_cv [3, 3]``, or one whose focal is over ``MAX_FOCAL_CHANGE`` times
+    ``K_cv``'s either way (NaN lens terms gave fx 4.6e-38 and a black image; k1 = 1e30 gave fx 1.2e31)."""
+    f_old, f_new = np.diag(K_cv)[:2], np.diag(new_cv)[:2]
+    with np.errstate(over="ignore", invalid="ignore"):  # an overflowing ratio is refused below, not warned about
+        change = f_new / f_old
+    if not (np.isfinite(new_cv).all() and ((1 / MAX_FOCAL_CHANGE < change) & (change < MAX_FOCAL_CHANGE)).all()):
+        raise ValueError(f"{bad}: undistorting them takes the focal from {f_old[0]:.4g}, {f_old[1]:.4g} px to "
+                         f"{f_new[0]:.4g}, {f_new[1]:.4g} px, over {MAX_FOCAL_CHANGE:g}x; {_FIX_LENS}")
+
+
+def _check_maps(mx: np.ndarray, my: np.ndarray, bad: str) -> None:
+    """Refuse undistortion maps ``[H, W]`` (source x, y of each output pixel, integer centres) that take most
+    pixels from outside the source image: alpha 0 promises none do (k1 = -1e30 kept K and replicated the border)."""
+    h, w = mx.shape
+    outside = 1 - np.mean((mx >= -1) & (mx <= w) & (my >= -1) & (my <= h))  # NaN counts as outside
+    if outside > 0.5:
+        raise ValueError(f"{bad}: undistorting them takes {outside:.0%} of the pixels from outside the image; "
+                         f"{_FIX_LENS}")
 
 
 def _decode(v: ParsedView) -> tuple[bytes, np.ndarray]:
@@ -137,7 +174,7 @@ def _load_view(v: ParsedView, max_side: int | None) -> ViewRecord:
     if distorted:
         if depth is not None:
             depth = _resize_depth(depth, w, h)
-        img, depth, K = undistort(img, depth, K, np.asarray(v.dist, np.float64))
+        img, depth, K = undistort(img, depth, K, np.asarray(v.dist, np.float64), f"{v.image_path} (view {v.name})")
     ext = "jpg" if v.image_path.suffix.lower() in JPEG_SUFFIXES else "png"
     s = min(1.0, max_side / max(h, w)) if max_side else 1.0
     resized = s < 1.0

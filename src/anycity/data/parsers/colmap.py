@@ -72,33 +72,49 @@ def _read_bin(d: Path) -> ColmapModel:
 
 
 def _lines(p: Path) -> list[str]:
-    return [ln.strip() for ln in p.read_text().splitlines() if not ln.startswith("#")]
+    """The lines of ``p``, stripped (an indented ``#`` is a comment too, as COLMAP reads it)."""
+    return [ln.strip() for ln in p.read_text().splitlines()]
+
+
+def _data(lines: list[str]) -> list[str]:
+    return [ln for ln in lines if ln and not ln.startswith("#")]
+
+
+def _camera(ln: str, path: Path) -> tuple[int, tuple[str, int, int, np.ndarray]]:
+    """One ``cameras.txt`` line -> ``(id, (model, width, height, params))``, refused when its parameter count does
+    not fit the model (a short distortion vector would be undistorted wrongly, or make OpenCV assert)."""
+    e = ln.split()
+    cid, model, params = int(e[0]), e[1], e[4:]
+    if model in _BY_NAME and len(params) != _BY_NAME[model][1]:  # an unknown model is refused by name later
+        raise ValueError(f"{path}: camera {cid} ({model}) has {len(params)} parameters, {model} takes "
+                         f"{_BY_NAME[model][1]}; fix the line or re-export the model")
+    return cid, (model, int(e[2]), int(e[3]), np.array([float(x) for x in params]))
+
+
+def _image_blocks(lines: list[str]) -> list[tuple[str, str]]:
+    """``(image line, POINTS2D line)`` pairs of ``images.txt``, found as COLMAP's ReadImagesText finds them: blank
+    and comment lines are skipped before an image line only, and the line after it is its POINTS2D (maybe
+    empty). A last image line with no line after it (a writer that trims the end) has no points."""
+    blocks, rest = [], iter(lines)
+    for ln in rest:
+        if ln and not ln.startswith("#"):
+            blocks.append((ln, next(rest, "")))
+    return blocks
 
 
 def _read_txt(d: Path) -> ColmapModel:
-    cams, imgs, pts = {}, {}, {}
-    for ln in _lines(d / "cameras.txt"):
-        if ln:
-            e = ln.split()
-            cams[int(e[0])] = (e[1], int(e[2]), int(e[3]), np.array([float(x) for x in e[4:]]))
-    lines = _lines(d / "images.txt")
-    while lines and not lines[0]:
-        lines.pop(0)
-    if len(lines) % 2:  # the last image's empty POINTS2D line, dropped by an editor or writer that trims the end
-        lines.append("")
-    for i in range(0, len(lines), 2):
-        e = lines[i].split()
-        if not e:
-            continue
-        obs = np.array([float(x) for x in lines[i + 1].split()]).reshape(-1, 3)
+    imgs, pts = {}, {}
+    cams = dict(_camera(ln, d / "cameras.txt") for ln in _data(_lines(d / "cameras.txt")))
+    for ln, points in _image_blocks(_lines(d / "images.txt")):
+        e = ln.split()
+        obs = np.array([float(x) for x in points.split()]).reshape(-1, 3)
         imgs[int(e[0])] = {"qvec": np.array([float(x) for x in e[1:5]]), "tvec": np.array([float(x) for x in e[5:8]]),
                            "camera_id": int(e[8]), "name": " ".join(e[9:]), "xys": obs[:, :2],
                            "point3D_ids": obs[:, 2].astype(np.int64)}
     if (d / "points3D.txt").exists():
-        for ln in _lines(d / "points3D.txt"):
-            if ln:
-                e = ln.split()
-                pts[int(e[0])] = np.array([float(x) for x in e[1:4]])
+        for ln in _data(_lines(d / "points3D.txt")):
+            e = ln.split()
+            pts[int(e[0])] = np.array([float(x) for x in e[1:4]])
     return ColmapModel(cams, imgs, pts)
 
 

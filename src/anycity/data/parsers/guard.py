@@ -3,7 +3,9 @@
 :func:`guarded` wraps each ``parse(src)``: the parser's own ``ValueError``/``FileNotFoundError`` pass through
 (folded to one line); any other failure on a malformed file (``IndexError``, ``KeyError``, ``struct.error``,
 ``UnicodeDecodeError``, JSON errors, ...) becomes a one-line ``ValueError``; and every parsed camera is checked,
-so a damaged file cannot come back as a silently wrong camera (non-finite, non-rigid, non-positive focal).
+so a damaged file cannot come back as a silently wrong camera (non-finite K, pose or lens terms, non-rigid,
+non-positive focal). Lens terms that are finite but absurd are refused when the images are undistorted
+(``base.undistort``).
 """
 
 from __future__ import annotations
@@ -11,6 +13,8 @@ from __future__ import annotations
 import functools
 from collections.abc import Callable
 from pathlib import Path
+
+import numpy as np
 
 from anycity.geometry import camera_problem
 from anycity.geometry.cameras import MAX_IMAGE_SIDE
@@ -21,13 +25,17 @@ def _one_line(msg: str) -> str:
 
 
 def check_scene_cameras(scenes, src, fmt: str) -> None:
-    """Raise ``ValueError`` naming the view unless every camera is finite, rigid and has a positive focal."""
+    """Raise ``ValueError`` naming the view unless every camera is finite (lens terms too), rigid and has a positive
+    focal."""
     for sc in scenes:
         for v in sc.views:
             where = f"{src}: {fmt} view {v.name!r} of scene {sc.name!r}"
             problem = camera_problem(v.w2c, v.K)
             if problem:
                 raise ValueError(f"{where}: {problem}; the camera file is damaged, re-export it")
+            if v.dist is not None and not np.all(np.isfinite(np.asarray(v.dist, float))):
+                raise ValueError(f"{where}: lens distortion terms {np.asarray(v.dist).tolist()} are not finite; "
+                                 "the camera file is damaged, re-export it")
             if not (0 < int(v.width) <= MAX_IMAGE_SIDE and 0 < int(v.height) <= MAX_IMAGE_SIDE):
                 raise ValueError(f"{where}: image size {v.width}x{v.height} is outside 1..{MAX_IMAGE_SIDE}; "
                                  "the camera file is damaged, re-export it")
