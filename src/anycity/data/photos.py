@@ -9,6 +9,7 @@ chunks.
 
 from __future__ import annotations
 
+import stat
 import warnings
 from collections import Counter
 from pathlib import Path
@@ -47,11 +48,14 @@ def list_photos(folder: str | Path) -> list[Path]:
 
     Hidden files are not photos: a card copied from a Mac holds a ``._DJI_0001.JPG`` metadata file beside each
     photo. Any other file (camera raw, HEIF, TIFF, BMP, a video, ...) but the sidecars of :data:`SIDECAR_SUFFIXES` is
-    named in a warning, as it is not read.
+    named in a warning, as it is not read. A photo's name on anything but a regular file (a FIFO, a device, a
+    folder) is refused in one line.
     """
     folder = check_photo_folder(folder)
     visible = sorted(p for p in folder.iterdir() if not p.name.startswith("."))
     files = [p for p in visible if _is_photo(p)]
+    for p in files:
+        _check_regular(p)
     unread = [p.name for p in visible
               if p.suffix.lower() not in (*PHOTO_SUFFIXES, *SIDECAR_SUFFIXES) and not p.is_dir()]
     if unread:
@@ -69,6 +73,19 @@ def list_photos(folder: str | Path) -> list[Path]:
         raise ValueError(f"predict_images: {folder} holds {photos}{only} ({'/'.join(PHOTO_SUFFIXES)}); "
                          "a scene needs at least 2 overlapping photos, so add more views of it")
     return files
+
+
+def _check_regular(path: Path) -> None:
+    """A one-line ``ValueError`` if ``path`` (symlinks followed) is there but is not a regular file: opening a FIFO
+    named ``x.jpg`` would wait for a writer forever. A missing one is refused where it is read."""
+    try:
+        mode = path.stat().st_mode
+    except OSError:  # a dangling symlink or a loop: "cannot decode ..." when it is read
+        return
+    if not stat.S_ISREG(mode):
+        kind = "folder" if stat.S_ISDIR(mode) else "FIFO (named pipe)" if stat.S_ISFIFO(mode) else "special file"
+        raise ValueError(f"predict_images: {path} is a {kind}, not a photo file; remove it from the folder or rename "
+                         "it so that it does not end like a photo")
 
 
 def photo_size(path: Path) -> tuple[int, int]:

@@ -40,7 +40,8 @@ def save_cameras(path: str | Path, w2c: Tensor, K: Tensor, width: int, height: i
 
 def load_cameras(path: str | Path) -> dict:
     """Read and check a ``cameras.json``: convention ``opencv_w2c`` and a schema version this code reads (when
-    given), a ``views`` list, each with ``name``, a finite rigid ``w2c`` (4x4), a finite
+    given), a ``views`` list, each with an optional ``name`` (a photo's file name: no ``/``, ``\\``, NUL, ``.`` or
+    ``..``, since the exports write ``images/<name>.png``), a finite rigid ``w2c`` (4x4), a finite
     ``K`` (3x3) with focal lengths > 0 (:func:`anycity.geometry.camera_problem`) and the same ``width`` / ``height``
     (1..65536) as the others, and a ``metres_per_unit`` that is positive or null. A file that is not that raises a
     one-line ``ValueError`` naming it (JSON's ``NaN``, a zeroed rotation or a string scale would otherwise reach
@@ -84,8 +85,12 @@ def load_cameras(path: str | Path) -> dict:
         if (v["width"], v["height"]) != (views[0]["width"], views[0]["height"]):
             raise bad(f"view {i} is {v['width']}x{v['height']}, view 0 {views[0]['width']}x{views[0]['height']} "
                       "(one predict writes one image size)")
-        if not isinstance(v.get("name", ""), str):
+        name = v.get("name", "000")
+        if not isinstance(name, str):
             raise bad(f"view {i}'s 'name' is not a string")
+        if name in ("", ".", "..") or any(c in name for c in "/\\\0"):  # the exports write images/<name>.png
+            raise bad(f"view {i}'s 'name' {name[:60]!r} is not a plain file name (empty, '.', '..', or holding /, \\ "
+                      "or NUL)")
     scale = cams.get("metres_per_unit")
     if scale is not None and not (isinstance(scale, (int, float)) and not isinstance(scale, bool)
                                   and 0 < scale < math.inf):  # no float(): a 400-digit JSON integer overflows it

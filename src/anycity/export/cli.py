@@ -138,9 +138,12 @@ def image_names(names: list[str]) -> list[str]:
     """Exported image file names for the cameras' view names: ``DJI_0018.jpg`` -> ``DJI_0018.png`` (the inputs are
     PNGs at the cameras' size), ``003`` -> ``003.png``; whitespace becomes ``_`` (COLMAP's images.txt and the
     readers of it split lines on spaces: ``DJI 0018.jpg`` -> ``DJI_0018.png``); prefixed with the view index where
-    two would collide."""
-    stems = [Path(n).stem if Path(n).suffix.lower() in _PHOTO_SUFFIXES else n for n in names]
-    stems = ["_".join(s.split()) or "view" for s in stems]
+    two would collide. Only a name's last path component is used (``load_cameras`` refuses the others; this keeps
+    every file inside ``images/``): ``a/../b.jpg`` -> ``b.png``, ``..`` -> ``view.png``."""
+    bases = [n.replace("\\", "/").replace("\0", "").rsplit("/", 1)[-1] for n in names]
+    stems = [Path(n).stem if Path(n).suffix.lower() in _PHOTO_SUFFIXES else n for n in bases]
+    stems = ["_".join(s.split()) for s in stems]
+    stems = [s if s not in ("", ".", "..") else "view" for s in stems]
     if len(set(stems)) < len(stems):
         stems = [f"{v:03d}_{s}" for v, s in enumerate(stems)]
     return [f"{s}.png" for s in stems]

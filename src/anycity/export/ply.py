@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +15,7 @@ from anycity.atomic import atomic_open
 from anycity.structures import Gaussians
 
 PLY_MAX_SH_DEGREE = 3  # the 3DGS PLY's convention: 45 f_rest at most (SIBR, graphdeco and the web viewers)
+MAX_READ_SH_DEGREE = 4  # the most a Gaussians holds (structures.sh_degree_from_k)
 ROWS = 1 << 16  # Gaussians per step of the PLY writer: temporaries of a few MB, not copies of the scene
 
 
@@ -176,6 +178,9 @@ def _read_ply(path: Path) -> Gaussians:
     if n_rest % 3 or round(coeffs ** 0.5) ** 2 != coeffs:
         raise ValueError(f"{n_rest} f_rest_* properties: no SH degree has that many (3 * ((degree + 1)^2 - 1): 0, 9, "
                          "24, 45, ...)")  # load_ply names the file
+    if coeffs > (MAX_READ_SH_DEGREE + 1) ** 2:  # Gaussians holds degree 4 at most (vggt-1b's)
+        raise ValueError(f"{n_rest} f_rest_* properties: SH degree {round(coeffs ** 0.5) - 1}; anycity reads degree "
+                         f"0 to {MAX_READ_SH_DEGREE} (a 3DGS PLY holds up to {PLY_MAX_SH_DEGREE})")
     dc = col("f_dc_0", "f_dc_1", "f_dc_2")[:, None, :]
     rest = col(*[f"f_rest_{i}" for i in range(n_rest)]).reshape(-1, 3, n_rest // 3).transpose(1, 2) if n_rest \
         else dc[:, :0]
@@ -190,7 +195,13 @@ STANDARD = ("x", "y", "z", "nx", "ny", "nz", "opacity")
 
 
 def load_ply_extras(path: str | Path) -> dict[str, np.ndarray]:
-    """The non-standard per-Gaussian columns of a PLY (e.g. ``obs_views``, ``completion``), ``{name: [N]}``."""
+    """The non-standard per-Gaussian columns of a PLY (e.g. ``obs_views``, ``completion``), ``{name: [N]}``, each a
+    numeric scalar property; a list property (another tool's, not ours) is left out with one warning naming it."""
     v = PlyData.read(str(path))["vertex"]
     skip = ("f_dc_", "f_rest_", "scale_", "rot_")
-    return {k: np.asarray(v[k]) for k in v.data.dtype.names if k not in STANDARD and not k.startswith(skip)}
+    extra = [k for k in v.data.dtype.names if k not in STANDARD and not k.startswith(skip)]
+    lists = [k for k in extra if v.data.dtype[k].kind not in "iuf"]  # plyfile reads a list property as objects
+    if lists:
+        warnings.warn(f"{path}: ignoring the list propert{'ies' if len(lists) > 1 else 'y'} {', '.join(lists)} (per-"
+                      "Gaussian columns are one number each, as `anycity predict` writes them)", stacklevel=2)
+    return {k: np.asarray(v[k]) for k in extra if k not in lists}

@@ -27,6 +27,7 @@ from torch import Tensor, nn
 from anycity.safe_load import safe_torch_load
 
 POSE_FEATURES = 9  # 6-D rotation minus the identity's, and the translation
+_MAX_CHANNELS, _MAX_GRID = 1024, 64  # far above any trained prior; refuses a size that would allocate terabytes
 
 
 def rotation_6d(x: Tensor) -> Tensor:
@@ -125,14 +126,43 @@ def load_pose_prior(path: str) -> PairFlowPose:
         prior.missing = path
     else:
         saved = safe_torch_load(path, what="net.pose_prior")
-        if not isinstance(saved, dict) or "state_dict" not in saved:
-            raise ValueError(f"net.pose_prior: {path} is not a pose prior written by scripts/pose_prior.py "
-                             "(no 'state_dict'); retrain it with that script")
-        prior = PairFlowPose(saved.get("channels", 48), saved.get("grid", 12))
-        prior.load_state_dict(saved["state_dict"])
+        channels, grid = _checked_sizes(path, saved)
+        prior = PairFlowPose(channels, grid)
+        try:
+            prior.load_state_dict(saved["state_dict"])
+        except RuntimeError as e:  # torch's message is one line per key: keep it to one
+            detail = " ".join(line.strip() for line in str(e).splitlines()[1:])[:300]
+            raise ValueError(f"net.pose_prior: {path} does not hold the weights of a PairFlowPose(channels={channels}, "
+                             f"grid={grid}) ({detail}); retrain it with scripts/pose_prior.py") from None
         if saved.get("image_size"):
             prior.trained_hw = tuple(saved["image_size"])
     return prior.eval().requires_grad_(False)
+
+
+def _checked_sizes(path: str, saved) -> tuple[int, int]:
+    """``(channels, grid)`` of a loaded pose-prior file, or a one-line ``ValueError`` naming ``path``: not a dict
+    with a ``state_dict`` (a Lightning checkpoint is told apart), or sizes that are not ints in a sane range."""
+    retrain = "make one with `python scripts/pose_prior.py --data DATA --out runs/pose_prior.pt`"
+    state = saved.get("state_dict") if isinstance(saved, dict) else None
+    if not isinstance(state, dict):
+        raise ValueError(f"net.pose_prior: {path} is not a pose prior written by scripts/pose_prior.py "
+                         f"(no 'state_dict'); {retrain}")
+    if "pytorch-lightning_version" in saved or any(str(k).startswith("net.") for k in state):
+        raise ValueError(f"net.pose_prior: {path} is a Lightning checkpoint (e.g. a run's last.ckpt), not a pose "
+                         f"prior; {retrain}")
+    sizes = []
+    for key, default, most in (("channels", 48, _MAX_CHANNELS), ("grid", 12, _MAX_GRID)):
+        value = saved.get(key, default)
+        if type(value) is not int or not 1 <= value <= most:
+            raise ValueError(f"net.pose_prior: {path} stores {key}={value!r}, expected an int in [1, {most}]; "
+                             f"{retrain}")
+        sizes.append(value)
+    image_size = saved.get("image_size")
+    if image_size and not (isinstance(image_size, (list, tuple)) and len(image_size) == 2
+                           and all(type(s) is int and s > 0 for s in image_size)):
+        raise ValueError(f"net.pose_prior: {path} stores image_size={image_size!r}, expected [H, W] in pixels; "
+                         f"{retrain}")
+    return sizes[0], sizes[1]
 
 
 def pose_prior_from_state(state: dict[str, Tensor], prefix: str, image_size=None) -> PairFlowPose:

@@ -135,13 +135,19 @@ def read_state_dict(path: str | Path) -> dict[str, Tensor]:
 
 
 def _state_dict_of(obj, source: str | Path) -> dict[str, Tensor]:
-    """The flat state dict in ``obj``: itself, or under a Lightning ``state_dict`` / a ``model`` key."""
+    """The flat state dict in ``obj``: itself, or under a Lightning ``state_dict`` / a ``model`` key; one line naming
+    ``source`` and the key when it holds anything but tensors under string keys."""
     if isinstance(obj, dict) and isinstance(obj.get("state_dict"), dict):
         obj = obj["state_dict"]
     elif isinstance(obj, dict) and isinstance(obj.get("model"), dict):
         obj = obj["model"]
     if not isinstance(obj, dict):
         raise ValueError(f"pretrained weights: {source} holds a {type(obj).__name__}, expected a state dict")
+    bad = next(((k, v) for k, v in obj.items() if not (isinstance(k, str) and isinstance(v, Tensor))), None)
+    if bad is not None:
+        raise ValueError(f"pretrained weights: {source} holds a {type(bad[1]).__name__} under the key {bad[0]!r}, "
+                         "expected a state dict of named tensors; pass a VGGT model.pt/.safetensors or an AnySplat "
+                         "checkpoint (re-download it if it is one)")
     return obj
 
 

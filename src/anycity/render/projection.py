@@ -17,6 +17,8 @@ from anycity.render.sh import C0, sh_basis
 EPS2D = 0.3  # px² low-pass added to the 2D covariance diagonal (gsplat eps2d)
 FOV_CLAMP = 0.3  # x/z, y/z clamped to the image extent plus this fraction of tan(fov/2) (gsplat, Inria 1.3x)
 RADIUS_SIGMAS = 3.33  # footprint half-size per axis in standard deviations
+RADIUS_MAX_KEPT = 2.0**30  # px; a footprint up to this size keeps its radius as computed
+RADIUS_INT32_MAX = 2.0**31 - 128  # px; the largest float32 below 2^31, so the int32 cast cannot wrap
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.99
 T_MIN = 1e-4
@@ -31,7 +33,8 @@ class Projected:
         conic: ``[C, N, 3]`` (a, b, c): the upper triangle of the inverse 2D covariance.
         opacity: ``[C, N]``.
         features: ``[C, N, D]``: rgb (3), camera z (1), then the camera-frame normal (3) when asked.
-        radius: ``[C, N, 2]`` int32 footprint half-size in pixels (x, y).
+        radius: ``[C, N, 2]`` int32 footprint half-size in pixels (x, y); one above 2^30 px is cut to what reaches
+            the image's far edges (at most 2^31 - 128), which gives the same tiles.
         visible: ``[C, N]`` bool; False for culled or invalid Gaussians.
     """
 
@@ -69,8 +72,12 @@ def project_gaussians(means, quats, scales, opacities, sh, valid, w2c, K, width:
     ca = (u1 * u1).sum(-1) + EPS2D
     cb = (u1 * u2).sum(-1)
     cc = (u2 * u2).sum(-1) + EPS2D
+    # A 2D covariance past float32's range (a std of ~1e19 px) has no conic (inf/inf): cull it, kept out of the
+    # maths so that neither the image nor any gradient becomes NaN.
+    in_range = torch.isfinite(ca) & torch.isfinite(cc)
+    ca, cc = torch.where(in_range, ca, torch.ones_like(ca)), torch.where(in_range, cc, torch.ones_like(cc))
     det = ca * cc - cb * cb
-    ok_det = det > 0
+    ok_det = in_range & (det > 0)
     det_s = torch.where(ok_det, det, torch.ones_like(det))
     conic = torch.stack([cc / det_s, -cb / det_s, ca / det_s], -1)
     mean2d = torch.stack([fx * x / zs + cx, fy * y / zs + cy], -1)
@@ -82,6 +89,10 @@ def project_gaussians(means, quats, scales, opacities, sh, valid, w2c, K, width:
         on_image = (mx + rx > 0) & (mx - rx < width) & (my + ry > 0) & (my - ry < height)
         # A Gaussian with opacity < 1/255 can never reach alpha >= 1/255: cull it (as gsplat's CUDA path does).
         visible = in_depth & ok_det & on_image & valid[:, None] & (opacities[:, None] >= ALPHA_MIN)
+        # A huge (finite) scale would wrap in the int32 cast. A footprint only has to reach the image's far edges,
+        # so clamp it there, never below RADIUS_MAX_KEPT: real footprints and every tile range stay as they were.
+        reach = torch.ceil(torch.stack([torch.maximum(mx, width - mx), torch.maximum(my, height - my)], -1)) + 1
+        radius = torch.minimum(radius, reach.clamp(RADIUS_MAX_KEPT, RADIUS_INT32_MAX))
         radius = torch.where(visible[..., None], radius, torch.zeros_like(radius)).to(torch.int32)
 
     features = [_colors(sh, means, w2c, R, t), z[..., None]]

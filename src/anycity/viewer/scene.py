@@ -55,7 +55,8 @@ def load_view_scene(path: str | Path, thumb_side: int = 128, thumbs: bool = True
 
 def load_thumbs(folder: Path, views: int, side: int = 128) -> list[np.ndarray]:
     """``[h, w, 3]`` uint8 thumbnails (longest side ``side``) of ``folder/inputs/NNN.png`` for each of ``views``
-    views, or none at all when one is missing or unreadable (a damaged copy warns once; the splats still show)."""
+    views, or none at all when one is missing or unreadable (a damaged copy, or one too large for Pillow, warns once;
+    the splats still show)."""
     thumbs = []
     for i in range(views):
         f = view_png(folder, "inputs", i)
@@ -64,7 +65,8 @@ def load_thumbs(folder: Path, views: int, side: int = 128) -> list[np.ndarray]:
         try:
             with Image.open(f) as im:
                 im = im.convert("RGB")
-        except (OSError, SyntaxError, ValueError) as e:  # PIL's errors for a truncated or damaged PNG
+        # PIL's errors for a truncated or damaged PNG, and for one whose header claims a decompression bomb's size
+        except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as e:
             warnings.warn(f"{f}: unreadable input image ({e}); the viewer shows no camera thumbnails for this scene "
                           "(copy the predict folder again or re-run predict to get them)", stacklevel=2)
             return []

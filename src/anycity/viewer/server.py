@@ -218,8 +218,9 @@ def colourings(extras: dict[str, np.ndarray]) -> tuple[str, ...]:
 
 
 def _known(column: np.ndarray | None) -> bool:
-    """A provenance column to colour by: present and not all NaN (a voxel-merged prediction's completion)."""
-    return column is not None and len(column) > 0 and not np.isnan(column).all()
+    """A provenance column to colour by: present, numeric and not all NaN (a voxel-merged prediction's completion)."""
+    return (column is not None and column.dtype.kind in "iuf" and len(column) > 0
+            and not np.isnan(column).all())
 
 
 def _port(text: str) -> int:

@@ -1,3 +1,5 @@
+import os
+
 import cv2
 import numpy as np
 import pytest
@@ -230,6 +232,24 @@ def test_folder_errors_name_the_problem(tmp_path):
     (flights / "west" / "._a.jpg").write_bytes(b"\x00\x05\x16\x07Mac OS X")
     with pytest.raises(ValueError, match=r"holds no photos but sub-folders of photos \(north, south\); pass one"):
         load_photo_folder(flights, (32, 32))
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no named pipes on this platform")
+@pytest.mark.timeout(30, method="signal")  # the old loader waited forever on the pipe
+def test_a_fifo_or_folder_with_a_photos_name_is_refused_in_one_line_not_waited_on(tmp_path):
+    d = tmp_path / "flight"
+    _write(d, "a.jpg", 32, 32)
+    _write(d, "b.jpg", 32, 32, seed=1)
+    os.symlink("a.jpg", d / "link.jpg")  # a symlink to a photo is read as the photo
+    assert load_photo_folder(d, (32, 32))["names"] == ["a.jpg", "b.jpg", "link.jpg"]
+    os.mkfifo(d / "z.jpg")
+    with pytest.raises(ValueError, match=r"predict_images: .*z\.jpg is a FIFO \(named pipe\), not a photo file; "
+                                         "remove it"):
+        load_photo_folder(d, (32, 32))
+    (d / "z.jpg").unlink()
+    (d / "c.png").mkdir()
+    with pytest.raises(ValueError, match=r"c\.png is a folder, not a photo file"):
+        load_photo_folder(d, (32, 32))
 
 
 def test_keep_aspect_no_crop_and_mixed_sizes_go_to_the_most_common(tmp_path):

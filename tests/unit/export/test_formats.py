@@ -286,3 +286,36 @@ def test_a_mistyped_flag_is_named_with_the_nearest_one(argv, typo, near, capsys)
     err = capsys.readouterr().err.strip().splitlines()[-1]
     assert e.value.code == 2 and err.endswith(f"error: unrecognized argument {typo}" +
                                               (f"; did you mean {near}?" if near else ""))
+
+
+@pytest.mark.parametrize("bad", ["../../../../ESCAPED_relative", "/ABS/ESCAPED_absolute", "sub\\ESCAPED.jpg",
+                                 "..", ".", "", "a\0b.jpg"])
+@pytest.mark.parametrize("fmt", ["colmap", "nerfstudio"])
+def test_a_view_name_that_is_a_path_is_refused_and_nothing_escapes_out(tmp_path, bad, fmt):
+    """cameras.json's view names became images/<name>.png: ../../x or an absolute path wrote the input images
+    outside --out (and images.txt listed the absolute path)."""
+    from PIL import Image
+
+    g, w2c, K = _scene()
+    d = tmp_path / "a" / "b" / "pred" / "flight"
+    save_ply(g, d / "scene.ply")
+    names = ["DJI_0001.jpg", bad.replace("/ABS", str(tmp_path)), "DJI_0003.jpg"]
+    save_cameras(d / "cameras.json", w2c, K, 48, 32, names)
+    (d / "inputs").mkdir()
+    for v in range(3):
+        Image.new("RGB", (48, 32)).save(d / "inputs" / f"{v:03d}.png")
+    out = tmp_path / "a" / "b" / "out"
+    with pytest.raises(ValueError, match=r"cameras\.json: view 1's 'name' .* is not a plain file name .*not a "
+                                         r"cameras\.json written by") as e:
+        export(d, fmt, out)
+    assert "\n" not in str(e.value)
+    assert not out.exists() and not [p for p in tmp_path.rglob("*ESCAPED*")]
+
+
+def test_image_names_keep_only_a_names_last_component():
+    """Defence in depth behind load_cameras: whatever reaches image_names stays a file name inside images/."""
+    from anycity.export.cli import image_names
+
+    got = image_names(["../../x/ESC.jpg", "/abs/dir/Y", "a\\b.JPG", "..", "c\0d"])
+    assert got == ["ESC.png", "Y.png", "b.png", "view.png", "cd.png"]
+    assert all("/" not in n and "\\" not in n and "\0" not in n for n in got)

@@ -1,6 +1,8 @@
 """The pair-correlation pose prior (beyond the paper): order-free poses in view 0's frame, loaded frozen, read by
 Stage II's camera residual, which still starts at the scaffold."""
 
+import re
+
 import pytest
 import torch
 
@@ -53,6 +55,32 @@ def test_load_round_trip_is_frozen_and_bad_files_say_what_to_do(tmp_path):
     torch.save(trained.state_dict(), tmp_path / "bare.pt")
     with pytest.raises(ValueError, match="not a pose prior written by scripts/pose_prior.py"):
         load_pose_prior(str(tmp_path / "bare.pt"))
+
+
+@pytest.mark.parametrize("payload, match", [
+    ({"pytorch-lightning_version": "2.4.0", "state_dict": {"net.aggregator.camera_token": torch.zeros(1)}},
+     "is a Lightning checkpoint .*not a pose prior; make one with `python scripts/pose_prior.py"),
+    ({"state_dict": {"net.aggregator.camera_token": torch.zeros(1)}}, "is a Lightning checkpoint"),
+    ({"state_dict": {}, "channels": "48"}, r"stores channels='48', expected an int in \[1, 1024\]"),
+    ({"state_dict": {}, "channels": 200000, "grid": 12}, r"stores channels=200000, expected an int"),
+    ({"state_dict": {}, "grid": True}, r"stores grid=True, expected an int"),
+    ({"state_dict": {}, "image_size": 48}, r"stores image_size=48, expected \[H, W\]"),
+    ({"state_dict": "weights"}, "not a pose prior written by scripts/pose_prior.py"),
+    ("state", "weights of a PairFlowPose\\(channels=48, grid=12\\) \\(.*size mismatch.*\\); retrain it"),
+])
+def test_a_wrong_file_as_net_pose_prior_is_one_line_naming_it(tmp_path, payload, match):
+    """Stage I's last.ckpt, or sizes that are not ints (or would allocate terabytes), or weights of another size:
+    one line naming the file, never torch's many-line RuntimeError or a TypeError."""
+    if payload == "state":  # weights of a 16-channel prior stored as the default 48-channel one
+        payload = {"state_dict": PairFlowPose(channels=16, grid=12).state_dict()}
+    path = tmp_path / "wrong.pt"
+    torch.save(payload, path)
+    with pytest.raises(ValueError, match=f"net.pose_prior: {re.escape(str(path))}.*{match}") as e:
+        load_pose_prior(str(path))
+    assert "\n" not in str(e.value)
+    if "Lightning" in match:  # also when the network is built with it
+        with pytest.raises(ValueError, match="is a Lightning checkpoint"):
+            build_network("tiny", refine_cameras=True, camera_video=True, pose_prior=str(path))
 
 
 def test_stage2_reads_the_frozen_prior_starts_at_the_scaffold_and_trains_only_its_own_mlp():

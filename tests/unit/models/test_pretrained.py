@@ -129,6 +129,27 @@ def test_load_errors(tmp_path):
         load_pretrained(net, {}, kind="dust3r")
 
 
+@pytest.mark.parametrize("state", [{"aggregator.camera_token": [1.0, 2.0]}, {"unused": "text"}, {5: torch.zeros(1)}])
+def test_a_state_dict_of_anything_but_named_tensors_is_one_line_naming_the_file_and_key(tmp_path, state):
+    """A list under a real key raised a raw AttributeError ('list' object has no attribute 'shape') in the loader,
+    and in the Stage II gap check, which reads every value's shape."""
+    from anycity.lit.refinement import pretrained_scaffold_gaps
+    from anycity.models.pretrained import read_state_dict
+
+    net = build_network("tiny", completion=False)
+    path = tmp_path / "nontensor.pt"
+    torch.save({"state_dict": state}, path)
+    key = repr(next(iter(state)))
+    for load in (lambda: load_pretrained(net, path), lambda: read_state_dict(path),
+                 lambda: pretrained_scaffold_gaps(net, str(path), "vggt")):
+        with pytest.raises(ValueError, match=f"pretrained weights: {re.escape(str(path))} holds a .* under the key "
+                                             f"{re.escape(key)}, expected a state dict of named tensors") as e:
+            load()
+        assert "\n" not in str(e.value)
+    with pytest.raises(ValueError, match="pretrained weights: the state dict holds a"):
+        load_pretrained(net, state)
+
+
 def test_weights_for_another_preset_are_one_line_not_a_random_backbone(tmp_path, caplog):
     """The Lightning modules dropped the load report: VGGT weights given to another preset skipped every mismatched
     tensor and trained a random backbone with nothing said. Now the whole aggregator must load (heads may differ),

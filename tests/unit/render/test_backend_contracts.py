@@ -134,3 +134,29 @@ def test_a_gaussian_exactly_on_the_near_or_far_plane_is_kept_by_every_backend():
                  for b in ("torch", "cpu")}
         assert alpha["torch"].max() > 0.4, (near, far)
         torch.testing.assert_close(alpha["cpu"], alpha["torch"], rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("scale", [1e12, 1e18, 1e20])
+def test_a_huge_but_finite_scale_renders_on_the_torch_backend(scale):
+    """One Gaussian of a huge finite scale beside an ordinary one: its footprint radius wrapped in the int32 cast
+    (an IndexError in the tile binning). Now it covers the image as on the fused CPU backend (float64 inside);
+    past float32's range of 2D covariances (1e20) it is culled, and neither image nor gradients turn NaN."""
+    def scene(n):
+        fields = dict(means=torch.tensor([[[0.0, 0, 4], [0.5, 0, 6]]]), quats=torch.tensor([[[1.0, 0, 0, 0]] * 2]),
+                      scales=torch.tensor([[[0.1] * 3, [scale] * 3]]), opacities=torch.full((1, 2), 0.8),
+                      sh=torch.tensor([[[[1.0, 1, 1]], [[1.0, 0, 0]]]]))
+        return Gaussians(**{k: v[:, :n].clone().requires_grad_(True) for k, v in fields.items()})
+    w2c, K = torch.eye(4)[None, None], make_intrinsics(30.0, 30.0, 16.0, 16.0)[None, None]
+    g = scene(2)
+    out = render(g, w2c, K, 32, 32, backend="torch")
+    (out.rgb.sum() + out.depth.sum() + out.alpha.sum()).backward()
+    assert all(torch.isfinite(t).all() for t in (out.rgb, out.depth, out.alpha, *_grads(g)))
+    if scale < 1e20:
+        assert out.alpha.amin() > 0.79  # the huge Gaussian covers every pixel
+        if api._cpu_backend_available():
+            cpu = render(g, w2c, K, 32, 32, backend="cpu")
+            torch.testing.assert_close(out.rgb, cpu.rgb, rtol=0, atol=1e-6)
+            torch.testing.assert_close(out.alpha, cpu.alpha, rtol=0, atol=1e-6)
+    else:
+        alone = render(scene(1), w2c, K, 32, 32, backend="torch")
+        assert torch.equal(out.rgb, alone.rgb) and torch.equal(out.alpha, alone.alpha)

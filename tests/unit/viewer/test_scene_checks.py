@@ -69,3 +69,41 @@ def test_without_the_viewer_extra_view_and_render_video_are_one_line(tmp_path, m
                                          r"'\.\[viewer\]'"):
         render_video(folder, tmp_path / "v.mp4", progress=False)
     assert not (tmp_path / "v.mp4").exists()
+
+
+def _rewrite_ply(ply, extra_fields: list[tuple], fill) -> None:
+    """Rewrite ``ply`` with ``extra_fields`` (numpy dtype descriptors) appended, each column set by ``fill(name)``."""
+    from plyfile import PlyData, PlyElement
+
+    v = PlyData.read(str(ply))["vertex"].data
+    data = np.empty(len(v), dtype=v.dtype.descr + extra_fields)
+    for name in v.dtype.names:
+        data[name] = v[name]
+    for name, *_ in extra_fields:
+        data[name] = fill(name)
+    PlyData([PlyElement.describe(data, "vertex")]).write(str(ply))
+
+
+def test_a_list_obs_views_column_is_ignored_with_one_warning(tmp_path):
+    """Another tool's PLY with obs_views as a list property: colourings() raised a raw TypeError (np.isnan on
+    objects)."""
+    from anycity.viewer.server import colourings
+
+    folder = tiny_predict_folder(tmp_path, n=4, with_prov=False)
+    ply = folder / "scene.ply"
+    _rewrite_ply(ply, [("obs_views", "O")], lambda _: [np.array([1.0, 2.0], np.float32)] * 4)
+    with pytest.warns(UserWarning, match=r"scene\.ply: ignoring the list property obs_views") as rec:
+        scene = load_view_scene(folder)
+    assert len(rec) == 1 and "obs_views" not in scene.extras
+    assert colourings(scene.extras) == COLOURINGS[:1] and "seen by" not in _share_text(scene)
+    assert colourings({"obs_views": np.array([[1, 2]], dtype=object)[0]}) == COLOURINGS[:1]
+
+
+def test_a_ply_of_sh_degree_5_is_one_line_naming_it(tmp_path):
+    """105 f_rest (degree 5, more than a Gaussians holds) loaded, then failed later in one line without the file."""
+    folder = tiny_predict_folder(tmp_path, n=4, with_prov=False)
+    _rewrite_ply(folder / "scene.ply", [(f"f_rest_{i}", "<f4") for i in range(105)], lambda _: 0.0)
+    with pytest.raises(ValueError, match=r"scene\.ply is not a readable 3DGS PLY .*105 f_rest_\* properties: SH "
+                                         r"degree 5; anycity reads degree 0 to 4") as e:
+        load_view_scene(folder)
+    assert "\n" not in str(e.value)

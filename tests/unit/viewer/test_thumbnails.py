@@ -51,3 +51,25 @@ def test_a_png_write_that_fails_midway_leaves_no_cut_png(tmp_path, monkeypatch):
     save_view_pngs(tmp_path, "inputs", images, range(3))
     back = np.asarray(Image.open(view_png(tmp_path, "inputs", 2)))
     np.testing.assert_array_equal(back, (images[2].permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8))
+
+
+def _png_header_only(width: int, height: int) -> bytes:
+    """A PNG of a few bytes whose header claims ``width x height`` RGB pixels (Pillow refuses it at open)."""
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0))
+            + chunk(b"IDAT", zlib.compress(b"\0" * 64)) + chunk(b"IEND", b""))
+
+
+def test_a_decompression_bomb_thumbnail_warns_once_and_the_scene_shows_none(tmp_path):
+    """inputs/000.png whose header claims 60000x60000: Pillow's DecompressionBombError (an Exception, not an
+    OSError) ended `anycity view` in a traceback."""
+    folder = tiny_predict_folder(tmp_path, n=50)
+    view_png(folder, "inputs", 0).write_bytes(_png_header_only(60000, 60000))
+    with pytest.warns(UserWarning, match=r"inputs/000\.png: unreadable input image .*no camera thumbnails") as rec:
+        scene = load_view_scene(folder)
+    assert len(rec) == 1 and scene.thumbs == [] and scene.gaussians.num_gaussians == 50 and scene.w2c is not None
