@@ -7,8 +7,10 @@ It trains :class:`anycity.lit.pose_prior.PosePriorModule` (a Lightning ``Trainer
 rotation error on the validation split every ``--val-every`` steps and on the test split once at the end (no
 checkpoint is chosen by it), and writes ``OUT``: ``{"state_dict", "channels", "grid", "image_size", "num_context",
 "data", "steps", "rre_val", "rre_test"}`` (``rre_val`` null with ``--val-batches 0``; the weights are written before
-the test, so a failed test keeps them). Missing splits and an ``--out`` that cannot be written stop it before
-training. Then, in Stage II:
+the test, so a failed test keeps them). Missing splits, an ``--out`` that cannot be written and a disk without room
+for it stop it before training; a disk full when it is written says, in one line, that the weights were not saved
+(exit 1). A SIGTERM stops it with exit 143 and one line: during training nothing is saved; during the test ``OUT``
+keeps the weights (``rre_test`` null). Then, in Stage II:
 
     anycity fit -c configs/quickstart.yaml -c configs/quickstart_stage2.yaml --model.init_args.init_from STAGE1 \\
         --model.init_args.net.refine_cameras true --model.init_args.net.camera_video true \\
@@ -20,6 +22,9 @@ training. Then, in Stage II:
 from __future__ import annotations
 
 import argparse
+import errno
+import io
+import shutil
 import sys
 from pathlib import Path
 
@@ -42,13 +47,35 @@ def _before_training(args: argparse.Namespace, out: Path) -> str | None:
     return None
 
 
-def _save(out: Path, payload: dict) -> None:
+def _serialise(payload: dict) -> memoryview:
     import torch
 
-    from anycity.atomic import atomic_path
+    buf = io.BytesIO()
+    torch.save(payload, buf)
+    return buf.getbuffer()
 
-    with atomic_path(out) as tmp:
-        torch.save(payload, tmp)
+
+def _save(out: Path, payload: dict) -> str | None:
+    """Write ``payload`` to ``out`` crash-safely; the disk-full line (naming the file and the bytes) or None."""
+    from anycity.atomic import atomic_write_bytes
+
+    try:
+        atomic_write_bytes(out, _serialise(payload))  # torch.save to a path fails ENOSPC as a bare RuntimeError
+    except OSError as e:
+        if e.errno not in (errno.ENOSPC, errno.EDQUOT):
+            raise
+        return e.strerror or str(e)
+    return None
+
+
+def _room_for(out: Path, payload: dict) -> str | None:
+    """Why ``out`` (``payload``'s size: the untrained weights' shapes are the trained ones') cannot be written now."""
+    folder = next(p for p in (out.absolute().parent, *out.absolute().parents) if p.exists())
+    need, free = len(_serialise(payload)), shutil.disk_usage(folder).free
+    if free < need:
+        return (f"--out {out}: {need} bytes needed for the weights but {free} free on its disk; free space or pass "
+                "another path")
+    return None
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -96,6 +123,10 @@ def main(argv: list[str] | None = None) -> int:
                           eval_batch_size=1, num_workers=args.workers, epoch_samples=args.steps * args.batch,
                           with_normals=False, seed=args.seed)
     module = PosePriorModule()
+    problem = _room_for(out, {"state_dict": module.net.state_dict()})  # not found only after the last step
+    if problem:
+        print(f"error: {problem}", file=sys.stderr)
+        return 2
 
     class Report(pl.Callback):
         def on_validation_end(self, trainer, pl_module):
@@ -108,19 +139,43 @@ def main(argv: list[str] | None = None) -> int:
                         num_sanity_val_steps=0, val_check_interval=min(args.val_every, args.steps),
                         limit_val_batches=args.val_batches,
                         check_val_every_n_epoch=None, callbacks=[Report()])
-    trainer.fit(module, datamodule=dm)
+    from lightning.pytorch.utilities.exceptions import SIGTERMException
+
+    try:
+        trainer.fit(module, datamodule=dm)
+    except SIGTERMException:  # a SystemExit with no code: `pose_prior.py && stage2_tables.py` would carry on
+        return _stopped(trainer, f"stopped by SIGTERM at step {trainer.global_step}; nothing saved ({out} not "
+                                 "written): rerun the same command")
     rre_val = trainer.callback_metrics.get("val/rre")  # none with --val-batches 0
     saved = {"state_dict": module.net.state_dict(), "channels": module.hparams.channels, "grid": module.hparams.grid,
              "image_size": list(args.image_size), "num_context": args.num_context, "data": str(args.data),
              "steps": args.steps, "rre_val": None if rre_val is None else float(rre_val), "rre_test": None}
     if trainer.is_global_zero:  # the weights are kept even if the test below fails
-        _save(out, saved)
-    rre_test = float(trainer.test(module, datamodule=dm, verbose=False)[0]["test/rre"])
+        full = _save(out, saved)
+        if full:
+            print(f"error: {full}; the {trainer.global_step} trained steps' weights were NOT saved (nothing else "
+                  "holds them)", file=sys.stderr)
+            return 1
+    try:
+        rre_test = float(trainer.test(module, datamodule=dm, verbose=False)[0]["test/rre"])
+    except SIGTERMException:
+        return _stopped(trainer, f"stopped by SIGTERM during the test; {out} holds the trained weights with rre_test "
+                                 "null")
     print(f"test cities, mean relative rotation error {rre_test:.2f} deg (read once, after training)")
     if trainer.is_global_zero:
-        _save(out, {**saved, "rre_test": rre_test})
+        full = _save(out, {**saved, "rre_test": rre_test})
+        if full:
+            print(f"error: {full}; {out} keeps the trained weights, with rre_test null", file=sys.stderr)
+            return 1
         print(f"wrote {out}")
     return 0
+
+
+def _stopped(trainer, line: str) -> int:
+    """Exit code 143 (128 + SIGTERM, what a shell reports for a process the signal ended), and rank 0's ``line``."""
+    if trainer.is_global_zero:
+        print(f"pose_prior: {line}", file=sys.stderr, flush=True)
+    return 143
 
 
 if __name__ == "__main__":

@@ -9,7 +9,9 @@ Each row is its own Stage II run (``anycity fit`` from ``--stage1`` with the row
 on the test split, each in its own process, so ``--trainer.devices 8`` runs DDP), so every figure is scored on unseen
 scenes; each run logs to CSV in its directory. Rows write ``OUT/ROW/{fit,test}`` and
 ``OUT/ROW/metrics.json``; a finished row is reused when it was made with the same settings (the Stage I and pose
-prior files' size and time, the config files' contents included) and refused otherwise.
+prior files' and ``--data``'s ``index.json``'s size and time, the config files' contents included) and refused
+otherwise. A SIGTERM or SIGINT sent to this script is passed on to the running ``anycity`` and waited for; the script
+then exits 143 (130) naming the row, whose folder is to be deleted before a rerun (a row is not resumed).
 The tables go to stdout, ``OUT/tables.md`` and ``OUT/tables.json``.
 
 Figures are observed / weak PSNR (``anycity.metrics.regions``) in two protocols that read no target image:
@@ -30,6 +32,7 @@ import csv
 import hashlib
 import json
 import math
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -92,9 +95,45 @@ def _figures(m: dict[str, float], variant: str) -> dict[str, float]:
 
 def _anycity(cmd: str, args: list[str], row: str) -> None:
     """``anycity CMD ARGS`` in its own process, as a user would run it (so ``trainer.devices`` > 1 launches DDP)."""
-    rc = subprocess.call([sys.executable, "-m", "anycity.cli", cmd, *args])
+    rc, stop = _call([sys.executable, "-m", "anycity.cli", cmd, *args])
+    if stop is not None:
+        raise Stopped(stop, cmd)
     if rc:
         raise SystemExit(f"error: row {row}: `anycity {cmd}` failed (exit {rc}); its output is above")
+
+
+class Stopped(SystemExit):
+    """A row's ``anycity`` run stopped by a SIGTERM or SIGINT sent to this script: exit code 128 + the signal."""
+
+    def __init__(self, signum: int, cmd: str) -> None:
+        super().__init__(128 + signum)
+        self.signum, self.cmd = signum, cmd
+
+
+def _call(argv: list[str]) -> tuple[int, int | None]:
+    """Run ``argv`` and wait for it: (its exit status, the first SIGTERM/SIGINT this script got meanwhile or None).
+
+    Such a signal is passed on to it, and it is waited for: a single-PID ``kill`` or a scheduler's preemption used to
+    end this script alone and leave ``anycity fit`` training with no parent. (A terminal's Ctrl-C reaches both
+    processes; the second SIGINT is harmless, Lightning ignores SIGINT once it shuts down.)"""
+    got: list[int] = []
+    proc: list[subprocess.Popen] = []
+
+    def pass_on(signum: int, frame) -> None:
+        got.append(signum)
+        if proc:
+            proc[0].send_signal(signum)
+
+    before = {s: signal.signal(s, pass_on) for s in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        proc.append(subprocess.Popen(argv))
+        if got:  # came while it was being started
+            proc[0].send_signal(got[0])
+        rc = proc[0].wait()
+    finally:
+        for s, handler in before.items():
+            signal.signal(s, handler)
+    return rc, (got[0] if got else None)
 
 
 def _test_metrics(csv_path: Path) -> dict[str, float]:
@@ -112,30 +151,60 @@ def _file_id(path: str | Path) -> list[int]:
     return [st.st_size, st.st_mtime_ns]
 
 
+def _write_json(path: Path, obj) -> None:
+    """``obj`` as indented JSON, written crash-safely (a kill leaves the old file or the new one, never a part)."""
+    from anycity.atomic import atomic_write_bytes
+
+    atomic_write_bytes(path, (json.dumps(obj, indent=1) + "\n").encode())
+
+
+def _finished(d: Path, settings: dict) -> dict | None:
+    """The saved result of the row in ``d`` when it was made with ``settings``; None when ``d`` does not exist.
+    Raises ``SystemExit`` (one line) for a row made with other settings or an unfinished one."""
+    done = d / "metrics.json"
+    if not done.is_file():
+        if d.exists():
+            raise SystemExit(f"error: {d} holds an unfinished run (no metrics.json): delete {d} or pass --out NEW_DIR")
+        return None
+    try:
+        saved = json.loads(done.read_text())
+        made = dict(saved["settings"])
+    except (ValueError, TypeError, KeyError) as e:  # a kill or power cut while an older version wrote it
+        raise SystemExit(f"error: {d} holds an unfinished run ({done} is unreadable: {type(e).__name__}): delete {d} "
+                         f"or pass --out NEW_DIR") from None
+    if "data_index" not in made and {**made, "data_index": settings["data_index"]} == settings:
+        print(f"{d.name}: reusing {done}, made before rows recorded --data's index.json: taken as made with the "
+              f"shards there now (delete {d} if they were rebuilt since)", flush=True)
+        saved["settings"] = settings
+        _write_json(done, saved)
+        return saved
+    if made != settings:
+        old = {"data_index": settings["data_index"], **made}  # an older row's missing data_index is not news
+        differ = sorted(k for k in {*old, *settings} if old.get(k) != settings.get(k))
+        raise SystemExit(f"error: {d} holds a run made with other settings (differing: {', '.join(differ)}; its "
+                         f"settings: {made}): delete {d} or pass --out NEW_DIR")
+    print(f"{d.name}: reusing {done}", flush=True)
+    return saved
+
+
 def config_digests(configs: list[str]) -> list[str]:
     """The sha256 of each config file's contents: a row's args name the files only."""
     return [hashlib.sha256(Path(c).read_bytes()).hexdigest() for c in configs]
 
 
 def run_row(row: Row, ckpt: Path, out: Path, common: list[str], steps: int, pose_prior: str | None = None,
-            configs_sha256: list[str] | None = None) -> dict:
-    """Fit and test one row (or reuse its finished run). Returns ``{"settings", "refined", "scaffold"}``."""
+            configs_sha256: list[str] | None = None, data_index: list[int] | None = None) -> dict:
+    """Fit and test one row (or reuse its finished run). ``data_index``: :func:`_file_id` of ``--data``'s
+    ``index.json`` (a shard set written again rewrites it). Returns ``{"settings", "refined", "scaffold"}``."""
     d = out / row.name
     overrides = [*row.overrides, *(["--model.init_args.net.pose_prior", pose_prior] if row.pose_prior else [])]
     settings = {"stage1": str(ckpt), "stage1_file": _file_id(ckpt), "steps": steps, "args": [*common, *overrides],
-                "configs_sha256": configs_sha256 or []}
+                "configs_sha256": configs_sha256 or [], "data_index": data_index}
     if row.pose_prior:
         settings["pose_prior_file"] = _file_id(pose_prior)
-    done = d / "metrics.json"
-    if done.is_file():
-        saved = json.loads(done.read_text())
-        if saved["settings"] == settings:
-            print(f"{row.name}: reusing {done}", flush=True)
-            return saved
-        raise SystemExit(f"error: {d} holds a run made with other settings ({saved['settings']}): delete {d} or "
-                         f"pass --out NEW_DIR")
-    if d.exists():
-        raise SystemExit(f"error: {d} holds an unfinished run (no metrics.json): delete {d} or pass --out NEW_DIR")
+    saved = _finished(d, settings)
+    if saved is not None:
+        return saved
 
     def run_dir(sub: str) -> list[str]:  # each run logs to CSV in its own directory; the tables read test's log
         logger = {"class_path": "lightning.pytorch.loggers.CSVLogger",
@@ -143,13 +212,19 @@ def run_row(row: Row, ckpt: Path, out: Path, common: list[str], steps: int, pose
         return ["--trainer.default_root_dir", str(d / sub), "--trainer.logger", json.dumps(logger)]
 
     print(f"\n=== {row.name}: {row.label}", flush=True)
-    _anycity("fit", [*common, *run_dir("fit"), "--model.init_args.init_from", str(ckpt),
-                     "--trainer.max_steps", str(steps), *overrides], row.name)
-    _anycity("test", [*common, *run_dir("test"), "--ckpt_path", str(d / "fit" / "checkpoints" / "last.ckpt"),
-                      *overrides], row.name)
+    try:
+        _anycity("fit", [*common, *run_dir("fit"), "--model.init_args.init_from", str(ckpt),
+                         "--trainer.max_steps", str(steps), *overrides], row.name)
+        _anycity("test", [*common, *run_dir("test"), "--ckpt_path", str(d / "fit" / "checkpoints" / "last.ckpt"),
+                          *overrides], row.name)
+    except Stopped as e:
+        print(f"stage2_tables: row {row.name}: stopped by {signal.Signals(e.signum).name} during `anycity {e.cmd}` "
+              f"(passed on to it); delete {d} and rerun the same command (a row is not resumed)", file=sys.stderr,
+              flush=True)
+        raise
     m = _test_metrics(d / "test" / "metrics.csv")
     result = {"settings": settings, "refined": _figures(m, "refined"), "scaffold": _figures(m, "scaffold")}
-    done.write_text(json.dumps(result, indent=1) + "\n")
+    _write_json(d / "metrics.json", result)
     return result
 
 
@@ -253,11 +328,16 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"error: --configs {c}: no such file", file=sys.stderr)
                 return 2
             args.configs[i] = str(ROOT / c)  # a repository config, run from another directory
+    index = Path(args.data) / "index.json"
+    if not index.is_file():
+        print(f"error: --data {args.data}: no index.json; make the shards first (make quickstart, or anycity data "
+              "synth|convert)", file=sys.stderr)
+        return 2
     common = [a for c in args.configs for a in ("-c", c)] + ["--data.root", args.data, *extra]
     out = Path(args.out)
     digests = config_digests(args.configs)
-    results = {n: run_row(ROWS[n], ckpts[ROWS[n].stage1], out, common, args.steps, args.pose_prior, digests)
-               for n in names}
+    results = {n: run_row(ROWS[n], ckpts[ROWS[n].stage1], out, common, args.steps, args.pose_prior, digests,
+                          _file_id(index)) for n in names}
     scaffolds = [r["scaffold"] for n, r in results.items() if ROWS[n].stage1 == "stage1"]
     text, as_json = tables(results, scaffolds[0] if scaffolds else _figures({}, "scaffold"), missing)
     if scaffolds:  # the scaffold is frozen in Stage II, so every row from --stage1 must score it the same
@@ -265,9 +345,10 @@ def main(argv: list[str] | None = None) -> int:
                      default=0.0)
         text += f"- the scaffold's figures agree across the rows from {args.stage1} within {spread:.4f} dB\n"
         as_json["scaffold_spread_db"] = spread
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "tables.md").write_text(text)
-    (out / "tables.json").write_text(json.dumps(as_json, indent=1) + "\n")
+    from anycity.atomic import atomic_write_bytes
+
+    atomic_write_bytes(out / "tables.md", text.encode())
+    _write_json(out / "tables.json", as_json)
     print(text)
     print(f"wrote {out / 'tables.md'} and {out / 'tables.json'}")
     return 0

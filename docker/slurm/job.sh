@@ -6,8 +6,8 @@
 # configs/ablations/<name>.yaml (so an ablation never shares the main run's folder), else DEFAULT_RUN_DIR.
 #
 # Requeue: the sbatch scripts ask for --signal=B:USR1@180, which SLURM sends to this shell alone. The trap forwards
-# SIGUSR1 to the step (srun passes it to every task; Lightning's SLURMEnvironment handler saves
-# RUN_DIR/hpc_ckpt_N.ckpt on it), waits until that file is complete (checkpoints are written to a temporary name and
+# SIGUSR1 to the step (srun passes it to every task; at the end of its current step anycity.callbacks.requeue
+# saves RUN_DIR/hpc_ckpt_N.ckpt with Lightning's SLURMEnvironment code), waits until that file is complete (checkpoints are written to a temporary name and
 # renamed), then runs `scontrol requeue` here: inside the image there is no SLURM client, so Lightning's own requeue
 # call fails there ("Requeuing SLURM job ... failed with error code 127", expected).
 set -euo pipefail
@@ -37,7 +37,7 @@ requeue() {
     local before after job=${SLURM_JOB_ID:?}
     [[ -n "${SLURM_ARRAY_JOB_ID:-}" ]] && job="${SLURM_ARRAY_JOB_ID}_${SLURM_ARRAY_TASK_ID}"
     before=$(newest_hpc)
-    echo "job.sh: time limit near: every task saves ${run_dir}/hpc_ckpt_N.ckpt, then the job is requeued" >&2
+    echo "job.sh: time limit near: the run saves ${run_dir}/hpc_ckpt_N.ckpt at the end of its step, then the job is requeued" >&2
     kill -USR1 "${step}" 2>/dev/null || true
     for _ in $(seq 170); do
         after=$(newest_hpc)

@@ -176,7 +176,11 @@ def check_checkpoint(path: str) -> None:
     if not isinstance(ckpt, dict) or "pytorch-lightning_version" not in ckpt:
         raise ValueError(f"--ckpt_path {path}: not a Lightning checkpoint (a plain weights file?); pass it as "
                          "model.init_args.pretrained")
-    stored = dict(ckpt.get("hyper_parameters") or {})
+    stored = ckpt.get("hyper_parameters") or {}
+    if not isinstance(stored, dict) or not isinstance(stored.get("_class_path", ""), str):
+        raise ValueError(f"--ckpt_path {path}: its stored hyper_parameters are not an anycity model's (a checkpoint "
+                         "of another project, or damaged); pass a checkpoint that an anycity fit wrote")
+    stored = dict(stored)
     unknown = []
     if stored.get("_class_path"):  # written by LightningCLI: the class it names takes the stored keys
         module, _, name = stored["_class_path"].rpartition(".")
@@ -238,21 +242,28 @@ def _cli_class():
 
         def instantiate_trainer(self, **kwargs):
             """The trainer, with the ``progress`` bar unless the config turns bars off
-            (``trainer.enable_progress_bar: false``) or lists another progress bar (Lightning refuses both), and
+            (``trainer.enable_progress_bar: false``) or lists another progress bar (Lightning refuses both),
             :class:`~anycity.callbacks.last_checkpoint.FinalLastCheckpoint` last (a finished fit's ``last.ckpt`` is
-            its final step, whatever checkpoint callbacks the config lists)."""
+            its final step, whatever checkpoint callbacks the config lists), then
+            :class:`~anycity.callbacks.requeue.RequeueAtSafePoint` after the checkpoint callbacks (a SLURM
+            time-limit checkpoint is saved between steps), and ``SafeCheckpointIO`` also when the config lists
+            other ``trainer.plugins`` (:func:`with_safe_checkpoint_io`)."""
             from lightning.pytorch.callbacks import ProgressBar
 
             from anycity.callbacks.last_checkpoint import FinalLastCheckpoint
+            from anycity.callbacks.requeue import RequeueAtSafePoint
 
             extra = [self._get(self.config_init, c) for c in self._parser(self.subcommand).callback_keys]
             config = {**self._get(self.config_init, "trainer", default={}), **kwargs}
+            config["plugins"] = with_safe_checkpoint_io(config.get("plugins"))
             listed = config.get("callbacks") or []
             listed = listed if isinstance(listed, list) else [listed]
             if config.get("enable_progress_bar") is False or any(isinstance(c, ProgressBar) for c in listed):
                 extra = [c for c in extra if not isinstance(c, LossProgressBar)]
             # last: after NonFiniteGuard's on_train_end, which refuses a run whose steps were all skipped
-            return self._instantiate_trainer(config, [*extra, FinalLastCheckpoint()])
+            trainer = self._instantiate_trainer(config, [*extra, FinalLastCheckpoint()])
+            trainer.callbacks.append(RequeueAtSafePoint())  # the Trainer has moved the checkpoint callbacks last
+            return trainer
 
         @staticmethod
         def _find_last(subcommand: str, trainer) -> str:
@@ -386,7 +397,8 @@ def _cli_class():
 
             from anycity.lit.keep import keep_previous_run, separate_from_training
 
-            moved_to = separate_from_training(self.trainer, subcommand)  # the training's own files stay as they are
+            moved_to = separate_from_training(self.trainer, subcommand) or \
+                self._separate_without_logger(subcommand)  # the training's own files stay as they are
             if moved_to is not None:
                 rank_zero_info(f"anycity: this {subcommand} run's config, logs and previews go to {moved_to}")
             export_root = scene = None
@@ -416,6 +428,21 @@ def _cli_class():
             except SIGTERMException as e:  # a SystemExit with no code: the shell would see success, and no word
                 raise Stopped(self._stopped(subcommand)) from e
 
+        def _separate_without_logger(self, subcommand: str) -> Path | None:
+            """With no logger (``--trainer.logger false``), :func:`~anycity.lit.keep.separate_from_training` for a
+            ``validate|test|predict`` run in a training run's folder (``default_root_dir`` holds
+            ``checkpoints/*.ckpt``): its ``config.yaml``, previews and default ``predictions/`` go to
+            ``<default_root_dir>/<subcommand>/``, not over the training's ``config.yaml``. Returns that folder, or
+            None. A ``--ckpt_path hpc`` is resolved first: Lightning looks for it in ``default_root_dir``."""
+            t = self.trainer
+            root = Path(t.default_root_dir)
+            if subcommand == "fit" or t.loggers or not any(root.glob("checkpoints/*.ckpt")):
+                return None
+            if self.config_init[subcommand].get("ckpt_path") == "hpc" and t._checkpoint_connector._hpc_resume_path:
+                self.config_init[subcommand]["ckpt_path"] = t._checkpoint_connector._hpc_resume_path
+            t._default_root_dir = str(root / subcommand)  # where Lightning's log_dir and SaveConfigCallback write
+            return root / subcommand
+
         def _run_lightning(self, subcommand: str) -> None:
             from lightning.pytorch.utilities import rank_zero_info
 
@@ -441,6 +468,20 @@ def _cli_class():
                 dm.predict_dataloader = dm.test_dataloader
 
     return AnyCityCLI
+
+
+def with_safe_checkpoint_io(plugins):
+    """``trainer.plugins`` with :class:`~anycity.lit.checkpoint_io.SafeCheckpointIO` added unless one of them is a
+    ``CheckpointIO``: naming any plugin (a cluster environment, a precision plugin) replaces the CLI's default
+    value, which would silently drop the atomic checkpoint writes and the weights-only reads."""
+    from lightning.fabric.plugins import CheckpointIO
+
+    from anycity.lit.checkpoint_io import SafeCheckpointIO
+
+    listed = [] if plugins is None else list(plugins) if isinstance(plugins, (list, tuple)) else [plugins]
+    if any(isinstance(p, CheckpointIO) for p in listed):
+        return plugins
+    return [*listed, SafeCheckpointIO()]
 
 
 def _not_an_advert(record: logging.LogRecord) -> bool:
@@ -726,6 +767,39 @@ def check_input_files(args: list[str]) -> None:
                                 "checkpoints/ folder, e.g. runs/quickstart/stage1/checkpoints/last.ckpt)")
 
 
+def replaced_net_keys(args: list[str]) -> list[str]:
+    """One message per ``--config`` file whose ``model.init_args.net`` drops keys an earlier file set: jsonargparse
+    merges the files key by key, but a dict-valued key is replaced whole, so ``-c stage2.yaml -c mine.yaml`` with
+    ``net: {wan_lora_rank: 8}`` in ``mine.yaml`` silently builds the network without stage2.yaml's ``video_prior``
+    (and falls back to the preset's)."""
+    import yaml
+
+    out, earlier, source = [], None, None
+    for _, value in _option_values(args, ("-c", "--config")):
+        try:
+            cfg = yaml.safe_load(Path(value).read_text()) if Path(value).is_file() else None
+        except (OSError, yaml.YAMLError):
+            continue  # a missing file or broken YAML gets its own one-line error
+        model = cfg.get("model") if isinstance(cfg, dict) else None
+        init_args = model.get("init_args") if isinstance(model, dict) else None
+        if not isinstance(init_args, dict) or "net" not in init_args:
+            continue
+        net = init_args["net"]
+        later = net if isinstance(net, dict) else {}
+        # `completion` is the stage module's to set (Stage I drops the branch, Stage II builds it), and the wan_*
+        # keys mean nothing once the later file picks another prior (configs/debug/cpu_ddp.yaml on stage2.yaml)
+        moot = {"completion"} | ({k for k in earlier or {} if k.startswith("wan_")}
+                                 if str(later.get("video_prior", "small")).startswith(("small", "none")) else set())
+        dropped = [k for k in (earlier or {}) if k not in later and k not in moot]
+        if dropped:
+            out.append(f"--config {value}: its model.init_args.net replaces the one from {source} whole, so "
+                       f"{', '.join(dropped)} from {source} {'is' if len(dropped) == 1 else 'are'} not used; repeat "
+                       f"{'it' if len(dropped) == 1 else 'them'} in {value}, or set single keys with dotted "
+                       "overrides (--model.init_args.net.KEY VALUE), which merge")
+        earlier, source = (net if isinstance(net, dict) else None), value
+    return out
+
+
 def _dispatch(args: list[str], argv_given: bool) -> int:
     if not args or args[0] in ("-h", "--help", "help"):
         print(HELP, end="")
@@ -756,6 +830,12 @@ def _dispatch(args: list[str], argv_given: bool) -> int:
         import argparse
 
         check_input_files(args)
+        replaced = replaced_net_keys(args)
+        if replaced:
+            from lightning.pytorch.utilities import rank_zero_warn
+
+            for message in replaced:
+                rank_zero_warn(message)
         saved = sys.argv[:]
         sys.argv[1:] = args  # LightningCLI reads sys.argv itself (and warns when given args that differ from it)
         try:

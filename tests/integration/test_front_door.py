@@ -376,3 +376,42 @@ def test_data_out_naming_a_file_is_one_line(tmp_path, capsys, monkeypatch):
     assert capsys.readouterr().err == (f"anycity: error: --out {tmp_path / 'f'} is a file; the shard set is written to "
                                        "a folder: pass a new or empty folder (or a shard set's, with --overwrite)  "
                                        "(--debug for the traceback)\n")
+
+
+def test_a_later_config_that_drops_net_keys_is_named(tmp_path, monkeypatch):
+    """A later --config file's ``model.init_args.net`` replaces the earlier dict whole (jsonargparse): the paper's
+    ``video_prior: wan`` of stage2.yaml vanished silently under an overlay that set only the LoRA rank."""
+    overlay = tmp_path / "mine.yaml"
+    overlay.write_text("model:\n  init_args:\n    net: {wan_lora_rank: 8}\n")
+    said = cli.replaced_net_keys(["fit", "-c", "configs/stage2.yaml", "-c", str(overlay)])
+    assert len(said) == 1 and "inject_layers, video_prior from configs/stage2.yaml are not used" in said[0], said
+    monkeypatch.setattr(cli, "build_cli", lambda *a, **k: None)
+    with pytest.warns(UserWarning, match="video_prior from configs/stage2.yaml are not used"):
+        assert cli.main(["fit", "-c", "configs/stage2.yaml", "-c", str(overlay)]) == 0
+    # the documented chains drop nothing that matters: `completion` is the stage module's, and the wan_* keys are
+    # moot under another prior
+    for chain in (["configs/stage1.yaml", "configs/debug/cpu_ddp.yaml"],
+                  ["configs/stage2.yaml", "configs/debug/cpu_ddp.yaml"],
+                  ["configs/stage2.yaml", "configs/ablations/wo_lora.yaml"],
+                  ["configs/stage1.yaml", "configs/ablations/scaffold_only.yaml"],
+                  ["configs/quickstart.yaml", "configs/quickstart_stage2.yaml", "configs/data/colmap.yaml"]):
+        assert cli.replaced_net_keys(["fit", *[a for c in chain for a in ("-c", c)]]) == [], chain
+
+
+def test_naming_trainer_plugins_keeps_safe_checkpoint_io(tiny_shards, tmp_path, monkeypatch):
+    """Any ``--trainer.plugins`` replaced the CLI's default value, and with it SafeCheckpointIO (atomic, fsynced
+    checkpoint writes); a CheckpointIO the user names is kept."""
+    from lightning.pytorch.plugins import TorchCheckpointIO
+
+    from anycity.lit.checkpoint_io import SafeCheckpointIO
+
+    monkeypatch.setattr("sys.argv", ["anycity"])
+    base = ["--config", "configs/quickstart.yaml", "--data.root", str(tiny_shards), "--trainer.logger", "false",
+            "--trainer.default_root_dir", str(tmp_path / "run")]
+    env = "lightning.pytorch.plugins.environments."
+    for plugins, io in (([], SafeCheckpointIO), ([f"{env}SLURMEnvironment", "--trainer.plugins.auto_requeue", "false"],
+                                                 SafeCheckpointIO),
+                        ([f'[{{"class_path": "{env}LightningEnvironment"}}]'], SafeCheckpointIO),
+                        (["lightning.pytorch.plugins.TorchCheckpointIO"], TorchCheckpointIO)):
+        trainer = cli.build_cli([*base, *(["--trainer.plugins", *plugins] if plugins else [])], run=False).trainer
+        assert type(trainer.strategy.checkpoint_io) is io, plugins

@@ -2,6 +2,7 @@
 loads it frozen, trains around it, and its checkpoint tests with it, also where the prior's file is gone."""
 
 import json
+import os
 
 import pytest
 import torch
@@ -119,3 +120,80 @@ def test_problems_stop_it_before_training_and_a_failed_test_keeps_the_weights(ti
         pretrain.main([*_tiny_args(tiny_shards, out), "--val-batches", "0"])
     saved = torch.load(out, weights_only=True)  # the trained weights are kept
     assert saved["rre_val"] is None and saved["rre_test"] is None and saved["state_dict"]
+
+
+def _ours(err: str) -> list[str]:
+    """The script's own lines of stderr (not Lightning's INFO log)."""
+    return [ln for ln in err.splitlines() if ln.startswith(("pose_prior:", "error:"))]
+
+
+def test_sigterm_exits_143_with_one_line(tiny_shards, tmp_path, capsys, monkeypatch):
+    """Lightning's SIGTERMException is a SystemExit with no code: a stopped pretraining exited 0 with no word and no
+    file, so `pose_prior.py && stage2_tables.py` carried on."""
+    from anycity.lit.pose_prior import PosePriorModule
+
+    pretrain, out = load_script("pose_prior"), tmp_path / "p.pt"
+    train = PosePriorModule.training_step
+
+    def sigterm_at_step_1(self, batch, batch_idx):
+        if batch_idx == 1:
+            self.trainer._signal_connector.received_sigterm = True  # what Lightning's SIGTERM handler sets
+        return train(self, batch, batch_idx)
+
+    with monkeypatch.context() as m:
+        m.setattr(PosePriorModule, "training_step", sigterm_at_step_1)
+        assert pretrain.main([*_tiny_args(tiny_shards, out), "--steps", "4", "--val-batches", "0"]) == 143
+    err = _ours(capsys.readouterr().err)
+    assert err == [f"pose_prior: stopped by SIGTERM at step 2; nothing saved ({out} not written): rerun the same "
+                   "command"]
+    assert not out.exists()
+
+    def sigterm_in_the_test(self, batch, batch_idx):
+        from lightning.pytorch.utilities.exceptions import SIGTERMException
+
+        raise SIGTERMException  # what Lightning raises after a test batch once SIGTERM came (not after the last)
+
+    monkeypatch.setattr(PosePriorModule, "test_step", sigterm_in_the_test)
+    assert pretrain.main([*_tiny_args(tiny_shards, out), "--val-batches", "0"]) == 143
+    assert _ours(capsys.readouterr().err) == [
+        f"pose_prior: stopped by SIGTERM during the test; {out} holds the trained weights with rre_test null"]
+    saved = torch.load(out, weights_only=True)
+    assert saved["state_dict"] and saved["rre_test"] is None
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full (a device whose writes fail ENOSPC)")
+def test_a_full_disk_says_in_one_line_that_the_weights_were_not_saved(tiny_shards, tmp_path, capsys, monkeypatch):
+    """torch.save straight to the file failed ENOSPC as a RuntimeError: two tracebacks, and nothing saying the trained
+    weights were lost. A disk already too full is found before training."""
+    import shutil
+
+    import lightning.pytorch as pl
+
+    import anycity.atomic
+
+    pretrain, out = load_script("pose_prior"), tmp_path / "p.pt"
+    full = tmp_path / "full"
+    real = anycity.atomic.temp_name
+
+    def on_the_full_disk(folder, suffix=""):  # the temp file beside --out is the full disk
+        if os.path.samefile(folder, tmp_path):
+            full.unlink(missing_ok=True)
+            full.symlink_to("/dev/full")
+            return full
+        return real(folder, suffix)
+
+    monkeypatch.setattr(anycity.atomic, "temp_name", on_the_full_disk)
+    assert pretrain.main([*_tiny_args(tiny_shards, out), "--val-batches", "0"]) == 1
+    err = _ours(capsys.readouterr().err)
+    assert len(err) == 1 and err[0].startswith(f"error: disk full writing {out}: ") and "bytes needed" in err[0], err
+    assert err[0].endswith("the 2 trained steps' weights were NOT saved (nothing else holds them)")
+    assert not out.exists()
+    monkeypatch.undo()
+    monkeypatch.setattr("sys.argv", ["script.py"])
+
+    monkeypatch.setattr(pl.Trainer, "fit", lambda *a, **k: pytest.fail("trained"))
+    usage = shutil.disk_usage
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: usage(p)._replace(free=1000))
+    assert pretrain.main(_tiny_args(tiny_shards, out)) == 2
+    err = _ours(capsys.readouterr().err)
+    assert len(err) == 1 and f"--out {out}: " in err[0] and "bytes needed for the weights but 1000 free" in err[0]

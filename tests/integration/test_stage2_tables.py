@@ -89,7 +89,15 @@ def test_each_command_is_its_own_anycity_process(monkeypatch):
     """A row's fit and test each run as `python -m anycity.cli CMD ARGS` (so --trainer.devices 2 launches DDP), and a
     failed one stops the script naming the row and the command."""
     mod, launched, rc = _script(), [], [0]
-    monkeypatch.setattr(mod.subprocess, "call", lambda argv: launched.append(argv) or rc[0])
+
+    class Launch:
+        def __init__(self, argv):
+            launched.append(argv)
+
+        def wait(self):
+            return rc[0]
+
+    monkeypatch.setattr(mod.subprocess, "Popen", Launch)
     mod._anycity("fit", ["-c", "configs/stage2.yaml", "--trainer.devices", "2"], "full")
     assert launched == [[sys.executable, "-m", "anycity.cli", "fit", "-c", "configs/stage2.yaml",
                          "--trainer.devices", "2"]]
@@ -140,7 +148,7 @@ def _fake_anycity(cmd, args, row):
         (d / "metrics.csv").write_text("test/psnr_refined,test/psnr_obs_refined\n20.0,19.0\n")
 
 
-def test_a_changed_pose_prior_or_config_file_makes_the_row_stale(tmp_path):
+def test_a_changed_pose_prior_or_config_file_makes_the_row_stale(tiny_shards, tmp_path):
     """The rows' settings name the --pose_prior and --configs files by path only; one rewritten in place (a prior
     trained again, an edited config) used to have the row reused."""
     mod = _script()
@@ -151,7 +159,7 @@ def test_a_changed_pose_prior_or_config_file_makes_the_row_stale(tmp_path):
     cfg.write_text("seed_everything: 1\n")
     out = tmp_path / "o"
     argv = ["--stage1", str(tmp_path / "stage1.ckpt"), "--rows", "prior_mix", "--pose_prior", str(prior),
-            "--out", str(out), "--configs", "configs/quickstart.yaml", str(cfg)]
+            "--out", str(out), "--configs", "configs/quickstart.yaml", str(cfg), "--data", str(tiny_shards)]
     assert mod.main(argv) == 0
     assert mod.main(argv) == 0  # unchanged: reused
     stale = f"{out / 'prior_mix'} holds a run made with other settings.*delete"
@@ -165,3 +173,125 @@ def test_a_changed_pose_prior_or_config_file_makes_the_row_stale(tmp_path):
     os.utime(cfg, ns=(st.st_atime_ns, st.st_mtime_ns))
     with pytest.raises(SystemExit, match=stale):
         mod.main(argv)
+
+
+def _stub_run(tmp_path, tiny_shards):
+    """The script with stand-in launches, a Stage I file, a copy of the shard set, and the argv of the full row."""
+    mod = _script()
+    mod._anycity = _fake_anycity
+    (tmp_path / "stage1.ckpt").write_bytes(b"x")
+    data = tmp_path / "data"
+    shutil.copytree(tiny_shards, data)
+    return mod, data, ["--stage1", str(tmp_path / "stage1.ckpt"), "--rows", "full", "--out", str(tmp_path / "o"),
+                       "--data", str(data)]
+
+
+def test_a_rebuilt_shard_set_makes_the_row_stale_and_an_older_row_is_adopted_once(tiny_shards, tmp_path, capsys):
+    """A row's settings named --data by path only: shards written again there (other scenes) had the row reused."""
+    mod, data, argv = _stub_run(tmp_path, tiny_shards)
+    assert mod.main(argv) == 0
+    done = tmp_path / "o" / "full" / "metrics.json"
+    capsys.readouterr()
+    assert mod.main(argv) == 0 and "full: reusing" in capsys.readouterr().out
+    rebuilt = json.loads((data / "index.json").read_text())
+    rebuilt["scenes"] = rebuilt["scenes"][:2]
+    (data / "index.json").write_text(json.dumps(rebuilt))  # what `anycity data synth --overwrite` does last
+    stale = f"{tmp_path / 'o' / 'full'} holds a run made with other settings \\(differing: data_index;.*delete"
+    with pytest.raises(SystemExit, match=stale):
+        mod.main(argv)
+    st = (data / "index.json").stat()
+    assert json.loads(done.read_text())["settings"]["data_index"] != [st.st_size, st.st_mtime_ns]
+
+    # a row an earlier version wrote (no data_index): reused once with a line saying so, then held to the data
+    older = json.loads(done.read_text())
+    del older["settings"]["data_index"]
+    done.write_text(json.dumps(older))
+    assert mod.main(argv) == 0
+    said = capsys.readouterr().out
+    assert "full: reusing" in said and "made before rows recorded --data's index.json" in said
+    assert json.loads(done.read_text())["settings"]["data_index"] == [st.st_size, st.st_mtime_ns]  # stamped
+    assert mod.main(argv) == 0 and "made before" not in capsys.readouterr().out
+    os.utime(data / "index.json", ns=(1, 1))
+    with pytest.raises(SystemExit, match=stale):
+        mod.main(argv)
+    assert mod.main([*argv[:-1], str(tmp_path / "nowhere")]) == 2
+    assert "--data" in capsys.readouterr().err
+
+
+def test_metrics_json_is_written_whole_and_a_damaged_one_is_an_unfinished_row(tiny_shards, tmp_path, monkeypatch):
+    """metrics.json was written in place: a kill mid-write left half a file, and the rerun died in json.loads with a
+    traceback."""
+    from helpers.faults import fail_writes_midway
+
+    mod, _, argv = _stub_run(tmp_path, tiny_shards)
+    row = tmp_path / "o" / "full"
+    row.mkdir(parents=True)
+    (row / "metrics.json").write_text('{"settings": {"stage1": "')  # what an older version's kill could leave
+    with pytest.raises(SystemExit, match=f"^error: {row} holds an unfinished run \\({row / 'metrics.json'} is "
+                                         f"unreadable: JSONDecodeError\\): delete {row} or pass --out NEW_DIR$"):
+        mod.main(argv)
+    shutil.rmtree(row)
+    with monkeypatch.context() as m:
+        fail_writes_midway(m, "metrics.json")
+        with pytest.raises(OSError, match="disk full writing .*metrics.json"):
+            mod.main(argv)
+    assert (row / "test" / "metrics.csv").is_file() and not (row / "metrics.json").exists()  # no half file
+
+
+FAKE_ANYCITY = """#!{python}
+import os, signal, sys, time
+os.dup2(os.open(os.devnull, os.O_WRONLY), 2)  # the script's stderr pipe closes when the script ends
+def stop(signum, frame):
+    open(os.environ["FAKE_SIGNALS"], "a").write(f"{{signum}}\\n")
+    sys.exit(143)
+signal.signal(signal.SIGTERM, stop)
+open(os.environ["FAKE_PID"], "w").write(str(os.getpid()))
+time.sleep(60)
+"""
+DRIVER = """import sys
+sys.path.insert(0, sys.argv[1])
+from helpers.scripts import load_script
+mod = load_script("stage2_tables")
+mod.sys.executable = sys.argv[2]  # the rows' `python -m anycity.cli fit ...`: a stand-in that waits for a signal
+sys.exit(mod.main(sys.argv[3:]))
+"""
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
+def test_a_sigterm_to_the_script_alone_reaches_its_running_anycity(tiny_shards, tmp_path):
+    """A SIGTERM to the script's PID alone (a single-PID kill, a preemption) ended the script and left its
+    `anycity fit` training with no parent."""
+    import signal
+    import subprocess
+    import time
+
+    fake, pid, got = tmp_path / "anycity", tmp_path / "child.pid", tmp_path / "child.signals"
+    fake.write_text(FAKE_ANYCITY.format(python=sys.executable))
+    fake.chmod(0o755)
+    (tmp_path / "stage1.ckpt").write_bytes(b"x")
+    script = subprocess.Popen(
+        [sys.executable, "-c", DRIVER, str(Path(__file__).parents[1]), str(fake), "--stage1",
+         str(tmp_path / "stage1.ckpt"), "--rows", "full", "--out", str(tmp_path / "o"), "--data", str(tiny_shards)],
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+        env={**os.environ, "FAKE_PID": str(pid), "FAKE_SIGNALS": str(got)})
+    child = None
+    try:
+        deadline = time.monotonic() + 60
+        while not (pid.is_file() and pid.read_text()) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        child = int(pid.read_text())
+        script.send_signal(signal.SIGTERM)
+        _, err = script.communicate(timeout=30)
+        assert script.returncode == 143, err
+        assert got.read_text().split() == [str(int(signal.SIGTERM))]  # passed on, and waited for
+        assert err.strip().splitlines()[-1] == (
+            f"stage2_tables: row full: stopped by SIGTERM during `anycity fit` (passed on to it); delete "
+            f"{tmp_path / 'o' / 'full'} and rerun the same command (a row is not resumed)")
+    finally:
+        script.kill()
+        script.wait()
+        if child is not None:
+            try:
+                os.kill(child, signal.SIGKILL)  # left running by the old script
+            except ProcessLookupError:
+                pass

@@ -233,3 +233,16 @@ def test_a_checkpoint_with_hyperparameters_this_version_lacks_names_them(key, ti
         f"anycity: error: --ckpt_path {tmp_path / 'other.ckpt'}: its stored model.{key} is not an option of this "
         "anycity (written by another version); use the anycity version that wrote it  (--debug for the traceback)")
     assert not run.exists()
+
+
+@pytest.mark.parametrize("hp", ["hello", {"_class_path": 5, "lr": 0.1}, [1, 2]])
+def test_a_checkpoint_whose_hyperparameters_are_not_a_models_is_one_line_naming_it(hp, tmp_path):
+    """``hyper_parameters: "hello"`` gave a ValueError that did not name the file; ``_class_path: 5`` a raw
+    AttributeError traceback."""
+    from anycity import cli
+
+    path = tmp_path / "odd.ckpt"
+    torch.save({"pytorch-lightning_version": "2.4.0", "state_dict": {}, "hyper_parameters": hp}, path)
+    with pytest.raises(ValueError, match=rf"^--ckpt_path {path}: its stored hyper_parameters are not an anycity "
+                                         r"model's .*pass a checkpoint that an anycity fit wrote$"):
+        cli.check_checkpoint(str(path))

@@ -163,3 +163,22 @@ def test_a_run_that_fails_before_its_first_step_leaves_the_checkpoints_and_expor
         build_cli([*predict[:-4], "--export.out_dir", str(tmp_path / "mine"), *predict[-2:]])
     assert sorted(p.name for p in (tmp_path / "mine").iterdir()) == ["farm"]
     assert sorted(p.name for p in (tmp_path / "mine" / "farm").iterdir()) == ["notes.txt"]
+
+
+def test_evaluation_without_a_logger_leaves_the_training_config_where_it_was(tiny_shards, tmp_path):
+    """With ``--trainer.logger false`` a predict/test run in a training run's folder wrote its ``config.yaml`` there,
+    and the training's own was moved to ``config.1.yaml``; it goes to ``<run>/<subcommand>/`` as with a logger."""
+    run = tmp_path / "run"
+    (tmp_path / "ck.yaml").write_text("trainer:\n  callbacks:\n  - class_path: lightning.pytorch.callbacks."
+                                      "ModelCheckpoint\n    init_args: {save_last: true, save_top_k: 0, "
+                                      "every_n_train_steps: 1}\n")
+    build_cli(["fit", *_args(tiny_shards, run, ["-c", str(tmp_path / "ck.yaml")])])
+    training = (run / "config.yaml").read_bytes()
+    files = sorted(p.name for p in run.iterdir())
+    ckpt = str(run / "checkpoints" / "last.ckpt")
+    for cmd in ("predict", "test"):
+        build_cli([cmd, *_args(tiny_shards, run), "--ckpt_path", ckpt, "--trainer.logger", "false"])
+        assert (run / "config.yaml").read_bytes() == training and not (run / "config.1.yaml").exists(), cmd
+        assert (run / cmd / "config.yaml").is_file(), cmd
+    assert list((run / "predict" / "predictions").rglob("scene.ply"))
+    assert sorted(p.name for p in run.iterdir()) == sorted([*files, "predict", "test"])

@@ -192,3 +192,67 @@ def test_identical_runs_write_identical_bytes(tmp_path):
         assert (tmp_path / "a" / n).read_bytes() == (tmp_path / "b" / n).read_bytes(), n
     with tarfile.open(tmp_path / "a" / "train-000000.tar") as tar:
         assert {m.mtime for m in tar.getmembers()} == {SHARD_MTIME}
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full (a device whose writes fail ENOSPC)")
+def test_disk_full_while_the_last_shards_are_finished_names_the_shard_and_leaves_no_partial(tmp_path):
+    """The last shards are finished (end blocks written, buffers flushed, fsynced) after the last sample: a full disk
+    there gave a bare "No space left on device" and left ``val-000000.tar.partial``."""
+    w = ShardSetWriter(tmp_path, maxcount=4)
+    w.write(_record("a", n=1), "train")
+    # the val shard's file is the disk that is full: its buffered sample reaches it only when the shard is finished
+    (tmp_path / "val-000000.tar.partial").symlink_to("/dev/full")
+    w.write(_record("b", n=1), "val")
+    w.write(_record("c", n=1), "test")
+    with pytest.raises(OSError, match=r"^\[Errno 28\] disk full writing .*val-000000\.tar\.partial: about \d+ more "
+                                      r"bytes needed; free space on .* and rerun") as err:
+        w.close()
+    assert int(str(err.value).split("about ")[1].split()[0]) >= 10240  # a finished shard is whole 10 KiB records
+    assert not list(tmp_path.glob("*.partial")) and not (tmp_path / "index.json").exists()
+    assert not (tmp_path / LOCK_NAME).exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["train-000000.tar"]  # finished before the disk filled
+    _write(tmp_path, ["d"])  # the rerun replaces it
+    assert [s["key"] for s in read_index(tmp_path)["samples"]] == ["d"]
+
+
+def test_overwrite_removes_the_earlier_sets_preview(tmp_path):
+    """``data synth --overwrite`` without ``--preview`` left the earlier set's preview.png beside the new shards;
+    it goes when the earlier set's index.json goes (so a killed --overwrite run leaves no stale one either)."""
+    _write(tmp_path, ["a"])
+    (tmp_path / "preview.png").write_bytes(b"the earlier set's contact sheet")
+    with pytest.raises(FileExistsError):  # refused without --overwrite: nothing removed
+        _write(tmp_path, ["b"])
+    assert (tmp_path / "preview.png").exists()
+    with ShardSetWriter(tmp_path, maxcount=1, overwrite=True) as w:
+        assert not (tmp_path / "preview.png").exists()
+        w.write(_record("b"), "train")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["index.json", "train-000000.tar"]
+
+
+def test_a_killed_runs_folder_as_data_root_says_rerun_not_point_elsewhere(tmp_path):
+    """A folder a killed ``data synth`` left (no index.json) was answered "point to a directory written by
+    `anycity data synth|convert`", though it is one: the run that writes it was interrupted."""
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    (tmp_path / LOCK_NAME).write_text(json.dumps({"pid": dead.pid, "host": socket.gethostname()}))
+    (tmp_path / "train-000001.tar.partial").write_bytes(b"half a tar")
+    rerun = r"rerun the same command to write the set again \(no --overwrite needed\)$"
+    with pytest.raises(FileNotFoundError, match=rf"index\.json: no index\.json: .*was interrupted or failed \(it left "
+                                                rf"\{LOCK_NAME}, train-000001\.tar\.partial\); {rerun}"):
+        read_index(tmp_path)
+    _write(tmp_path / "done", ["a", "b"])  # published shards but no index (killed before index.json)
+    for p in (tmp_path / "done").glob("*.tar"):
+        shutil.copy(p, tmp_path / p.name)
+    for p in [tmp_path / LOCK_NAME, *tmp_path.glob("*.partial")]:
+        p.unlink()
+    with pytest.raises(FileNotFoundError, match=rf"interrupted or failed \(it left train-000000\.tar, "
+                                                rf"train-000001\.tar\); {rerun}"):
+        read_index(tmp_path)
+    first = ShardSetWriter(tmp_path / "busy")  # a run that is still writing
+    with pytest.raises(FileNotFoundError, match=rf"pid {os.getpid()}\) is still writing .*wait for it to finish$"):
+        read_index(tmp_path / "busy")
+    first.close()
+    (tmp_path / "other").mkdir()
+    _foreign_tar(tmp_path / "other" / "train-000000.tar", 0)  # not an anycity set: the old hint
+    with pytest.raises(FileNotFoundError, match=r"no index\.json; point to a directory written by"):
+        read_index(tmp_path / "other")

@@ -17,6 +17,7 @@ running is refused instead of deleting the first one's spill (the kernel drops t
 from __future__ import annotations
 
 import dataclasses
+import io
 import json
 import math
 import os
@@ -122,8 +123,10 @@ class ChunkedScene:
             path = self.spill / f"chunk_{k:05d}.pt"
             cols = {name: t.detach().cpu()[:, sel].clone() for name, t in (extra or {}).items()}
             fields = {f.name: getattr(part, f.name) for f in dataclasses.fields(part)}  # tensors: read as data
+            buf = io.BytesIO()  # torch.save to a path fails ENOSPC as a RuntimeError naming neither file nor size
             torch.save({"gaussians": fields, "views": [views[i] for i in own], "extra": cols,
-                        "w2c": w2c[own].detach().cpu().double()}, path)
+                        "w2c": w2c[own].detach().cpu().double()}, buf)
+            atomic_write_bytes(path, buf.getbuffer())  # a full disk: OSError naming the file and the bytes
             self.spilled[k] = path
 
     def finish(self, folder: str | Path, width: int | None = None, height: int | None = None) -> dict:

@@ -18,7 +18,7 @@ def _synth_parser() -> ArgumentParser:
     p = ArgumentParser(description="Render procedural aerial cities into webdataset shards.", allow_abbrev=False)
     p.add_argument("--out", type=str, required=True, help="output shard directory")
     p.add_argument("--overwrite", action=ActionYesNo, default=False,
-                   help="replace a shard set already in --out (default: refuse)")
+                   help="replace a shard set already in --out, its preview.png included (default: refuse)")
     p.add_argument("--scenes", type=int, default=8,
                    help="number of cities, split 8:1:1 into train/val/test (training cities are written as --window "
                         "samples, the others whole); which city lands in which split depends on --scenes, so a "

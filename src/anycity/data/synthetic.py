@@ -13,8 +13,12 @@ from ``(seed, scene index)``.
 
 from __future__ import annotations
 
+import ctypes
 import math
 import os
+import signal
+import sys
+import threading
 import time
 from concurrent.futures import ProcessPoolExecutor
 from multiprocessing import get_context
@@ -29,11 +33,12 @@ from anycity.atomic import atomic_write_bytes
 from anycity.data.city import City, make_city
 from anycity.data.raycast import SceneTensors, fov_intrinsics, look_at, render
 from anycity.data.schema import SceneRecord, ViewRecord, decode_image, decode_npy, encode_image
-from anycity.data.writer import ShardSetWriter, split_scenes
+from anycity.data.writer import PREVIEW_NAME, ShardSetWriter, split_scenes
 from anycity.geometry import depth_to_normals, rescale_intrinsics
 
 TRAJECTORIES = ("orbit", "nadir", "mixed")
 HFOV_DEG = 60.0
+_PR_SET_PDEATHSIG = 1  # linux/prctl.h
 
 
 def parse_size(size: str | tuple[int, int] | list[int]) -> tuple[int, int]:
@@ -143,9 +148,34 @@ def render_scene(seed: int, index: int, views: int, size: tuple[int, int], traj:
                                                    "supersample": int(supersample)})
 
 
-def _worker_init() -> None:
+def _worker_init(parent: int) -> None:
+    """Set up a render worker of the process ``parent`` (pid): one thread, and exit when ``parent`` dies."""
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
+    _exit_with_parent(parent)
+
+
+def _exit_with_parent(parent: int) -> None:
+    """End this process when ``parent`` (pid) dies: a ``kill -9``, OOM kill or plain ``kill`` of ``anycity data
+    synth`` reaches only its own pid and would leave its workers rendering scenes nobody takes. Linux: the kernel's
+    parent-death signal (SIGKILL); elsewhere a daemon thread that polls ``os.getppid()`` once a second (a no-op
+    where an orphan keeps its parent's pid, as on Windows)."""
+    if sys.platform.startswith("linux"):
+        try:
+            armed = ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) == 0
+        except (OSError, AttributeError):
+            armed = False
+        if armed:  # the signal follows the thread that started the worker: synth's, which outlives the pool
+            if os.getppid() != parent:  # the parent died before the signal was armed
+                os._exit(1)
+            return
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(1.0)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="anycity-parent-watch", daemon=True).start()
 
 
 def _job(args):
@@ -180,7 +210,7 @@ def synth(out: str | Path, scenes: int = 8, views: int = 48, size: str | tuple[i
         supersample: colour from a k x k box filter of sub-pixel rays (k^2 + 1 times the rays; 1 = one ray per
             pixel plus adaptive 5-ray anti-aliasing at contrast edges).
         hfov: horizontal field of view in degrees (a narrower lens resolves the city in more pixels).
-        overwrite: replace a shard set already in ``out`` (default: refuse).
+        overwrite: replace a shard set already in ``out`` (default: refuse), its ``preview.png`` included.
     Returns the written ``index.json`` content plus ``seconds``.
     """
     if trajectory not in TRAJECTORIES:
@@ -204,21 +234,24 @@ def synth(out: str | Path, scenes: int = 8, views: int = 48, size: str | tuple[i
     first: list[SceneRecord] = []
     with ShardSetWriter(out, maxcount=maxcount, depth_dtype=depth_dtype, window=window, stride=stride,
                         overwrite=overwrite) as writer:
-        pool = ProcessPoolExecutor(workers, mp_context=get_context("spawn"), initializer=_worker_init) \
-            if workers > 1 else None
+        pool = ProcessPoolExecutor(workers, mp_context=get_context("spawn"), initializer=_worker_init,
+                                   initargs=(os.getpid(),)) if workers > 1 else None
         try:
             records = pool.map(_job, jobs) if pool else map(_job, jobs)
             for i, rec in enumerate(records):
                 writer.write(rec, splits[i])
                 if len(first) < 4:
                     first.append(rec)
-        finally:
-            if pool:
-                pool.shutdown()
+        except BaseException:
+            if pool:  # the queued scenes would only be rendered to be thrown away: wait for the running ones only
+                pool.shutdown(cancel_futures=True)
+            raise
+        if pool:
+            pool.shutdown()
     index = writer.close()
     index["seconds"] = time.perf_counter() - t0
     if preview:
-        write_preview(first, Path(out) / "preview.png")
+        write_preview(first, Path(out) / PREVIEW_NAME)
     return index
 
 

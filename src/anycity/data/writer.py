@@ -29,6 +29,8 @@ SPLITS = ("train", "val", "test")
 DEPTH_DTYPES = ("float16", "float32")
 LOCK_NAME = ".anycity-writing.lock"
 """The lock file a writing run holds in its output folder (JSON: ``pid``, ``host``, ``started``, ``token``)."""
+PREVIEW_NAME = "preview.png"
+"""The contact sheet ``anycity data synth --preview`` writes beside the shards; ``overwrite`` removes an earlier one."""
 _SHARD_RE = re.compile(r"(train|val|test)-\d{6}\.tar")  # the names this writer gives its shards
 SHARD_MTIME = 0
 """Modification time of every tar member: fixed, so identical runs write identical shard bytes."""
@@ -69,7 +71,9 @@ class ShardSetWriter:
         stride: views between window starts (default ``window // 2``: half-overlapping windows).
         window_splits: the splits that are windowed; evaluation splits stay whole scenes by default (each
             held-out view is scored once either way: windows own disjoint ranges).
-        overwrite: replace a shard set already in ``out`` (default: refuse), or files named like its shards.
+        overwrite: replace a shard set already in ``out`` (default: refuse), or files named like its shards; its
+            ``index.json`` and :data:`PREVIEW_NAME` are removed here, its shards that the new set does not list
+            when the new set is complete.
         check_views: refuse a view whose camera or array sizes are unsound (:func:`~anycity.data.schema.encode_scene`);
             False writes them as given (tests of how readers handle a damaged set).
 
@@ -113,6 +117,8 @@ class ShardSetWriter:
                                       "another --out")
             self._old_shards = _listed_shards(index)
             index.unlink(missing_ok=True)  # from here on the old index can never list a half-rewritten shard
+            if overwrite:  # the earlier set's preview would sit beside the new shards (a run may not write one)
+                (self.out / PREVIEW_NAME).unlink(missing_ok=True)
             for stale in self.out.glob("*.tar.partial"):  # leftovers of a killed run: never listed, safe to drop
                 stale.unlink()
         except BaseException:
@@ -178,8 +184,7 @@ class ShardSetWriter:
             self._release()
 
     def _close(self) -> dict:
-        for w in self._writers.values():
-            w.close()
+        self._finish_shards()
         shards: dict[str, dict] = {}
         for s in self._samples:
             e = shards.setdefault(s["shard"], {"path": s["shard"], "split": s["split"], "num_samples": 0})
@@ -198,6 +203,34 @@ class ShardSetWriter:
             raise
         self._index = index
         return index
+
+    def _finish_shards(self) -> None:
+        """Finish and publish every open shard. Finishing writes the tar's end blocks and flushes what is buffered,
+        so a full disk can strike here too: then the unpublished shards are dropped, as after a failed write, and
+        the error names the shard and the bytes still to be written."""
+        todo = list(self._writers.values())
+        for i, w in enumerate(todo):
+            need = sum(_unwritten_bytes(x) for x in todo[i:])
+            try:
+                w.close()
+            except BaseException as e:
+                self._drop_partials()
+                if isinstance(e, OSError):
+                    _raise_if_disk_full(e, Path(w.fname or self.out), need)
+                raise
+
+    def _drop_partials(self) -> None:
+        """Close the open shards without publishing them and remove every ``*.tar.partial`` (a failed run)."""
+        for w in self._writers.values():
+            if getattr(w, "tarstream", None) is not None:  # a closed ShardWriter has no ``tarstream`` left
+                w.post = None
+                try:
+                    w.tarstream.close()
+                except OSError:
+                    pass
+                w.tarstream = None
+        for stale in self.out.glob("*.tar.partial"):
+            stale.unlink(missing_ok=True)
 
     def _remove_unlisted(self, keep: set[str]) -> None:
         """Remove the shards of an earlier (or killed) run that this set does not list: readers that glob
@@ -225,17 +258,7 @@ class ShardSetWriter:
         if exc_type is None:
             self.close()
             return
-        # failed part-way: no index.json, and no shard left that looks complete
-        for w in self._writers.values():
-            if w.tarstream is not None:
-                w.post = None
-                try:
-                    w.tarstream.close()
-                except OSError:
-                    pass
-                w.tarstream = None
-        for stale in self.out.glob("*.tar.partial"):
-            stale.unlink(missing_ok=True)
+        self._drop_partials()  # failed part-way: no index.json, and no shard left that looks complete
         self._release()
 
 
@@ -364,6 +387,20 @@ def _publish(fname: str) -> None:
     os.replace(fname, fname.removesuffix(".partial"))
 
 
+def _unwritten_bytes(w: wds.ShardWriter) -> int:
+    """Bytes the open shard of ``w`` has yet to put on disk: its tar once finished (two end blocks, padded to a whole
+    record) less what the file holds; 0 when no shard is open."""
+    tar = getattr(getattr(w, "tarstream", None), "tarstream", None)
+    if tar is None:
+        return 0
+    total = -(-(tar.offset + 2 * tarfile.BLOCKSIZE) // tarfile.RECORDSIZE) * tarfile.RECORDSIZE
+    try:
+        held = os.stat(w.fname).st_size
+    except (OSError, TypeError):
+        held = 0
+    return max(total - held, 0)
+
+
 def _raise_if_disk_full(e: OSError, path: Path, nbytes: int) -> None:
     if e.errno in (errno.ENOSPC, errno.EDQUOT):
         raise OSError(e.errno, f"disk full writing {path}: about {nbytes} more bytes needed; free space on "
@@ -374,7 +411,7 @@ def read_index(root: str | Path) -> dict:
     """Load ``index.json`` of a shard directory, checking its schema version."""
     p = Path(root) / "index.json"
     if not p.exists():
-        raise FileNotFoundError(f"{p}: no index.json; point to a directory written by `anycity data synth|convert`")
+        raise FileNotFoundError(_no_index_hint(Path(root)))
     try:
         index = json.loads(p.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
@@ -386,6 +423,30 @@ def read_index(root: str | Path) -> dict:
         raise ValueError(f"{p}: written with shard schema_version {index.get('schema_version')}, but this anycity "
                          f"reads schema_version {SCHEMA_VERSION}; re-create the shards with this version")
     return index
+
+
+def _no_index_hint(root: Path) -> str:
+    """The one-line reason a folder has no ``index.json``: a run still writing it, one that was interrupted (its
+    lock, ``*.tar.partial`` files or shards are there), or not a shard set at all."""
+    p = root / "index.json"
+    try:
+        names = [q.name for q in root.iterdir()] if root.is_dir() else []
+    except OSError:
+        names = []
+    found = _read_lock(root / LOCK_NAME) if LOCK_NAME in names else None
+    holder = found[1] if found else None
+    if holder and holder["host"] == socket.gethostname() and _pid_runs(holder["pid"]):
+        return (f"{p}: no index.json yet: `anycity data` (pid {holder['pid']}) is still writing this shard set; "
+                "wait for it to finish")
+    left = sorted(n for n in names if n == LOCK_NAME or n.endswith(".tar.partial"))
+    shards = sorted(n for n in names if _SHARD_RE.fullmatch(n))
+    if shards and _anycity_shard(root / shards[0]):  # not another webdataset set under the same names
+        left += shards
+    if left:
+        return (f"{p}: no index.json: the `anycity data synth|convert` run that wrote {root} was interrupted or "
+                f"failed (it left {', '.join(left[:3])}{' ...' if len(left) > 3 else ''}); rerun the same command "
+                "to write the set again (no --overwrite needed)")
+    return f"{p}: no index.json; point to a directory written by `anycity data synth|convert`"
 
 
 def shard_urls(root: str | Path, split: str) -> list[str]:

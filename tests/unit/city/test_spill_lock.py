@@ -1,5 +1,6 @@
 """A second run of the same scene must not delete the spill folder of a run that is still writing it."""
 
+import os
 import subprocess
 import sys
 import textwrap
@@ -72,3 +73,33 @@ def test_a_closed_scenes_folder_is_free_for_the_next_run(tmp_path):
     assert list(second.spill.iterdir()) == []
     second.close()
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full (a device whose writes fail ENOSPC)")
+def test_a_full_disk_while_spilling_a_chunk_names_the_file_and_the_bytes(tmp_path, monkeypatch):
+    """torch.save straight to the spill file failed ENOSPC as ``RuntimeError: [enforce fail at inline_container.cc]``,
+    so predict printed a traceback instead of the CLI's one-line disk-full error (an OSError naming the file)."""
+    import errno
+
+    import anycity.atomic
+
+    scene = ChunkedScene(PLAN, NAMES, (2, 2), out=tmp_path / "flight")
+    spill = scene.spill
+    (spill / "chunk_00000.pt").symlink_to("/dev/full")  # where the spill file goes: the full disk
+    real = anycity.atomic.temp_name
+
+    def on_the_full_disk(folder, suffix=""):  # as is the temp file a crash-safe write puts beside it
+        if os.path.samefile(folder, spill):
+            full = real(folder, suffix)
+            full.symlink_to("/dev/full")
+            return full
+        return real(folder, suffix)
+
+    monkeypatch.setattr(anycity.atomic, "temp_name", on_the_full_disk)
+    g = Gaussians(torch.zeros(1, 12, 3), torch.tensor([1.0, 0, 0, 0]).expand(1, 12, 4), torch.ones(1, 12, 3),
+                  torch.ones(1, 12), torch.zeros(1, 12, 1, 3))
+    with pytest.raises(OSError, match=r"disk full writing .*chunk_00000\.pt: \d+ bytes needed; free space on ") as e:
+        scene.add(0, g, torch.eye(4).expand(3, 4, 4), torch.eye(3).expand(3, 3, 3))
+    assert e.value.errno == errno.ENOSPC and 0 not in scene.spilled
+    assert sorted(p.name for p in spill.iterdir()) == ["chunk_00000.pt"]  # no temp file left
+    scene.close()

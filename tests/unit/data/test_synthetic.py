@@ -1,5 +1,6 @@
 import json
 import math
+import sys
 import tarfile
 
 import numpy as np
@@ -288,3 +289,78 @@ def test_synth_to_folder_writes_one_named_scene_and_refuses_old_photos(tmp_path,
     with pytest.raises(SystemExit):
         run([str(tmp_path / "a"), str(tmp_path / "p"), "--scene", keys[0]])
     assert f"{tmp_path / 'p' / 'photos'} is not empty" in capsys.readouterr().err
+
+
+def test_a_failure_in_the_main_process_cancels_the_queued_scenes(tmp_path, monkeypatch):
+    """``--workers N``: a failed write (a full disk) used to wait until every queued scene had been rendered, only
+    to throw them away (minutes at the default 64 scenes of 48 views of 256 px)."""
+    import errno
+    from concurrent.futures import ProcessPoolExecutor
+
+    import anycity.data.synthetic as synthetic
+    from anycity.data.writer import ShardSetWriter
+
+    futures = []
+
+    class Recording(ProcessPoolExecutor):
+        def submit(self, *a, **k):
+            futures.append(super().submit(*a, **k))
+            return futures[-1]
+
+    def full(self, rec, split="train"):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(synthetic, "ProcessPoolExecutor", Recording)
+    monkeypatch.setattr(ShardSetWriter, "write", full)
+    with pytest.raises(OSError, match="No space left"):
+        synth(tmp_path / "s", scenes=24, views=4, size="32x32", workers=2, window=None)
+    assert len(futures) == 24
+    # at most the two running scenes, the three in the pool's call queue and one more finished meanwhile
+    assert sum(f.cancelled() for f in futures) >= 24 - 6, [f._state for f in futures]
+    assert not list((tmp_path / "s").iterdir())  # no shard, no lock
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads the process tree from /proc")
+@pytest.mark.parametrize("sig", ["SIGKILL", "SIGTERM"])
+def test_render_workers_exit_when_the_main_process_is_killed(tmp_path, sig):
+    """``kill -9`` (or an OOM kill, or a plain ``kill``) of ``anycity data synth --workers 2`` reaches only its own
+    pid: its render workers kept rendering with no parent, 30 s later still."""
+    import os
+    import signal
+    import subprocess
+    import time
+    from pathlib import Path
+
+    out = tmp_path / "s"
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+    main = subprocess.Popen([sys.executable, "-c", "import sys; from anycity.data.synthetic import synth; "
+                             "synth(sys.argv[1], scenes=400, views=4, size='32x32', workers=2, window=None)", str(out)],
+                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+    def alive(pid):
+        try:
+            return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+        except OSError:
+            return False
+
+    workers = []
+    try:
+        deadline = time.monotonic() + 120
+        while not list(out.glob("*.tar*")):  # a scene was written: the workers are rendering
+            assert main.poll() is None and time.monotonic() < deadline, "synth ended or wrote nothing in 120 s"
+            time.sleep(0.2)
+        workers = [int(k) for k in Path(f"/proc/{main.pid}/task/{main.pid}/children").read_text().split()
+                   if b"multiprocessing" in Path(f"/proc/{k}/cmdline").read_bytes()]
+        assert len(workers) >= 2  # the render workers (and the resource tracker, if one runs)
+        main.send_signal(getattr(signal, sig))
+        main.wait()
+        deadline = time.monotonic() + 10
+        while any(alive(k) for k in workers) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert not [k for k in workers if alive(k)], f"render workers still running 10 s after {sig} of their parent"
+    finally:
+        main.kill()
+        main.wait()
+        for k in workers:
+            if alive(k):
+                os.kill(k, signal.SIGKILL)

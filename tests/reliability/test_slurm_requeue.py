@@ -1,0 +1,99 @@
+"""SLURM's time-limit signal (SIGUSR1, Lightning's SLURMEnvironment with auto_requeue) saves ``hpc_ckpt_N.ckpt`` at
+the next safe point of the fit (``anycity.callbacks.requeue``): a signal that lands between ``optimizer.step()``
+and Lightning counting the batch used to save the weights of step k with the step count of k-1, so the resumed run
+trained that batch twice. In-process (about 4 s a fit): the signal is sent from inside the optimiser step, as the
+reviewer's ``r6_hpc_midstep.py`` did, and the run resumed from the file must end bit for bit where an uninterrupted
+run ends."""
+
+import os
+import signal
+
+import pytest
+
+from anycity.cli import build_cli
+from anycity.lit.scaffold import ScaffoldModule
+
+from .harness import max_abs_diff, params, safe_torch_load, tiny_fit_args
+
+SLURM = dict(SLURM_NTASKS="1", SLURM_JOB_NAME="anycity-test", SLURM_JOB_ID="12345", SLURM_NNODES="1",
+             SLURM_NTASKS_PER_NODE="1", SLURM_PROCID="0", SLURM_LOCALID="0", SLURM_NODEID="0",
+             SLURM_NODELIST="localhost", SLURM_JOB_NODELIST="localhost")
+
+
+@pytest.fixture(autouse=True)
+def _argv(monkeypatch):
+    monkeypatch.setattr("sys.argv", ["anycity"])
+
+
+def _fit(shards, run, steps, extra=()):
+    build_cli([*tiny_fit_args(shards, run, steps), *extra])
+
+
+def test_a_time_limit_signal_inside_the_optimiser_step_resumes_bit_for_bit(tiny_shards, tmp_path, monkeypatch):
+    _fit(tiny_shards, tmp_path / "ref", 3)
+
+    requeued = []
+    monkeypatch.setattr("lightning.pytorch.trainer.connectors.signal_connector.call",
+                        lambda cmd, **kw: requeued.append(cmd) or 0)  # the stand-in scontrol
+    for k, v in SLURM.items():
+        monkeypatch.setenv(k, v)
+    step = ScaffoldModule.optimizer_step
+    sent = []
+
+    def optimizer_step(self, *a, **k):
+        out = step(self, *a, **k)
+        if self.global_step == 1 and not sent:  # the 2nd step: weights updated, the step not yet counted
+            sent.append(os.kill(os.getpid(), signal.SIGUSR1))
+        return out
+
+    monkeypatch.setattr(ScaffoldModule, "optimizer_step", optimizer_step)
+    _fit(tiny_shards, tmp_path / "run", 3)
+    monkeypatch.undo()
+    assert sent and requeued == [["scontrol", "requeue", "12345"]]
+    hpc = tmp_path / "run" / "hpc_ckpt_1.ckpt"
+    ckpt = safe_torch_load(hpc)
+    state = ckpt["optimizer_states"][0]["state"]
+    adamw_steps = {int(s["step"]) for s in state.values()}
+    # one state: the weights, AdamW's moments, the step count and the LR schedule all after step 2
+    assert (ckpt["global_step"], adamw_steps, ckpt["lr_schedulers"][0]["last_epoch"]) == (2, {2}, 2)
+
+    monkeypatch.setattr("sys.argv", ["anycity"])
+    _fit(tiny_shards, tmp_path / "resumed", 3, ["--ckpt_path", str(hpc)])
+    ref, resumed = (tmp_path / r / "checkpoints" / "last.ckpt" for r in ("ref", "resumed"))
+    assert safe_torch_load(resumed)["global_step"] == 3
+    assert max_abs_diff(params(ref), params(resumed)) == 0.0
+
+
+def test_a_time_limit_signal_during_validation_saves_when_validation_ends(tiny_shards, tmp_path, monkeypatch):
+    requeued = []
+    monkeypatch.setattr("lightning.pytorch.trainer.connectors.signal_connector.call",
+                        lambda cmd, **kw: requeued.append(cmd) or 0)
+    for k, v in SLURM.items():
+        monkeypatch.setenv(k, v)
+    validation_step, sent = ScaffoldModule.validation_step, []
+
+    def in_validation(self, *a, **k):
+        if not self.trainer.sanity_checking and not sent:
+            sent.append(os.kill(os.getpid(), signal.SIGUSR1))
+        return validation_step(self, *a, **k)
+
+    monkeypatch.setattr(ScaffoldModule, "validation_step", in_validation)
+    _fit(tiny_shards, tmp_path / "run", 3, ["--trainer.val_check_interval", "2", "--trainer.limit_val_batches", "1"])
+    monkeypatch.undo()
+    # saved when the validation after step 2 ended, not at the end of step 3
+    assert sent and requeued == [["scontrol", "requeue", "12345"]]
+    assert safe_torch_load(tmp_path / "run" / "hpc_ckpt_1.ckpt")["global_step"] == 2
+    assert not (tmp_path / "run" / "hpc_ckpt_2.ckpt").exists()
+
+
+def test_the_fit_trainer_ends_with_the_requeue_callback(tiny_shards, tmp_path):
+    """After the checkpoint callbacks (its save holds theirs of the same step), and this Lightning has the internals
+    it uses (else it warns and leaves Lightning's handler)."""
+    from lightning.pytorch.callbacks import ModelCheckpoint
+
+    from anycity.callbacks import RequeueAtSafePoint
+    from anycity.callbacks.requeue import missing_private_api
+
+    trainer = build_cli(tiny_fit_args(tiny_shards, tmp_path / "run", 1)[1:], run=False).trainer
+    assert isinstance(trainer.callbacks[-1], RequeueAtSafePoint) and isinstance(trainer.callbacks[-2], ModelCheckpoint)
+    assert missing_private_api(trainer) == []
