@@ -13,6 +13,19 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
         os.environ.setdefault(_var, "1")
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _tmpdir_in_pytest_folder(tmp_path_factory):
+    """Point $TMPDIR at pytest's own (rotated) folder, so what the code under test leaves there by design (the
+    skip logs a run names in its messages) does not pile up in the machine's /tmp run after run."""
+    old = os.environ.get("TMPDIR")
+    os.environ["TMPDIR"] = str(tmp_path_factory.mktemp("tmpdir"))
+    yield
+    if old is None:
+        os.environ.pop("TMPDIR", None)
+    else:
+        os.environ["TMPDIR"] = old
+
+
 @pytest.fixture(scope="session")
 def tiny_shards(tmp_path_factory):
     """3 synthetic cities x 8 views at 32x32 (train/val/test one scene each)."""

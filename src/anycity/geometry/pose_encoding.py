@@ -3,7 +3,8 @@
 Layout of the last dim: ``[t (3), quaternion (4, **xyzw**, VGGT's order), fov_h, fov_w]`` where ``[R|t]`` is
 the OpenCV world-to-camera transform and the fields of view are full angles in radians. The principal point
 is the image centre ``(W/2, H/2)`` in pixel units (pixel centres at +0.5, so this is the geometric centre).
-The quaternion is the only place in the package that uses xyzw; it never leaves this module.
+The quaternion is xyzw, as in VGGT: the camera head emits this encoding and ``losses/camera.py`` compares it;
+everywhere else the package uses wxyz.
 """
 
 from __future__ import annotations

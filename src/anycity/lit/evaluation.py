@@ -257,8 +257,9 @@ REGIONS = ("obs", "weak")
 
 
 class EvalMetrics(nn.Module):
-    """Per-image PSNR / SSIM (torchmetrics), their region-masked versions and depth / pose errors, for named variants
-    under each evaluation protocol (:mod:`anycity.lit.protocols`).
+    """Per-image PSNR (torchmetrics) and SSIM (:func:`anycity.metrics.image.ssim`, skimage's default), their
+    region-masked versions and depth / pose errors, for named variants under each evaluation protocol
+    (:mod:`anycity.lit.protocols`).
 
     Names (``<v>`` a variant, ``<p>`` a protocol suffix: none for ``feedforward``, ``_camrefine``,
     ``_targetalign``, ``_joint``):

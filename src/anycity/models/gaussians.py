@@ -3,7 +3,7 @@
 Raw layout per pixel (``C_raw = 9 + 3K``, K = (d+1)^2): ``[opacity logit, scale (3), quaternion xyzw (4),
 SH (3*K, channel-major: all K of R, then G, then B), merge confidence]``. Activations: opacity sigmoid,
 scale ``0.001 * softplus`` clamped at 0.3 (normalised scene units), quaternion normalised and converted to
-wxyz here (the only xyzw boundary), SH band d scaled by ``0.1 * 0.25^d`` for d >= 1.
+wxyz here (the Gaussian head's xyzw boundary), SH band d scaled by ``0.1 * 0.25^d`` for d >= 1.
 
 Two optional per-pixel inputs change the activations (``NetConfig.color_mode`` / ``scale_mode``):
 ``rgb`` adds the pixel's own colour to the SH DC term (``(rgb - 0.5) / C0``), so the head predicts a residual;
