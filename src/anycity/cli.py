@@ -115,19 +115,21 @@ def configured_trainer(trainer: dict):
 
 
 def check_accelerator(trainer: dict | None) -> None:
-    """Refuse ``trainer.accelerator: gpu``/``cuda`` (the paper configs') on a machine without CUDA (or, for
-    ``gpu``, Apple's MPS, which Lightning also takes for it) in one line, before the Trainer is built: Lightning's
-    own "No supported gpu backend found!" comes as a 40-line traceback."""
+    """Refuse ``trainer.accelerator: gpu``/``cuda`` (the paper configs') on a machine without CUDA, and ``mps``, in
+    one line, before the Trainer is built: Lightning's own "No supported gpu backend found!" comes as a 40-line
+    traceback, and on a Mac Lightning takes ``gpu`` for Apple's MPS, which has no float64 (the DPT heads' pixel grid
+    and the renderer's camera checks use it), so the first step failed with a traceback."""
     accelerator = str((_as_dict(trainer) or {}).get("accelerator") or "").lower()
-    if accelerator in ("gpu", "cuda"):
+    if accelerator in ("gpu", "cuda", "mps"):
         import torch
 
-        mps = accelerator == "gpu" and getattr(torch.backends, "mps", None) is not None and \
-            torch.backends.mps.is_available()
-        if not torch.cuda.is_available() and not mps:
-            raise ValueError(f"trainer.accelerator {accelerator}: this machine has no CUDA GPU (torch "
-                             f"{torch.__version__}); pass --trainer.accelerator cpu --trainer.precision 32-true, "
-                             "or use configs/quickstart.yaml, which runs on CPU")
+        cuda = torch.cuda.is_available()
+        if accelerator == "mps" or not cuda:
+            what = "anycity runs on CUDA GPUs and the CPU only" if cuda else "this machine has no CUDA GPU"
+            fix = "gpu" if cuda else ("cpu --trainer.precision 32-true, or use configs/quickstart.yaml, which runs on "
+                                      "CPU")
+            raise ValueError(f"trainer.accelerator {accelerator}: {what} (torch {torch.__version__}; Apple MPS is not "
+                             f"supported: it has no float64, which anycity needs); pass --trainer.accelerator {fix}")
 
 
 def check_run_folder(trainer: dict | None) -> None:

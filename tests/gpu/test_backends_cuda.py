@@ -61,6 +61,11 @@ def test_gsplat_matches_torch_backend():
     for n in ("rgb", "alpha", "normal"):
         diff = (getattr(out, n) - getattr(ref, n)).abs()
         assert diff.mean() < 2e-3 and diff.quantile(0.99) < 2e-2, (n, diff.mean().item())
+    # depth (L_depth, δ1/AbsRel, the D2S depth) in relative terms where both are opaque: z-depth, alpha-normalised;
+    # a ray length instead of z is 3.9 % off on average here, a 5 % scale 5 %
+    opaque = (out.alpha > 0.5) & (ref.alpha > 0.5)
+    rel = ((out.depth - ref.depth).abs() / ref.depth.abs().clamp_min(1e-6))[opaque]
+    assert opaque.sum() > 100 and rel.mean() < 1e-2 and rel.quantile(0.99) < 5e-2, (rel.mean().item(), opaque.sum())
     for a, b in zip(go, gr):
         cos = torch.nn.functional.cosine_similarity(a.flatten(), b.flatten(), dim=0)
         assert cos > 0.98, cos.item()

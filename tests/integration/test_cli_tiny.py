@@ -396,3 +396,21 @@ def test_the_paper_configs_on_a_machine_without_cuda_stop_in_one_line(tiny_shard
     assert rc == 2 and err[-1].startswith("anycity: error: trainer.accelerator gpu: this machine has no CUDA GPU")
     assert "--trainer.accelerator cpu --trainer.precision 32-true" in err[-1]
     assert not (tmp_path / "r").exists()  # before the run wrote anything
+
+
+@pytest.mark.parametrize("accelerator", ["gpu", "mps"])
+def test_apple_mps_is_refused_in_one_line(accelerator, monkeypatch):
+    """Lightning takes ``gpu`` for MPS on a Mac, and MPS has no float64 (the DPT heads' pixel grid, the renderer's
+    camera checks): the one-line check let it through and the first step failed with a traceback."""
+    from anycity.cli import check_accelerator
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    monkeypatch.setattr(torch.backends.mps, "is_available", lambda: True)
+    with pytest.raises(ValueError, match=rf"^trainer.accelerator {accelerator}: this machine has no CUDA GPU .*Apple "
+                                         r"MPS is not supported: it has no float64.*--trainer.accelerator cpu"):
+        check_accelerator({"accelerator": accelerator})
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    check_accelerator({"accelerator": "gpu"})  # CUDA: accepted
+    with pytest.raises(ValueError, match=r"^trainer.accelerator mps: anycity runs on CUDA GPUs and the CPU only .*"
+                                         r"--trainer.accelerator gpu$"):
+        check_accelerator({"accelerator": "mps"})
