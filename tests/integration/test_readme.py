@@ -43,3 +43,26 @@ def test_docs_name_what_exists(doc):
     missing = sorted(p for p in paths if not (ROOT / p).exists())
     missing += sorted(n for n in set(NAME.findall(text)) if not _resolves(n))
     assert not missing, f"{doc.relative_to(ROOT)} names what does not exist: {missing}"
+
+
+def test_readme_network_example_loads_a_trained_checkpoint_as_written(tmp_path, monkeypatch):
+    """The README's only weight loader was load_pretrained, which loaded 0 tensors of anycity's own last.ckpt and
+    left the network random; its load_checkpoint line must load the quickstart's Stage II checkpoint as written."""
+    import lightning
+    import torch
+
+    from anycity.lit import RefinementModule
+
+    section = README.read_text().split("## Network", 1)[1].split("\n## ", 1)[0]
+    line = next(ln.strip().lstrip("#").strip() for ln in section.splitlines() if "load_checkpoint(" in ln)
+    path = re.search(r'load_checkpoint\("([^"]+)"\)', line).group(1)
+    assert path == "runs/quickstart/stage2/checkpoints/last.ckpt"
+    m = RefinementModule(net={"camera_trunk_depth": 2})  # the quickstart's Stage II network
+    (tmp_path / path).parent.mkdir(parents=True)
+    torch.save({"pytorch-lightning_version": lightning.__version__, "state_dict": m.state_dict(),
+                "hyper_parameters": {**dict(m.hparams), "net": {"camera_trunk_depth": 2},
+                                     "_class_path": "anycity.lit.RefinementModule"}}, tmp_path / path)
+    monkeypatch.chdir(tmp_path)
+    scope: dict = {}
+    exec(f"from anycity.models import load_checkpoint\n{line.split('#')[0]}", scope)
+    assert not scope["net"].training and scope["net"].cfg == m.net.cfg

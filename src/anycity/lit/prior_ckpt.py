@@ -17,7 +17,7 @@ from __future__ import annotations
 
 from torch import nn
 
-from anycity.models.pose_prior import pose_prior_from_state
+from anycity.models.pose_prior import rebuild_pose_prior
 from anycity.models.video_prior import DROPPED_VAE_MODULES
 
 PREFIX = "net.video_prior."
@@ -90,10 +90,4 @@ def save_pose_prior_meta(net: nn.Module, checkpoint: dict) -> None:
 def restore_pose_prior(net: nn.Module, checkpoint: dict) -> None:
     """Rebuild ``net.pose_prior`` at the size of the checkpoint's weights (which ``load_state_dict`` then fills in),
     whether or not ``net.pose_prior``'s file was found when the network was built."""
-    old = getattr(net, "pose_prior", None)
-    sd = checkpoint.get("state_dict", {})
-    if old is None or POSE_PREFIX + "mlp.0.weight" not in sd:
-        return
-    meta = checkpoint.get("pose_prior") or {}
-    hw = meta.get("image_size", old.trained_hw if old.missing is None else None)
-    net.pose_prior = pose_prior_from_state(sd, POSE_PREFIX, hw).to(next(old.parameters()).device)
+    rebuild_pose_prior(net, checkpoint.get("state_dict", {}), POSE_PREFIX, checkpoint.get("pose_prior") or {})

@@ -50,6 +50,24 @@ def _check_range(images: Tensor) -> None:
         raise ValueError(f"images: expected values in [0, 1], got a maximum of {hi:.4g}; {fix}")
 
 
+def _layout_fix(images) -> str:
+    """The fix for ``images`` that are not ``[B, V, 3, H, W]``: the permute for channels-last ``[..., H, W, 3]``,
+    the missing leading dims for ``[V, 3, H, W]`` / ``[3, H, W]``, else a general hint."""
+    if not isinstance(images, Tensor):
+        if type(images).__name__ == "ndarray":
+            return "pass a torch tensor: torch.from_numpy(images), [H, W, 3] arrays permuted to [3, H, W]"
+        return "pass a torch tensor (torch.stack(views)[None] for a list of [3, H, W] views)"
+    shape, n = images.shape, images.dim()
+    scale = "" if images.is_floating_point() else ", then .float() / 255"
+    if 3 <= n <= 5 and shape[-1] == 3 and shape[-3] != 3:
+        order = {3: "(2, 0, 1)[None, None]", 4: "(0, 3, 1, 2)[None]", 5: "(0, 1, 4, 2, 3)"}[n]
+        return f"they are channels-last: permute to [..., 3, H, W] with images.permute{order}{scale}"
+    if n in (3, 4) and shape[-3] == 3:
+        lead = {3: "[None, None] (one image)", 4: "[None] (V views of one sample)"}[n]
+        return f"add the missing leading dims with images{lead}"
+    return "stack the views on dim 1 and the samples on dim 0"
+
+
 class AnyCityNet(nn.Module):
     """``net(images [B, V, 3, H, W] in [0, 1], refine=True) -> dict``; H, W multiples of ``patch_size``.
 
@@ -136,8 +154,7 @@ class AnyCityNet(nn.Module):
         p = self.cfg.patch_size
         if not isinstance(images, Tensor) or images.dim() != 5 or images.shape[2] != 3:
             got = tuple(images.shape) if isinstance(images, Tensor) else type(images).__name__
-            raise ValueError(f"images: expected [B, V, 3, H, W] float in [0, 1], got {got}; add the batch/view "
-                             "dims with images[None] or stack views on dim 1")
+            raise ValueError(f"images: expected [B, V, 3, H, W] float in [0, 1], got {got}; {_layout_fix(images)}")
         b, v, _, h, w = images.shape
         if b == 0 or v == 0:
             raise ValueError(f"images: expected at least 1 sample and 1 view, got B={b}, V={v}")
@@ -149,10 +166,13 @@ class AnyCityNet(nn.Module):
         if images.dtype not in IMAGE_DTYPES:
             raise ValueError(f"images: {str(images.dtype).removeprefix('torch.')}; pass images.float()")
         weights = self.aggregator.camera_token.dtype
-        if weights != torch.float32:  # the float32 heads and geometry would meet bf16/fp16 weights
-            raise ValueError(f"network: weights are {str(weights).removeprefix('torch.')} (net.bfloat16()/.half()); "
-                             "keep float32 weights and run under torch.autocast (Lightning: trainer.precision "
-                             "bf16-mixed, not bf16-true)")
+        if weights != torch.float32:  # the float32 heads and geometry would meet bf16/fp16/fp64 weights
+            name = str(weights).removeprefix("torch.")
+            if weights in (torch.bfloat16, torch.float16):
+                cast = "net.bfloat16()" if weights == torch.bfloat16 else "net.half()"
+                raise ValueError(f"network: weights are {name} ({cast}); keep float32 weights and run under "
+                                 "torch.autocast (Lightning: trainer.precision bf16-mixed, not bf16-true)")
+            raise ValueError(f"network: weights are {name}, expected float32; cast them back with net.float()")
         if not images.is_meta:
             _check_range(images)  # one reduction: cheap next to the network
 

@@ -173,3 +173,14 @@ def pose_prior_from_state(state: dict[str, Tensor], prefix: str, image_size=None
     prior = PairFlowPose(channels, grid)
     prior.trained_hw = tuple(image_size) if image_size else None
     return prior.eval().requires_grad_(False)
+
+
+def rebuild_pose_prior(net: nn.Module, state: dict[str, Tensor], prefix: str, meta: dict) -> None:
+    """Rebuild ``net.pose_prior`` at the size of the weights ``state[prefix + ...]`` (which ``load_state_dict``
+    then fills in), whether or not its file was found when the network was built. ``meta``: a checkpoint's
+    ``pose_prior`` record (its ``image_size``). Nothing to do without a pose prior or its weights."""
+    old = getattr(net, "pose_prior", None)
+    if old is None or prefix + "mlp.0.weight" not in state:
+        return
+    hw = meta.get("image_size", old.trained_hw if old.missing is None else None)
+    net.pose_prior = pose_prior_from_state(state, prefix, hw).to(next(old.parameters()).device)

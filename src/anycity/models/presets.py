@@ -161,7 +161,23 @@ def check_int_options(cfg: NetConfig) -> None:
 
 
 def build_network(preset: str = "tiny", **overrides):
-    """``build_network("tiny", sh_degree=0)`` -> :class:`anycity.models.anycity.AnyCityNet`."""
+    """A new :class:`anycity.models.anycity.AnyCityNet` of ``preset`` with random weights (train mode).
+
+    ``preset``: ``"tiny"`` (CPU, quickstart; patch 8), ``"small"`` (laptop GPU; patch 14), ``"base"`` (DINOv2-B/14),
+    ``"vggt-1b"`` (VGGT-1B's architecture and parameter names); see :data:`PRESETS` and this module's docstring.
+    ``overrides``: any :class:`NetConfig` field, e.g. ``sh_degree=0``, ``completion=False`` (scaffold only, as
+    Stage I), ``video_prior="wan", wan_dir=...``, ``voxel_size=0.01``, ``camera_trunk_depth=2``; an unknown name or
+    an out-of-range value is a one-line ``ValueError`` listing the valid ones.
+
+    Weights: :func:`anycity.models.load_checkpoint` rebuilds and loads the network an ``anycity fit`` checkpoint
+    trained (preset and overrides included); :func:`anycity.models.pretrained.load_pretrained` copies VGGT-1B or
+    AnySplat weights into a network built here. For inference, switch to eval mode and drop autograd (a fraction of
+    the memory)::
+
+        net = build_network("tiny").eval()
+        with torch.inference_mode():
+            out = net(images)  # images [B, V, 3, H, W] in [0, 1], H and W multiples of net.cfg.patch_size
+    """
     from anycity.models.anycity import AnyCityNet
 
     return AnyCityNet(preset_config(preset, **overrides))

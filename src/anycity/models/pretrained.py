@@ -14,7 +14,10 @@ Key map (documented, nothing else is renamed):
 Tensors whose shape differs from the network's are skipped and listed (a mismatch never breaks the net).
 :meth:`LoadReport.require_backbone` (which the Lightning modules call) then insists on the whole aggregator, and
 names the real cause when the file has another layout (AnySplat's ``encoder.*`` read as VGGT, or an anycity
-checkpoint's ``net.*``).
+checkpoint's ``net.*``). A file none of whose tensors fit is refused in one line.
+
+An anycity training checkpoint (``anycity fit``'s ``last.ckpt``, Stage I or II) is not read here: it holds the network
+it trained, built from its own ``hyper_parameters``, which :func:`load_checkpoint` rebuilds and loads strictly.
 """
 
 from __future__ import annotations
@@ -22,10 +25,17 @@ from __future__ import annotations
 from collections import Counter
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
+import torch
 from torch import Tensor, nn
 
+from anycity.models.pose_prior import rebuild_pose_prior
+from anycity.models.presets import build_network
 from anycity.safe_load import safe_torch_load
+
+if TYPE_CHECKING:
+    from anycity.models.anycity import AnyCityNet
 
 KINDS = ("vggt", "anysplat")
 WEIGHT_SUFFIXES = (".safetensors", ".pt", ".pth", ".ckpt", ".bin")
@@ -37,6 +47,9 @@ LAYOUT_HINTS = {
     "net": "this is an anycity checkpoint: pass it as --ckpt_path (resume/test) or model.init_args.init_from "
            "(Stage II)",
 }
+NET_PREFIX = "net."  # the Lightning modules hold the network as ``self.net``
+STAGE1_CLASS = "ScaffoldModule"  # lit/scaffold.py: Stage I, which builds no completion branch
+STAGE1_DROPPED = ("completion.", "video_prior.")  # untrained branch older Stage I checkpoints carry
 
 
 @dataclass
@@ -203,9 +216,106 @@ def load_pretrained(net: nn.Module, path: str | Path | dict, kind: str = "vggt")
     if meta:  # load_state_dict would copy nothing and report success
         raise ValueError(f"pretrained weights: the network is on the meta device (e.g. {meta[0]}), where loading "
                          "copies nothing; build the network on a real device (cpu/cuda) first")
+    if not usable:  # the network would stay as built (random) with nothing but a report saying so
+        raise _nothing_loaded(source, sd, report, kind)
     net.load_state_dict(usable, strict=False)
     if kind == "anysplat" and is_anysplat and hasattr(net, "cfg"):  # decode the cameras as the checkpoint trained
         net.cfg = replace(net.cfg, focal_decode="anysplat")
     report.loaded = sorted(usable)
     report.missing = sorted(k for k in own if k not in sd)  # a shape mismatch is in the file: listed apart
     return report
+
+
+def _nothing_loaded(source, sd: dict[str, Tensor], report: LoadReport, kind: str) -> ValueError:
+    """The one-line error for a file none of whose tensors fit, with the fix its key layout points to."""
+    if not sd:
+        return ValueError(f"pretrained weights: {source} holds no tensors; pass a VGGT model.pt/.safetensors or an "
+                          "AnySplat checkpoint")
+    top, n = Counter(k.split(".")[0] for k in sd).most_common(1)[0]
+    if top == NET_PREFIX[:-1] and 2 * n > len(sd):
+        return ValueError(f"pretrained weights: {source} is an anycity training checkpoint ({n} of its {len(sd)} "
+                          "tensors start with 'net.'), not VGGT/AnySplat weights; load it with "
+                          "anycity.models.load_checkpoint(path), or on the command line pass it as --ckpt_path "
+                          "(resume/test) or model.init_args.init_from (Stage II)")
+    if top == "encoder" and 2 * n > len(sd):
+        fix = "it is an AnySplat checkpoint: use kind='anysplat' (model.init_args.pretrained_kind: anysplat)"
+    elif report.mismatched:
+        k, theirs, ours = report.mismatched[0]
+        fix = (f"its shapes differ (e.g. {k}: {list(theirs)} there, {list(ours)} here); build the preset the weights "
+               "were made for (vggt-1b for VGGT-1B and AnySplat)")
+    else:
+        fix = f"none of its names is this network's (e.g. {report.unexpected[0]}); pass VGGT or AnySplat weights"
+    return ValueError(f"pretrained weights: {source} loaded 0 of its {len(sd)} tensors (kind={kind!r}); {fix}")
+
+
+def checkpoint_network_options(hparams: dict, source: str | Path = "checkpoint") -> tuple[str, dict]:
+    """``(preset, net overrides)`` of the network a training checkpoint's ``hyper_parameters`` describe, as the
+    Lightning modules build it (``build_network(preset, **net)``): Stage I (``ScaffoldModule``, recorded by
+    LightningCLI as ``_class_path``) adds ``completion=False``. One line naming ``source`` for anything else."""
+    preset = hparams.get("preset") if isinstance(hparams, dict) else None
+    net = hparams.get("net") if isinstance(hparams, dict) else None
+    if not isinstance(preset, str) or not isinstance(net, (dict, type(None))):
+        raise ValueError(f"checkpoint {source}: not an anycity training checkpoint (its hyper_parameters hold no "
+                         "network preset); pass the last.ckpt or best .ckpt an `anycity fit` wrote (Stage I or II)")
+    net = dict(net or {})
+    if str(hparams.get("_class_path", "")).rpartition(".")[2] == STAGE1_CLASS:
+        net["completion"] = False
+    return preset, net
+
+
+def load_checkpoint(path: str | Path, *, map_location: str | torch.device = "cpu") -> AnyCityNet:
+    """The trained network of an anycity training checkpoint (``anycity fit``'s ``last.ckpt``, Stage I or II) as a
+    plain :class:`~anycity.models.anycity.AnyCityNet` in eval mode on ``map_location``, without Lightning.
+
+    Built as its ``hyper_parameters`` say (:func:`checkpoint_network_options`); every weight is then loaded
+    strictly, read as tensors and plain data only (:func:`anycity.safe_load.safe_torch_load`). Run it under
+    ``torch.inference_mode()``: no autograd graph, a fraction of the memory::
+
+        net = load_checkpoint("runs/quickstart/stage2/checkpoints/last.ckpt")
+        with torch.inference_mode():
+            out = net(images)  # images [B, V, 3, H, W] in [0, 1], H and W multiples of net.cfg.patch_size
+
+    A checkpoint that references a Wan prior's folder instead of holding it needs the Lightning module
+    (``RefinementModule.load_from_checkpoint(path).net``), which checks that folder's content hash.
+    One-line ``ValueError`` for a file that is not an anycity training checkpoint (a VGGT/AnySplat state dict:
+    :func:`load_pretrained`) or whose weights do not fit the network it describes.
+    """
+    ckpt = safe_torch_load(path, mmap=True, what="checkpoint")  # mmap: the optimiser state is never read
+    state = ckpt.get("state_dict") if isinstance(ckpt, dict) else None
+    if not isinstance(state, dict):
+        plain = isinstance(ckpt, dict) and any(isinstance(v, Tensor) for v in ckpt.values())
+        what = "a plain state dict (VGGT/AnySplat weights?)" if plain else f"a {type(ckpt).__name__}"
+        raise ValueError(f"checkpoint {path}: not an anycity training checkpoint ({what}, no state_dict); load "
+                         "VGGT/AnySplat weights with load_pretrained(build_network(preset), path, kind=...)")
+    preset, options = checkpoint_network_options(ckpt.get("hyper_parameters"), path)
+    if ckpt.get("video_prior"):
+        raise ValueError(f"checkpoint {path}: its Wan video prior is referenced ({ckpt['video_prior'].get('dir')}), "
+                         "not stored in the file; load it with anycity.lit.RefinementModule.load_from_checkpoint"
+                         "(path).net, which checks that folder")
+    try:
+        net = build_network(preset, **options)
+    except ValueError as e:
+        raise ValueError(f"checkpoint {path}: {e} (written by another anycity version?)") from None
+    weights = {k[len(NET_PREFIX):]: v for k, v in state.items() if k.startswith(NET_PREFIX)}
+    if net.completion is None:  # as ScaffoldModule.on_load_checkpoint
+        weights = {k: v for k, v in weights.items() if not k.startswith(STAGE1_DROPPED)}
+    rebuild_pose_prior(net, weights, "pose_prior.", ckpt.get("pose_prior") or {})
+    _load_strict(net, weights, path)
+    return net.to(map_location).eval()
+
+
+def _load_strict(net: nn.Module, weights: dict[str, Tensor], source: str | Path) -> None:
+    """``net.load_state_dict(weights)`` with every key and shape checked first: one line naming ``source``."""
+    own = net.state_dict()
+    missing = sorted(k for k in own if k not in weights)
+    unexpected = sorted(k for k in weights if k not in own)
+    shapes = [k for k in weights if k in own and weights[k].shape != own[k].shape]
+    problems = [f"{len(ks)} {what} (e.g. {ks[0]})" for ks, what in
+                ((missing, "weights of the network are not in it"), (unexpected, "of its weights have no place"),
+                 (shapes, "shapes differ")) if ks]
+    if not weights:
+        problems = ["it holds no 'net.*' weights"]
+    if problems:
+        raise ValueError(f"checkpoint {source} does not fit the network its hyper_parameters describe: "
+                         f"{'; '.join(problems)}; pass a checkpoint that this anycity version's fit wrote")
+    net.load_state_dict(weights)

@@ -404,3 +404,31 @@ def test_forward_on_the_meta_device():
         out = net(torch.empty(1, 2, 3, 32, 48, device="meta"))
     assert out["depth"].is_meta and tuple(out["depth"].shape) == (1, 2, 1, 32, 48)
     assert tuple(out["gaussians"].means.shape) == (1, 2 * 32 * 48, 3)
+
+
+@pytest.mark.parametrize("images, fix", [
+    (torch.randint(0, 255, (3, 32, 24, 3), dtype=torch.uint8),
+     r"they are channels-last: permute to \[\.\.\., 3, H, W\] with images.permute\(0, 3, 1, 2\)\[None\], then "
+     r"\.float\(\) / 255$"),
+    (torch.rand(1, 3, 32, 24, 3), r"they are channels-last: permute to \[\.\.\., 3, H, W\] with "
+                                  r"images.permute\(0, 1, 4, 2, 3\)$"),
+    (torch.rand(32, 24, 3), r"they are channels-last: .*images.permute\(2, 0, 1\)\[None, None\]$"),
+    (torch.rand(3, 3, 32, 24), r"add the missing leading dims with images\[None\] \(V views of one sample\)$"),
+    (torch.rand(3, 32, 24), r"add the missing leading dims with images\[None, None\] \(one image\)$"),
+    (torch.rand(1, 3, 32, 24).numpy(), r"pass a torch tensor: torch.from_numpy\(images\)"),
+])
+def test_a_wrong_image_layout_gets_the_fix_for_that_layout(tiny, images, fix):
+    """Channels-last images ([V, H, W, 3], [B, V, H, W, 3]) were told to 'add the batch/view dims with images[None]',
+    which still fails: the channel axis was the problem."""
+    with pytest.raises(ValueError, match=r"^images: expected \[B, V, 3, H, W\] float in \[0, 1\], got .*; " + fix):
+        tiny(images)
+
+
+def test_a_network_cast_to_float64_names_float64():
+    """net.double() was reported as '(net.bfloat16()/.half())' with an autocast fix that does not apply."""
+    net = build_network("tiny", completion=False).double()
+    with pytest.raises(ValueError, match=r"^network: weights are float64, expected float32; cast them back with "
+                                         r"net.float\(\)$"):
+        net(torch.rand(1, 2, 3, 32, 32))
+    with pytest.raises(ValueError, match=r"^network: weights are float16 \(net.half\(\)\); keep float32"):
+        build_network("tiny", completion=False).half()(torch.rand(1, 2, 3, 32, 32))

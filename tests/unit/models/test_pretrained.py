@@ -188,22 +188,21 @@ def _anysplat_layout(sd: dict) -> dict:
 
 def test_a_file_of_another_layout_names_the_real_cause(tmp_path):
     """An AnySplat file read as VGGT, or our own Lightning checkpoint passed as pretrained, was told to 'build the
-    preset the weights were made for', which cannot help."""
-    src = build_network("tiny").state_dict()
-    path = tmp_path / "anysplat.pt"
-    torch.save(_anysplat_layout(src), path)
-    rep = load_pretrained(build_network("tiny"), path, kind="vggt")
-    with pytest.raises(ValueError, match=r"^model.pretrained: .*anysplat.pt does not fit .*of its keys start with "
+    preset the weights were made for', which cannot help. load_pretrained now refuses such a file itself, as none of
+    it loads (test_load_pretrained_refuses_a_file_of_which_nothing_loads); require_backbone still names the layout
+    that most of a partly loaded file's unused keys have."""
+    from anycity.models.pretrained import LoadReport
+
+    absent = ["aggregator.camera_token"]
+    rep = LoadReport(loaded=["camera_head.x"], missing=absent, unexpected=["encoder.a", "encoder.b", "other"])
+    with pytest.raises(ValueError, match=r"^model.pretrained: anysplat.pt does not fit .*2 of its keys start with "
                                          r"'encoder.'; this is an AnySplat checkpoint: set "
                                          r"model.init_args.pretrained_kind: anysplat$"):
-        rep.require_backbone(path)
-    lit = {"state_dict": {f"net.{k}": v for k, v in src.items()}, "hyper_parameters": {}}
-    torch.save(lit, path := tmp_path / "last.ckpt")
-    for given in (path, lit):  # from a file, and the checkpoint dict already read
-        rep = load_pretrained(build_network("tiny"), given, kind="vggt")
-        with pytest.raises(ValueError, match=r"this is an anycity checkpoint: pass it as --ckpt_path \(resume/test\) "
-                                             r"or model.init_args.init_from \(Stage II\)$"):
-            rep.require_backbone(path)
+        rep.require_backbone("anysplat.pt")
+    rep = LoadReport(loaded=["camera_head.x"], missing=absent, unexpected=["net.a", "net.b"])
+    with pytest.raises(ValueError, match=r"this is an anycity checkpoint: pass it as --ckpt_path \(resume/test\) "
+                                         r"or model.init_args.init_from \(Stage II\)$"):
+        rep.require_backbone("last.ckpt")
     vggt = build_network("tiny", embed_dim=32, num_heads=2).state_dict()
     with pytest.raises(ValueError, match=r"build the preset the weights were made for"):  # another preset: as before
         load_pretrained(build_network("tiny"), vggt).require_backbone("model.pt")
@@ -267,3 +266,133 @@ def test_loading_into_a_network_on_the_meta_device_is_refused():
     with pytest.raises(ValueError, match=r"^pretrained weights: the network is on the meta device .*; build the "
                                          r"network on a real device \(cpu/cuda\) first$"):
         load_pretrained(net, sd)
+
+
+def _lightning_ckpt(path: Path, module, class_path: str | None, net: dict | None) -> dict:
+    """``module`` saved as Lightning saves it (its ``on_save_checkpoint`` hook included). ``class_path``: the
+    hyperparameters LightningCLI records (the config's ``net``, ``_class_path``); None: ``save_hyperparameters``'s."""
+    import lightning
+
+    hp = dict(module.hparams)
+    if class_path is not None:
+        hp.update(net=net, _class_path=class_path)
+    ckpt = {"pytorch-lightning_version": lightning.__version__, "epoch": 0, "global_step": 1,
+            "state_dict": module.state_dict(), "optimizer_states": [], "hyper_parameters": hp}
+    module.on_save_checkpoint(ckpt)
+    torch.save(ckpt, path)
+    return ckpt
+
+
+def _trained(module):
+    """``module`` with every weight moved off its init (the zero-initialised completion residual included)."""
+    torch.manual_seed(1)
+    with torch.no_grad():
+        for p in module.net.parameters():
+            p.add_(torch.randn_like(p) * 0.02)
+    return module.eval()
+
+
+@pytest.mark.parametrize("stage, class_path", [
+    ("stage1", "anycity.lit.ScaffoldModule"), ("stage1", None),
+    ("stage1-with-old-branch", "anycity.lit.ScaffoldModule"), ("stage2", "anycity.lit.RefinementModule"),
+    ("stage2", None)])
+def test_load_checkpoint_gives_the_trained_network_of_a_lightning_checkpoint(tmp_path, stage, class_path):
+    """There was no way to load an anycity checkpoint as a plain network: load_pretrained loaded 0 of its tensors
+    (the 'net.' prefix), and by hand build_network('tiny') missed the stored net options (camera_trunk_depth: 2) and
+    a Stage I checkpoint needed completion=False, which only the module class implies."""
+    from anycity.lit import RefinementModule, ScaffoldModule
+    from anycity.models import load_checkpoint
+
+    torch.manual_seed(0)
+    net = {"camera_trunk_depth": 2}
+    m = _trained(ScaffoldModule(net=net) if stage.startswith("stage1") else RefinementModule(net=net))
+    path = tmp_path / "last.ckpt"
+    ckpt = _lightning_ckpt(path, m, class_path, net)
+    if stage == "stage1-with-old-branch":  # written before Stage I stopped building the (untrained) branch
+        old = build_network("tiny", **net).state_dict()
+        ckpt["state_dict"].update({f"net.{k}": v for k, v in old.items() if k.startswith(("completion.", "video_"))})
+        torch.save(ckpt, path)
+    loaded = load_checkpoint(path)
+    assert type(loaded).__name__ == "AnyCityNet" and not loaded.training
+    assert loaded.cfg == m.net.cfg and (loaded.completion is None) == stage.startswith("stage1")
+    images = torch.rand(1, 3, 3, 32, 24)
+    with torch.inference_mode():
+        ours, theirs = loaded(images), m.net(images)
+    for key in ("w2c", "K", "depth", "offset"):
+        assert torch.equal(ours[key], theirs[key]), key
+    for field in ("means", "scales", "quats", "opacities", "sh"):
+        assert torch.equal(getattr(ours["gaussians"], field), getattr(theirs["gaussians"], field)), field
+
+
+def test_load_checkpoint_of_a_stage2_with_a_pose_prior_needs_no_prior_file(tmp_path):
+    """The pose prior's weights travel in the checkpoint; its file (hyper_parameters) may be gone."""
+    from anycity.lit import RefinementModule
+    from anycity.models import load_checkpoint
+
+    torch.manual_seed(0)
+    net = {"refine_cameras": True, "pose_prior": "random"}
+    m = _trained(RefinementModule(net=net))
+    _lightning_ckpt(path := tmp_path / "last.ckpt", m, "anycity.lit.RefinementModule",
+                    {**net, "pose_prior": str(tmp_path / "moved_away.pt")})
+    images = torch.rand(1, 2, 3, 32, 32)
+    with torch.inference_mode():
+        assert torch.equal(load_checkpoint(path)(images)["w2c"], m.net(images)["w2c"])
+
+
+def test_load_checkpoint_refuses_what_is_not_an_anycity_training_checkpoint_in_one_line(tmp_path):
+    from anycity.lit import ScaffoldModule
+    from anycity.models import load_checkpoint
+
+    torch.manual_seed(0)
+    plain = tmp_path / "model.pt"
+    torch.save(build_network("tiny", completion=False).state_dict(), plain)
+    other = tmp_path / "pose_prior.ckpt"
+    torch.save({"state_dict": {"net.mlp.0.weight": torch.zeros(2, 2)}, "hyper_parameters": {"channels": 48}}, other)
+    ckpt = _lightning_ckpt(misfit := tmp_path / "misfit.ckpt", ScaffoldModule(net={"camera_trunk_depth": 2}),
+                           "anycity.lit.ScaffoldModule", {"camera_trunk_depth": 2})
+    ckpt["hyper_parameters"]["net"] = {}  # the stored network is not the one these weights were trained in
+    torch.save(ckpt, misfit)
+    ckpt["hyper_parameters"]["net"] = {"old_net_key": 3}
+    torch.save(ckpt, newer := tmp_path / "newer.ckpt")
+    for path, match in [
+        (plain, r"not an anycity training checkpoint \(a plain state dict \(VGGT/AnySplat weights\?\), no "
+                r"state_dict\); load VGGT/AnySplat weights with load_pretrained\(build_network\(preset\), path"),
+        (other, r"not an anycity training checkpoint \(its hyper_parameters hold no network preset\); pass the "
+                r"last.ckpt"),
+        (misfit, r"does not fit the network its hyper_parameters describe: \d+ of its weights have no place \(e.g. "
+                 r"camera_head.trunk.1.\S+\); pass a checkpoint"),
+        (newer, r"build_network: unknown option\(s\) \['old_net_key'\].* \(written by another anycity version\?\)$"),
+    ]:
+        with pytest.raises(ValueError, match=rf"^checkpoint {re.escape(str(path))}:? .*{match}") as e:
+            load_checkpoint(path)
+        assert "\n" not in str(e.value)
+    with pytest.raises(FileNotFoundError, match="checkpoint not found"):
+        load_checkpoint(tmp_path / "missing.ckpt")
+
+
+def test_load_pretrained_refuses_a_file_of_which_nothing_loads(tmp_path):
+    """load_pretrained on anycity's own last.ckpt loaded 0 tensors ('unexpected: net.* x512'), raised nothing and
+    left the network random."""
+    src = build_network("tiny").state_dict()
+    torch.save({"state_dict": {f"net.{k}": v for k, v in src.items()}, "hyper_parameters": {"preset": "tiny"}},
+               ours := tmp_path / "last.ckpt")
+    torch.save({"other.weight": torch.zeros(3)}, unrelated := tmp_path / "unrelated.pt")
+    torch.save(_anysplat_layout(src), anysplat := tmp_path / "anysplat.pt")
+    for path, kind, match in [
+        (ours, "vggt", r"is an anycity training checkpoint \(\d+ of its \d+ tensors start with 'net.'\), not "
+                       r"VGGT/AnySplat weights; load it with anycity.models.load_checkpoint\(path\), or on the command "
+                       r"line pass it as --ckpt_path \(resume/test\) or model.init_args.init_from \(Stage II\)$"),
+        (ours, "anysplat", r"is an anycity training checkpoint"),
+        (unrelated, "vggt", r"loaded 0 of its 1 tensors \(kind='vggt'\); none of its names is this network's \(e.g. "
+                            r"other.weight\); pass VGGT or AnySplat weights$"),
+        (anysplat, "vggt", r"loaded 0 of its \d+ tensors \(kind='vggt'\); it is an AnySplat checkpoint: use "
+                           r"kind='anysplat' \(model.init_args.pretrained_kind: anysplat\)$"),
+    ]:
+        net = build_network("tiny")
+        before = {k: v.clone() for k, v in net.state_dict().items()}
+        with pytest.raises(ValueError, match=rf"^pretrained weights: {re.escape(str(path))} {match}") as e:
+            load_pretrained(net, path, kind=kind)
+        assert "\n" not in str(e.value)
+        assert all(torch.equal(before[k], v) for k, v in net.state_dict().items())
+    with pytest.raises(ValueError, match=r"^pretrained weights: the state dict holds no tensors"):
+        load_pretrained(build_network("tiny"), {})
