@@ -321,6 +321,11 @@ class AnyCityModule(pl.LightningModule):
             self.log(f"train/{k}", v.detach(), batch_size=batch_size, prog_bar=k in prog_bar)
 
     # ----------------------------------------------------------------------------------------- evaluation
+    def forward(self, images: Tensor, **kwargs) -> dict[str, Any]:
+        """``module(images)``: the network's forward (:meth:`anycity.models.AnyCityNet.forward`; ``images``
+        ``[B, V, 3, H, W]`` in [0, 1]), so a module loaded with ``load_from_checkpoint`` runs like its ``net``."""
+        return self.forward_net(images, **kwargs)
+
     def forward_net(self, images: Tensor, **kwargs) -> dict[str, Any]:
         """``self.net(images, **kwargs)`` under the autocast the running step was entered with (see
         :func:`float32_outside_net`; the network keeps its heads in float32 itself)."""

@@ -686,3 +686,12 @@ def test_camrefine_moves_each_views_gaussians_with_its_camera(batch):
         before, _ = project_points(scene.gaussians.means[:, sl], scene.w2c[:, i], scene.K[:, i])
         after, _ = project_points(refined.gaussians.means[:, sl], refined.w2c[:, i], refined.K[:, i])
         torch.testing.assert_close(after, before, atol=1e-3, rtol=0)
+
+
+def test_a_module_called_on_images_runs_its_network(batch):
+    """``RefinementModule.load_from_checkpoint(path)(images)`` raised torch's "missing the required forward"."""
+    torch.manual_seed(0)
+    m = ScaffoldModule(render_backend="torch").eval()
+    with torch.inference_mode():
+        out, ref = m(batch.context.images), m.net(batch.context.images)
+    assert torch.equal(out["depth"], ref["depth"]) and torch.equal(out["w2c"], ref["w2c"])
