@@ -50,8 +50,11 @@ class Gaussians:
 
     Attributes:
         means: ``[B, N, 3]`` centres in world units.
-        quats: ``[B, N, 4]`` rotations, **wxyz**, need not be normalised.
-        scales: ``[B, N, 3]`` standard deviations along the rotated axes (activated, > 0).
+        quats: ``[B, N, 4]`` rotations, **wxyz**, need not be normalised (a zero-norm one renders, but
+            ``anycity.export`` drops it).
+        scales: ``[B, N, 3]`` standard deviations along the rotated axes, in world units (activated: ``validate``
+            refuses negative values, e.g. log-scales; a zero renders as the renderer's 0.3 px low-pass, but
+            ``anycity.export`` drops it).
         opacities: ``[B, N]`` in [0, 1] (activated: ``validate`` refuses other values).
         sh: ``[B, N, K, 3]`` spherical-harmonic coefficients, K = (degree+1)^2; degree 0 gives
             colour = 0.282095 * sh + 0.5.
@@ -118,14 +121,21 @@ class Gaussians:
                 if f.name != "opacities":  # checked below
                     _check_finite(f"gaussians.{f.name}", t)
         if self.opacities.numel():
-            # one reduction and one host sync, as _check_finite's: min and max are NaN when any element is, so values
-            # in [0, 1] are finite too; anything else is looked at closely
+            # one reduction per field and one host sync, as _check_finite's: min and max are NaN when any element is,
+            # so values in [0, 1] are finite too; anything else is looked at closely
             lo, hi = torch.aminmax(self.opacities.detach())
-            if not bool((lo >= 0) & (hi <= 1)):
+            smin = self.scales.detach().amin()
+            dt = torch.promote_types(lo.dtype, smin.dtype)
+            lo, hi, smin = torch.stack([lo.to(dt), hi.to(dt), smin.to(dt)]).tolist()
+            if not (lo >= 0 and hi <= 1):
                 _check_finite("gaussians.opacities", self.opacities)
-                raise ValueError(f"gaussians.opacities: expected values in [0, 1], got [{lo.item():.4g}, "
-                                 f"{hi.item():.4g}]; apply sigmoid to opacity logits (the backends disagree outside "
-                                 "[0, 1])")
+                raise ValueError(f"gaussians.opacities: expected values in [0, 1], got [{lo:.4g}, {hi:.4g}]; apply "
+                                 "sigmoid to opacity logits (the backends disagree outside [0, 1])")
+            # zero scales (and zero-norm quaternions) are left alone: the network's softplus can underflow to them,
+            # and every render validates; they render as the 0.3 px low-pass, and export drops them with a warning
+            if smin < 0:
+                raise ValueError(f"gaussians.scales: expected standard deviations >= 0, got a minimum of {smin:.4g}; "
+                                 "these look like log-scales (graphdeco's raw scales): pass scales.exp()")
         return self
 
     def detach(self) -> Gaussians:

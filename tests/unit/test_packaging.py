@@ -1,6 +1,9 @@
 """pyproject.toml's dependency floors are the versions `make test-floors` runs the suite on (.ci/floors.txt)."""
 
+import os
 import re
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -82,3 +85,39 @@ def test_the_license_file_is_the_license_pyproject_names():
     assert tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["license"] == "Apache-2.0"
     text = (ROOT / "LICENSE").read_text()
     assert "Apache License" in text and "Version 2.0, January 2004" in text and "END OF TERMS AND CONDITIONS" in text
+
+
+def _run_python(code: str) -> subprocess.CompletedProcess:
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
+
+
+def test_dir_lists_the_lazy_names_and_subpackages_load_on_first_access():
+    # dir(anycity) listed only TYPE_CHECKING (no tab completion), and anycity.models raised AttributeError
+    r = _run_python(
+        "import sys, anycity; d = dir(anycity); light = 'torch' not in sys.modules; "
+        "print(light, *[n in d for n in ('Gaussians', 'ViewBatch', '__version__', 'models', 'render')]); "
+        "print(anycity.models.build_network.__module__, anycity.render.render.__module__, "
+        "'lightning' in sys.modules)")
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split() == ["True"] * 6 + ["anycity.models.presets", "anycity.render.api", "False"], r.stdout
+
+
+def test_every_subpackage_is_reachable_and_none_is_star_imported():
+    import anycity
+
+    packages = {p.parent.name for p in (ROOT / "src" / "anycity").glob("*/__init__.py")}
+    assert set(anycity.SUBPACKAGES) == packages - {"lit", "callbacks"}  # the Lightning layers: import them
+    assert not set(anycity.__all__) & packages  # `from anycity import *` stays light
+    with pytest.raises(AttributeError, match="no attribute 'modles'"):
+        anycity.modles  # noqa: B018
+
+
+def test_the_quaternion_order_helpers_and_sim3_inverse_say_what_they_do():
+    import inspect
+
+    from anycity.city import sim3_inverse
+    from anycity.geometry import wxyz_to_xyzw, xyzw_to_wxyz
+
+    for f in (wxyz_to_xyzw, xyzw_to_wxyz, sim3_inverse):
+        assert len(inspect.getdoc(f) or "") > 60, f.__name__

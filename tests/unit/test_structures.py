@@ -144,3 +144,20 @@ def test_view_batch_validate_accepts_batches_and_the_compact_form_when_asked():
     compact.validate(compact=True)
     with pytest.raises(ValueError, match="batch.context.images"):
         compact.validate()
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.bfloat16])
+def test_gaussians_validate_refuses_log_scales(dtype):
+    # graphdeco's raw (log) scales rendered as huge blobs, and save_ply then dropped every such row
+    g = Gaussians(**{**vars(gaussians()), "scales": torch.full((2, 5, 3), 0.05).index_fill(1, torch.tensor([3]), -3.0)})
+    with pytest.raises(ValueError, match=r"gaussians.scales: expected standard deviations >= 0, got a minimum of -3; "
+                                         r"these look like log-scales .*: pass scales.exp\(\)"):
+        g.to(dtype=dtype).validate()
+
+
+def test_gaussians_validate_keeps_zero_scales_and_zero_quaternions():
+    # the network's softplus scales underflow to 0 for logits below about -104, and its quaternion normalisation
+    # keeps a zero raw quaternion zero; every training render validates, so neither may be refused
+    g = Gaussians(**{**vars(gaussians()), "scales": torch.zeros(2, 5, 3), "quats": torch.zeros(2, 5, 4)})
+    g.validate()
+    Gaussians(**{**vars(gaussians()), "scales": torch.full((2, 5, 3), -0.0)}).validate()

@@ -28,6 +28,8 @@ def sim3_parts(T: Tensor) -> tuple[Tensor, Tensor, Tensor]:
 
 
 def sim3_inverse(T: Tensor) -> Tensor:
+    """``[..., 4, 4]`` Sim(3) ``p -> s R p + t`` -> its inverse ``p -> (1/s) Rᵀ (p - t)``, ``[..., 4, 4]``, in closed
+    form (no general matrix inverse); e.g. chunk frame -> world becomes world -> chunk frame."""
     s, R, t = sim3_parts(T)
     Ri = R.transpose(-1, -2)
     return sim3_matrix(1 / s, Ri, -(Ri @ t[..., None])[..., 0] / s[..., None])

@@ -110,9 +110,16 @@ def gaussians_to_ply_arrays(g: Gaussians, index: int = 0, max_degree: int = 3,
 def save_ply(g: Gaussians, path: str | Path, index: int = 0, max_degree: int = 3,
              extra: dict[str, Tensor] | None = None, pad_degree: int | None = None) -> int:
     """Write scene ``index`` of ``g`` to ``path`` as a binary little-endian 3DGS PLY; returns rows dropped.
-    ``extra`` and ``pad_degree`` as in :func:`gaussians_to_ply_records`."""
+    ``extra`` and ``pad_degree`` as in :func:`gaussians_to_ply_records`. Dropped rows other than ``valid=False``
+    ones (non-finite, zero-norm rotation, non-positive scale: the format stores log-scales) are named in one
+    warning."""
     rec, dropped = gaussians_to_ply_records(g, index, max_degree, extra, pad_degree)
     write_vertices(path, rec)
+    invalid = 0 if g.valid is None else int((~g.valid[index]).sum())
+    if dropped > invalid:  # padding (valid=False) is not the user's data
+        warnings.warn(f"save_ply: {path}: dropped {dropped - invalid} of {g.num_gaussians - invalid} Gaussians with "
+                      "a NaN/inf field, a zero-norm rotation or a scale <= 0 (a PLY stores log-scales); "
+                      f"{len(rec)} written", stacklevel=2)
     return dropped
 
 

@@ -48,10 +48,14 @@ def rotmat_to_quat(R: Tensor) -> Tensor:
 
 
 def xyzw_to_wxyz(q: Tensor) -> Tensor:
+    """``[..., 4]`` quaternions in VGGT/AnySplat's **xyzw** order -> the same quaternions in anycity's **wxyz**
+    (a copy, norm unchanged); the inverse of :func:`wxyz_to_xyzw`."""
     return q[..., [3, 0, 1, 2]]
 
 
 def wxyz_to_xyzw(q: Tensor) -> Tensor:
+    """``[..., 4]`` quaternions in anycity's **wxyz** order -> VGGT/AnySplat's **xyzw** (the 9-D pose encoding's
+    layout; a copy, norm unchanged); the inverse of :func:`xyzw_to_wxyz`."""
     return q[..., [1, 2, 3, 0]]
 
 

@@ -12,10 +12,14 @@ also counts the border pixels, whose windows read a reflected image (at 48 px 38
 
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 from torchmetrics.functional.image import peak_signal_noise_ratio
+
+TARGET_MIN, TARGET_MAX = -1e-3, 1.0 + 1e-3  # [0, 1], with room for a resize's rounding (as the network's check)
 
 
 def _flat(x: Tensor) -> Tensor:
@@ -24,8 +28,41 @@ def _flat(x: Tensor) -> Tensor:
     return x.reshape(-1, *x.shape[-3:]).float()
 
 
+def check_pair(name: str, pred: Tensor, target: Tensor) -> None:
+    """One-line error unless ``pred`` and ``target`` are float ``[..., 3, H, W]`` images of one shape and ``target``
+    is finite in [0, 1]. ``pred`` is not range-checked: a render may overshoot 1 (SH colours), and it is scored
+    clamped. One reduction and one host sync."""
+    for arg, x in (("pred", pred), ("target", target)):
+        if x.dim() < 4 or x.shape[-3] != 3:
+            hint = (f"; it looks channels-last: use {arg}.movedim(-1, -3)" if x.dim() >= 4 and x.shape[-1] == 3
+                    else "" if x.dim() >= 4 else f"; add a batch dim with {arg}[None]")
+            raise ValueError(f"{name}: {arg}: expected [..., 3, H, W] with at least one leading dim, got "
+                             f"{tuple(x.shape)}{hint}")
+        if not x.is_floating_point():
+            raise ValueError(f"{name}: {arg}: expected float images in [0, 1], got dtype {x.dtype}; use "
+                             f"{arg}.float() / 255 for 8-bit images")
+    if pred.shape != target.shape:
+        raise ValueError(f"{name}: pred {tuple(pred.shape)} and target {tuple(target.shape)} differ; pass one target "
+                         "per predicted image (no broadcasting)")
+    if not target.numel() or target.is_meta:
+        return
+    lo, hi = torch.stack(torch.aminmax(target.detach())).tolist()
+    if not (math.isfinite(lo) and math.isfinite(hi)):  # aminmax spreads a NaN to both
+        raise ValueError(f"{name}: target: holds NaN or infinite values; find them with ~torch.isfinite(target)")
+    if lo < TARGET_MIN:
+        fix = ("it looks like [-1, 1]; use (x + 1) / 2" if lo >= -1 + TARGET_MIN and hi <= TARGET_MAX
+               else "it looks mean/std-normalised (e.g. ImageNet); undo it: x * std + mean")
+        raise ValueError(f"{name}: target: expected values in [0, 1], got a minimum of {lo:.4g} (maximum {hi:.4g}); "
+                         f"{fix}")
+    if hi > TARGET_MAX:
+        fix = "it looks like 0-255; divide by 255" if hi > 2 else "clamp it to [0, 1]"
+        raise ValueError(f"{name}: target: expected values in [0, 1], got a maximum of {hi:.4g}; {fix}")
+
+
 def psnr(pred: Tensor, target: Tensor) -> Tensor:
-    """Per-image PSNR in dB of ``[..., 3, H, W]`` images in [0, 1] -> ``[M]`` (M = product of leading dims)."""
+    """Per-image PSNR in dB of float ``[..., 3, H, W]`` images -> ``[M]`` (M = product of leading dims). ``target``
+    in [0, 1] and of ``pred``'s shape (:func:`check_pair`); ``pred`` is scored clamped to [0, 1]."""
+    check_pair("psnr", pred, target)
     p, t = _flat(pred).clamp(0, 1), _flat(target)
     return peak_signal_noise_ratio(p, t, data_range=1.0, dim=(1, 2, 3), reduction="none")
 
@@ -52,7 +89,12 @@ def _window_mean(x: Tensor) -> Tensor:
 
 def ssim_map(pred: Tensor, target: Tensor) -> Tensor:
     """SSIM (module docstring: skimage's, sample covariance) of each pixel whose whole window lies inside the
-    image of ``[..., 3, H, W]`` images in [0, 1] -> ``[M, 3, H - 10, W - 10]``."""
+    image of float ``[..., 3, H, W]`` images -> ``[M, 3, H - 10, W - 10]``; inputs as :func:`psnr`'s."""
+    check_pair("ssim", pred, target)
+    return _ssim_map(pred, target)
+
+
+def _ssim_map(pred: Tensor, target: Tensor) -> Tensor:
     p, t = _flat(pred).clamp(0, 1), _flat(target)
     b = SSIM_BORDER
     if not ssim_window_fits(p):
@@ -69,11 +111,13 @@ def ssim_map(pred: Tensor, target: Tensor) -> Tensor:
 
 
 def ssim(pred: Tensor, target: Tensor) -> Tensor:
-    """Per-image SSIM (module docstring: the window's interior pixels) of ``[..., 3, H, W]`` images -> ``[M]``;
-    NaN for images of 10 px or less on a side, where no window fits (skimage refuses them)."""
+    """Per-image SSIM (module docstring: the window's interior pixels) of float ``[..., 3, H, W]`` images -> ``[M]``,
+    inputs as :func:`psnr`'s; NaN for images of 10 px or less on a side, where no window fits (skimage refuses
+    them)."""
+    check_pair("ssim", pred, target)
     if not ssim_window_fits(pred):
         return torch.full((_flat(pred).shape[0],), float("nan"), device=pred.device)
-    return ssim_map(pred, target).mean(dim=(1, 2, 3))
+    return _ssim_map(pred, target).mean(dim=(1, 2, 3))
 
 
 def mean_colour_baseline(context: Tensor, target_shape: tuple[int, ...]) -> Tensor:

@@ -51,8 +51,11 @@ def resolve_backend(backend: str, device: torch.device, dtype: torch.dtype = tor
         return "torch"
     if device.type == "cuda":
         if _module_available("gsplat"):
-            return "gsplat"
-        _warn_no_gsplat()
+            if _gsplat_kernels():
+                return "gsplat"
+            _warn_gsplat_without_kernels()
+        else:
+            _warn_no_gsplat()
     if device.type == "cpu" and _cpu_backend_available():
         return "cpu"
     return "torch"
@@ -67,12 +70,39 @@ def _warn_no_gsplat() -> None:
                   "docker/Dockerfile) or set render_backend: torch to silence this", RuntimeWarning, stacklevel=3)
 
 
+@functools.cache  # once per process: gsplat may build its kernels on this import (minutes, the first time)
+def _gsplat_kernels() -> bool:
+    """Whether an installed gsplat has its CUDA kernels. gsplat 1.x loads them lazily: without a prebuilt wheel for
+    this torch and CUDA, and without nvcc to build them, ``import gsplat`` works and sets ``_C = None``, and every
+    render then fails with "'NoneType' object has no attribute ...". Another gsplat layout: assumed present."""
+    try:
+        from gsplat.cuda._backend import _C
+    except ImportError:
+        return True
+    return _C is not None
+
+
+@functools.cache  # once per process
+def _warn_gsplat_without_kernels() -> None:
+    import warnings
+
+    warnings.warn("render_backend='auto' on CUDA: gsplat is installed without its CUDA kernels (no prebuilt wheel "
+                  f"for torch {torch.__version__} and no CUDA toolkit (nvcc) to build them): FALLING BACK TO THE "
+                  "PURE-PYTORCH RENDERER, which is many times slower; install the gsplat wheel built for this torch "
+                  "and CUDA, or the CUDA toolkit (see docker/Dockerfile), or set render_backend: torch to silence "
+                  "this", RuntimeWarning, stacklevel=3)
+
+
 @functools.cache
 def _cpu_backend_available() -> bool:
     return importlib.util.find_spec("anycity.render.cpu_backend") is not None and _module_available("numba")
 
 
 def _load(backend: str):
+    if backend == "gsplat" and _module_available("gsplat") and not _gsplat_kernels():
+        raise ValueError(f"backend='gsplat': gsplat is installed without its CUDA kernels (no prebuilt wheel for torch "
+                         f"{torch.__version__} and no CUDA toolkit (nvcc) to build them); install the gsplat wheel "
+                         "built for this torch and CUDA, or the CUDA toolkit, or use backend='torch'")
     module, fn = _BACKENDS[backend].split(":")
     try:
         return getattr(importlib.import_module(module), fn)
@@ -123,15 +153,20 @@ def _check_rotation(w2c: Tensor, dtype: torch.dtype) -> None:
                          "pass 4x4 world-to-camera transforms (append [0, 0, 0, 1] to a 3x4 [R|t], not zeros)")
 
 
-def _check_intrinsics(K: Tensor, dtype: torch.dtype) -> None:
-    """Refuse what the renderer would silently ignore: skew and a last row other than [0, 0, 1]."""
+NORMALISED_MAX_WIDTH = 8  # images this narrow may have pixel focals below 2 px (tests' tiny renders): not checked
+
+
+def _check_intrinsics(K: Tensor, dtype: torch.dtype, width: int, height: int) -> None:
+    """Refuse what the renderer would silently ignore: skew and a last row other than [0, 0, 1]; and a ``K`` that
+    looks normalised (fx, fy < 2 and cx, cy <= 1 for an image wider than 8 px), which renders a near-empty image."""
     K = K.detach().double()
     fx, fy = K[..., 0, 0], K[..., 1, 1]
     skew = torch.maximum(K[..., 0, 1].abs(), K[..., 1, 0].abs())
     row = (K[..., 2, :] - torch.tensor([0.0, 0.0, 1.0], dtype=K.dtype, device=K.device)).abs().amax(-1)
-    bad = torch.stack([((fx <= 0) | (fy <= 0)).any(),  # one host sync for the three checks
+    unit = (fx < 2) & (fy < 2) & (K[..., 0, 2] <= 1) & (K[..., 1, 2] <= 1)
+    bad = torch.stack([((fx <= 0) | (fy <= 0)).any(),  # one host sync for the four checks
                        (skew > torch.clamp(_tolerance(dtype, 0.0) * torch.maximum(fx, fy), min=1e-3)).any(),
-                       (row > _tolerance(dtype, 1e-6)).any()]).tolist()
+                       (row > _tolerance(dtype, 1e-6)).any(), unit.any()]).tolist()
     if bad[0]:
         raise ValueError("K: focal lengths K[...,0,0] and K[...,1,1] must be > 0 (intrinsics in pixels)")
     if bad[1]:
@@ -140,6 +175,11 @@ def _check_intrinsics(K: Tensor, dtype: torch.dtype) -> None:
     if bad[2]:
         raise ValueError(f"K: last row must be [0, 0, 1], got one off by {row.max().item():.3g}; pass pinhole "
                          "intrinsics in pixels (divide a homogeneous K by K[2, 2])")
+    if bad[3] and width > NORMALISED_MAX_WIDTH:
+        i = unit.flatten().nonzero()[0, 0]
+        raise ValueError(f"K looks normalised (fx {fx.flatten()[i]:.4g}, cx {K[..., 0, 2].flatten()[i]:.4g} for a "
+                         f"{width}x{height} image); multiply rows 0 and 1 by W and H (K[..., 0, :] *= {width}; "
+                         f"K[..., 1, :] *= {height}): the renderer takes intrinsics in pixels")
 
 
 def render(
@@ -179,7 +219,8 @@ def render(
         w2c: ``[B, V, 4, 4]`` world-to-camera (OpenCV: x right, y down, z forward), rigid: the 3x3 block a
             rotation (orthonormal to 1e-3, or 4 epsilons of a bfloat16/float16 dtype; det +1), bottom row
             [0, 0, 0, 1].
-        K: ``[B, V, 3, 3]`` pinhole intrinsics in pixels of the rendered image: zero skew, last row [0, 0, 1].
+        K: ``[B, V, 3, 3]`` pinhole intrinsics in pixels of the rendered image: zero skew, last row [0, 0, 1];
+            a normalised ``K`` (fx, fy < 2 and cx, cy <= 1, for an image wider than 8 px) is refused.
         width, height: image size in pixels.
         background: ``[3]``, ``[B, V, 3]`` or None (black); finite.
         near, far: culling planes on camera z (``1e-6 <= near < far``); a Gaussian at z == near or far is kept.
@@ -235,7 +276,7 @@ def _render(gaussians, w2c, K, width, height, background, near, far, render_norm
     if K.shape[1] != V:
         raise ValueError(f"K: expected V={V} cameras like w2c, got shape {tuple(K.shape)}")
     _check_rotation(w2c, w2c.dtype)  # tolerances from the dtypes given, before the cast below
-    _check_intrinsics(K, K.dtype)
+    _check_intrinsics(K, K.dtype, width, height)
     w2c, K = w2c.to(means.dtype), K.to(means.dtype)
     if not (NEAR_MIN <= near < far):
         raise ValueError(f"near/far: expected {NEAR_MIN:g} <= near < far, got near={near}, far={far}; a near plane "

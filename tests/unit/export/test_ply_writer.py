@@ -64,7 +64,8 @@ def test_the_file_is_byte_for_byte_plyfiles(tmp_path, degree, extra, max_degree,
     g.scales[0, 2, 2] = 0
     g.sh[0, 3, -1, 0] = float("inf")
     path = tmp_path / "s.ply"
-    dropped = save_ply(g, path, extra=prov if extra else None, max_degree=max_degree, pad_degree=pad_degree)
+    with pytest.warns(UserWarning, match="dropped"):  # the bad rows, beside the padding
+        dropped = save_ply(g, path, extra=prov if extra else None, max_degree=max_degree, pad_degree=pad_degree)
     expected = _plyfile_bytes(g, prov if extra else None, max_degree, pad_degree)
     assert path.read_bytes() == expected
     assert dropped == 300 - PlyData.read(str(path))["vertex"].count
@@ -76,7 +77,8 @@ def test_the_file_is_byte_for_byte_plyfiles(tmp_path, degree, extra, max_degree,
 def test_an_empty_scene_and_a_coloured_point_cloud_are_plyfiles_too(tmp_path):
     g, _ = _scene(5, 1)
     g.opacities.fill_(float("nan"))
-    assert save_ply(g, tmp_path / "e.ply") == 5
+    with pytest.warns(UserWarning, match="dropped 4 of 4"):  # the fifth is padding (valid=False)
+        assert save_ply(g, tmp_path / "e.ply") == 5
     assert (tmp_path / "e.ply").read_bytes() == _plyfile_bytes(g, None, 3, None)
     g, _ = _scene(40, 1, seed=1)
     save_points_ply(tmp_path / "p.ply", g)
@@ -100,3 +102,21 @@ def test_the_writer_holds_about_one_copy_of_the_file(tmp_path):
         tracemalloc.stop()
     size = (tmp_path / "s.ply").stat().st_size
     assert peak < 1.3 * size, (peak, size)
+
+
+def test_dropped_rows_are_named_in_one_warning(tmp_path):
+    # save_ply dropped rows it cannot store (a PLY holds log-scales) and reported it only in its return value
+    g, _ = _scene(20, 1)
+    g.valid = None
+    g.quats[0, :3] = 0
+    g.scales[0, 3:5, 1] = 0
+    with pytest.warns(UserWarning, match=r"save_ply: .*s\.ply: dropped 5 of 20 Gaussians with a NaN/inf field, a "
+                                         r"zero-norm rotation or a scale <= 0 .*; 15 written"):
+        assert save_ply(g, tmp_path / "s.ply") == 5
+    assert load_ply(tmp_path / "s.ply").num_gaussians == 15
+
+
+def test_padding_rows_are_dropped_without_a_warning(tmp_path, recwarn):
+    g, _ = _scene(20, 1)  # ~10 % valid=False: a voxel merge's padding, not the user's data
+    assert save_ply(g, tmp_path / "s.ply") == int((~g.valid).sum()) > 0
+    assert not [w for w in recwarn if "save_ply" in str(w.message)]

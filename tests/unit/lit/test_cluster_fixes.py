@@ -388,3 +388,33 @@ def test_the_pose_prior_rre_is_gathered_by_every_rank_even_one_without_evaluatio
     m.on_test_epoch_start()
     m.on_test_epoch_end()  # no rank had a sample: nothing logged
     assert set(logged) == {"test/rre"}
+
+
+def test_auto_backend_on_cuda_with_a_gsplat_without_kernels_falls_back_and_gsplat_is_one_line(monkeypatch):
+    """gsplat 1.x imports without its CUDA kernels (no wheel for this torch, no nvcc) and sets ``_C = None``: 'auto'
+    chose it and the first render died with "'NoneType' object has no attribute ..."."""
+    import sys
+    import types
+
+    from anycity.render import api
+
+    stub = {name: types.ModuleType(name) for name in ("gsplat", "gsplat.cuda", "gsplat.cuda._backend")}
+    stub["gsplat.cuda._backend"]._C = None
+    for name, module in stub.items():
+        monkeypatch.setitem(sys.modules, name, module)
+    for f in (api._module_available, api._gsplat_kernels, api._warn_gsplat_without_kernels):
+        f.cache_clear()
+    try:
+        with warnings.catch_warnings(record=True) as w:
+            warnings.simplefilter("always")
+            assert api.resolve_backend("auto", torch.device("cuda")) == "torch"
+            assert api.resolve_backend("auto", torch.device("cuda")) == "torch"
+        assert len([x for x in w if "without its CUDA kernels" in str(x.message)]) == 1
+        with pytest.raises(ValueError, match=r"^backend='gsplat': gsplat is installed without its CUDA kernels"):
+            api._load("gsplat")
+        stub["gsplat.cuda._backend"]._C = object()  # kernels present
+        api._gsplat_kernels.cache_clear()
+        assert api.resolve_backend("auto", torch.device("cuda")) == "gsplat"
+    finally:
+        for f in (api._module_available, api._gsplat_kernels, api._warn_gsplat_without_kernels):
+            f.cache_clear()

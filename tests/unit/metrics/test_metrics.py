@@ -145,3 +145,47 @@ def test_depth_metrics_median_alignment_and_empty():
     assert out["abs_rel"].max().item() < 1e-5 and out["delta1"].min().item() == 1.0
     empty = depth_metrics(gt, torch.zeros_like(gt))
     assert not empty["valid"].any() and not math.isnan(empty["abs_rel"].sum().item())
+
+
+def _pair(v=2, size=16):
+    g = torch.Generator().manual_seed(0)
+    t = torch.rand(1, v, 3, size, size, generator=g)
+    return (t + 0.05 * torch.randn(t.shape, generator=g)).clamp(0, 1), t
+
+
+@pytest.mark.parametrize("metric", [psnr, ssim])
+@pytest.mark.parametrize(("target", "match"), [
+    # these scored silently: -43 dB for a 0-255 target, view 1 against view 0's target, channels-last as channels
+    (lambda t: (t * 255).round().to(torch.uint8), r"target: expected float images in \[0, 1\], got dtype "
+                                                    r"torch.uint8; use target.float\(\) / 255"),
+    (lambda t: t * 255, r"target: expected values in \[0, 1\], got a maximum of .*; it looks like 0-255; "
+                        r"divide by 255"),
+    (lambda t: t * 2 - 1, r"target: expected values in \[0, 1\], got a minimum of .*; it looks like \[-1, 1\]; "
+                          r"use \(x \+ 1\) / 2"),
+    (lambda t: t[:, :1], r"pred \(1, 2, 3, 16, 16\) and target \(1, 1, 3, 16, 16\) differ; pass one target per "),
+    (lambda t: t.permute(0, 1, 3, 4, 2), r"target: expected \[\.\.\., 3, H, W\] .*; it looks channels-last: use "
+                                         r"target.movedim\(-1, -3\)"),
+    (lambda t: t.index_fill(4, torch.tensor([3]), float("nan")), "target: holds NaN"),
+])
+def test_psnr_and_ssim_refuse_targets_they_would_score_wrongly(metric, target, match):
+    pred, t = _pair()
+    with pytest.raises(ValueError, match=f"{metric.__name__}: {match}"):
+        metric(pred, target(t))
+
+
+@pytest.mark.parametrize("metric", [psnr, ssim])
+def test_psnr_and_ssim_refuse_integer_or_channels_last_predictions(metric):
+    pred, t = _pair()
+    with pytest.raises(ValueError, match=f"{metric.__name__}: pred: expected float images"):
+        metric((pred * 255).to(torch.uint8), t)
+    with pytest.raises(ValueError, match="pred: expected .* it looks channels-last"):
+        metric(pred.permute(0, 1, 3, 4, 2), t)
+
+
+def test_psnr_and_ssim_accept_targets_at_the_ends_of_the_range_and_small_images():
+    pred, t = _pair()
+    t[..., 0, 0], t[..., 0, 1] = 0.0, 1.0
+    assert torch.isfinite(psnr(pred, t)).all() and torch.isfinite(ssim(pred, t)).all()
+    assert torch.isfinite(psnr(pred.half(), t.bfloat16())).all()  # any float dtype
+    p, t = _pair(size=8)
+    assert ssim(p, t).isnan().all()  # no window fits: still NaN, not an error

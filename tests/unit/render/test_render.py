@@ -224,6 +224,11 @@ def test_auto_backend_resolution():
         (lambda a: a["K"].__setitem__((0, 0, 1, 0), -0.01), "K: skew"),
         (lambda a: a["K"].__setitem__((0, 0, 2, 2), 2.0), r"K: last row must be \[0, 0, 1\]"),
         (lambda a: a["K"].__setitem__((0, 0, 2, 0), 1e-3), "K: last row"),
+        # intrinsics divided by W and H rendered a near-empty image without a word
+        (lambda a: a["K"][..., :2, :].div_(16.0),
+         r"K looks normalised \(fx 1.1, cx 0.5813 for a 16x16 image\); multiply rows 0 and 1 by W and H"),
+        (lambda a: a.update(gaussians=Gaussians(**{**vars(a["gaussians"]), "scales": a["gaussians"].scales.log()})),
+         r"gaussians.scales: .* these look like log-scales .*: pass scales.exp\(\)"),
         (lambda a: a.update(gaussians=Gaussians(**{**vars(a["gaussians"]), "means": a["gaussians"].means[..., :2]})),
          "means"),
         (lambda a: a["gaussians"].opacities.__setitem__((0, 0), float("inf")), "opacities"),
@@ -257,3 +262,24 @@ def test_rigid_cameras_and_pinhole_intrinsics_pass_in_every_dtype():
     K[0, 2, 0, 1] = 0.01
     with pytest.raises(ValueError, match="K: skew"):
         render(g, w2c, K.float(), 16, 16, backend="torch")
+
+
+def test_tiny_images_with_small_pixel_focals_and_extreme_network_outputs_render():
+    # the normalised-K check leaves images of 8 px and less alone: their pixel focals and centres can be that small
+    g = make_gaussians(N=10)
+    for w in (2, 8):
+        K = torch.tensor([[1.5, 0, w / 2], [0, 1.5, 1.0], [0, 0, 1]], dtype=F64).expand(1, 1, 3, 3)
+        render(g, torch.eye(4, dtype=F64)[None, None], K.clone(), w, 2, backend="torch")
+    # the network's softplus scales underflow to 0 and a zero raw quaternion stays zero: every render validates,
+    # so they must still render (finite)
+    from anycity.models.gaussians import activate_raw
+
+    raw = torch.zeros(10, 8 + 3)
+    raw[:5, 1:4] = -200.0
+    raw[:5, 7] = 1.0  # xyzw identity: rows 0-4 have zero scales only, rows 5-9 zero quaternions only
+    a = activate_raw(raw, 0)
+    assert (a["scales"][:5] == 0).all() and (a["quats"][5:] == 0).all()
+    g = Gaussians(means=g.means.float(), **{k: v[None].float() for k, v in a.items()})
+    w2c, K = make_cameras(1, 1, 16, 16, dtype=torch.float32)
+    out = render(g, w2c, K, 16, 16, backend="torch")
+    assert torch.isfinite(out.rgb).all() and out.alpha.max() > 0
