@@ -72,14 +72,10 @@ def _warn_no_gsplat() -> None:
 
 @functools.cache  # once per process: gsplat may build its kernels on this import (minutes, the first time)
 def _gsplat_kernels() -> bool:
-    """Whether an installed gsplat has its CUDA kernels. gsplat 1.x loads them lazily: without a prebuilt wheel for
-    this torch and CUDA, and without nvcc to build them, ``import gsplat`` works and sets ``_C = None``, and every
-    render then fails with "'NoneType' object has no attribute ...". Another gsplat layout: assumed present."""
-    try:
-        from gsplat.cuda._backend import _C
-    except ImportError:
-        return True
-    return _C is not None
+    """Whether an installed gsplat has its CUDA kernels (``gsplat_backend.kernels_available``)."""
+    from anycity.render.gsplat_backend import kernels_available
+
+    return kernels_available()
 
 
 @functools.cache  # once per process

@@ -21,6 +21,18 @@ def _gsplat():
     return gsplat
 
 
+def kernels_available() -> bool:
+    """Whether the installed gsplat has its CUDA kernels. gsplat 1.x loads them lazily: without a prebuilt wheel for
+    this torch and CUDA, and without nvcc to build them, ``import gsplat`` works and sets ``_C = None``, and every
+    render then fails with "'NoneType' object has no attribute ...". Another gsplat layout: assumed present. May
+    build the kernels (minutes, the first time)."""
+    try:
+        from gsplat.cuda._backend import _C
+    except ImportError:
+        return True
+    return _C is not None
+
+
 def render_gsplat(means, quats, scales, opacities, sh, valid, w2c, K, width, height, background, near, far,
                   render_normals):
     """Backend entry point (contract in ``anycity.render.api``). gsplat's projection returns no gradient for
