@@ -397,12 +397,26 @@ def _cli_class():
         def _run_subcommand(self, subcommand: str) -> None:
             from lightning.pytorch.utilities import rank_zero_info
 
-            from anycity.lit.keep import keep_previous_run, separate_from_training
+            from anycity.lit.keep import RunLocks, separate_from_training
 
             moved_to = separate_from_training(self.trainer, subcommand) or \
                 self._separate_without_logger(subcommand)  # the training's own files stay as they are
             if moved_to is not None:
                 rank_zero_info(f"anycity: this {subcommand} run's config, logs and previews go to {moved_to}")
+            # a second run in this folder would move this one's files aside and write beside them: refused, before
+            # anything moves; rank 0 alone writes there
+            locks = RunLocks(subcommand, enabled=self.trainer.global_rank == 0)
+            try:
+                locks.take(Path(self.trainer.log_dir or self.trainer.default_root_dir), "--trainer.default_root_dir")
+                self._run_locked(subcommand, locks)
+            finally:
+                locks.release()
+
+        def _run_locked(self, subcommand: str, locks) -> None:
+            """:meth:`_run_subcommand` holding the run folder's lock: a ``predict`` also locks the export folder
+            it moves aside, then earlier runs' files are kept and Lightning runs."""
+            from anycity.lit.keep import keep_previous_run
+
             export_root = scene = None
             if subcommand == "predict":
                 export = next((c for c in self.trainer.callbacks if isinstance(c, PredictionExport)), None)
@@ -422,6 +436,9 @@ def _cli_class():
                         raise ValueError(f"--export.out_dir: the scene folder {folder} would hold the photos "
                                          f"{photos} (an earlier export there is moved aside); pass an "
                                          "--export.out_dir outside it")
+                if export_root is not None:  # another predict into it would move it aside while this one writes
+                    locks.take(export_root / scene if scene else export_root,
+                               "--export.out_dir" if export.out_dir else "--trainer.default_root_dir", beside=True)
             keep_previous_run(self.trainer, subcommand, self.config[subcommand].get("ckpt_path"), export_root, scene)
             from lightning.pytorch.utilities.exceptions import SIGTERMException
 
@@ -432,13 +449,15 @@ def _cli_class():
 
         def _separate_without_logger(self, subcommand: str) -> Path | None:
             """With no logger (``--trainer.logger false``), :func:`~anycity.lit.keep.separate_from_training` for a
-            ``validate|test|predict`` run in a training run's folder (``default_root_dir`` holds
-            ``checkpoints/*.ckpt``): its ``config.yaml``, previews and default ``predictions/`` go to
-            ``<default_root_dir>/<subcommand>/``, not over the training's ``config.yaml``. Returns that folder, or
+            ``validate|test|predict`` run in a training run's folder (``default_root_dir``, by
+            :func:`~anycity.lit.keep.is_training_folder`): its ``config.yaml``, previews and default ``predictions/``
+            go to ``<default_root_dir>/<subcommand>/``, not over the training's ``config.yaml``. Returns that folder, or
             None. A ``--ckpt_path hpc`` is resolved first: Lightning looks for it in ``default_root_dir``."""
+            from anycity.lit.keep import is_training_folder
+
             t = self.trainer
             root = Path(t.default_root_dir)
-            if subcommand == "fit" or t.loggers or not any(root.glob("checkpoints/*.ckpt")):
+            if subcommand == "fit" or t.loggers or not is_training_folder(root):
                 return None
             if self.config_init[subcommand].get("ckpt_path") == "hpc" and t._checkpoint_connector._hpc_resume_path:
                 self.config_init[subcommand]["ckpt_path"] = t._checkpoint_connector._hpc_resume_path

@@ -1,12 +1,15 @@
 """Every command leaves earlier runs' logs, checkpoints and outputs intact (moved aside or refused)."""
 
+import contextlib
+import subprocess
+import sys
 import warnings
 
 import numpy as np
 import pytest
 from PIL import Image
 
-from anycity.cli import build_cli
+from anycity.cli import build_cli, main
 from anycity.data.cli import data_main
 from anycity.lit.keep import free_name
 
@@ -182,3 +185,128 @@ def test_evaluation_without_a_logger_leaves_the_training_config_where_it_was(tin
         assert (run / cmd / "config.yaml").is_file(), cmd
     assert list((run / "predict" / "predictions").rglob("scene.ply"))
     assert sorted(p.name for p in run.iterdir()) == sorted([*files, "predict", "test"])
+
+
+# A run lock taken as anycity takes it (an exclusive flock on the file, which names the holder), by another process.
+_HOLD = ("import fcntl, os, sys; fd = os.open(sys.argv[1], os.O_RDWR | os.O_CREAT, 0o644); "
+         "fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB); "
+         "os.write(fd, f'{sys.argv[2]} (pid {os.getpid()} on here)'.encode()); print('held', flush=True); "
+         "sys.stdin.read()")
+
+
+@contextlib.contextmanager
+def _held(lock, subcommand="fit"):
+    """Another process holding ``lock`` as a running ``anycity <subcommand>`` does, until the block ends."""
+    lock.parent.mkdir(parents=True, exist_ok=True)
+    p = subprocess.Popen([sys.executable, "-c", _HOLD, str(lock), subcommand], stdin=subprocess.PIPE,
+                         stdout=subprocess.PIPE, text=True)
+    try:
+        assert p.stdout.readline().strip() == "held"
+        yield p.pid
+    finally:
+        p.stdin.close()
+        p.wait(timeout=30)
+
+
+def _tree(folder):
+    """Every file under ``folder`` with its bytes (the lock file aside)."""
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*"))
+            if p.is_file() and not p.name.endswith(".anycity-run.lock")}
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="no flock: runs are not guarded")
+def test_a_second_fit_in_a_running_fits_folder_is_refused_and_moves_nothing(tiny_shards, tmp_path, capsys):
+    """Two fits with one default_root_dir each moved the other's live checkpoints/ aside, wrote last.ckpt into one
+    folder and interleaved metrics.csv; the second now stops in one line naming the folder, the run and the fix."""
+    run = tmp_path / "run"
+    build_cli(["fit", *_args(tiny_shards, run)])
+    (run / "checkpoints").mkdir(exist_ok=True)
+    (run / "checkpoints" / "last.ckpt").write_bytes(b"the running fit's")
+    before = _tree(run)
+    assert not (run / ".anycity-run.lock").exists()  # a finished run leaves no lock file
+    with _held(run / ".anycity-run.lock") as pid:
+        assert main(["fit", *_args(tiny_shards, run)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1, err
+    assert f"{run}: another anycity fit (pid {pid} on here) is writing there; wait for it to end, or pass another " \
+           "--trainer.default_root_dir" in err
+    assert _tree(run) == before and not list(run.glob("*.1*"))
+    build_cli(["fit", *_args(tiny_shards, run)])  # the lock is free again: a fresh fit moves the earlier run aside
+    assert (run / "config.1.yaml").is_file() and not (run / ".anycity-run.lock").exists()
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="no flock: runs are not guarded")
+def test_evaluation_started_while_a_fresh_fit_runs_leaves_its_files_alone(tiny_shards, tmp_path, capsys):
+    """A fresh fit has moved its earlier checkpoints to checkpoints.1/ and written none yet: a ``test`` there took
+    the folder for its own, moved the fit's config.yaml and metrics.csv aside and broke its log."""
+    run = tmp_path / "run"
+    (tmp_path / "ck.yaml").write_text("trainer:\n  callbacks:\n  - class_path: lightning.pytorch.callbacks."
+                                      "ModelCheckpoint\n    init_args: {save_last: true, save_top_k: 0, "
+                                      "every_n_train_steps: 1}\n")
+    build_cli(["fit", *_args(tiny_shards, run, ["-c", str(tmp_path / "ck.yaml")])])
+    (run / "checkpoints").rename(run / "checkpoints.1")  # what the running fit's first step did
+    ckpt = tmp_path / "earlier.ckpt"
+    ckpt.write_bytes((run / "checkpoints.1" / "last.ckpt").read_bytes())
+    training = _tree(run)
+    with _held(run / ".anycity-run.lock"):
+        build_cli(["test", *_args(tiny_shards, run), "--ckpt_path", str(run / "checkpoints.1" / "last.ckpt")])
+        now = _tree(run)
+        assert all(now.get(f) == b for f, b in training.items()) and (run / "test" / "metrics.csv").is_file()
+        # no checkpoint in the folder at all (a first fit before its first one): the fit's lock tells
+        (run / "checkpoints.1").rename(tmp_path / "aside")
+        build_cli(["predict", *_args(tiny_shards, run), "--ckpt_path", str(ckpt)])
+        assert list((run / "predict" / "predictions").rglob("scene.ply"))
+    assert {f: (run / f).read_bytes() for f in ("config.yaml", "metrics.csv", "hparams.yaml")} == \
+        {f: training[f] for f in ("config.yaml", "metrics.csv", "hparams.yaml")}
+    assert not list(run.glob("*.1.*")) and not list(run.glob("*.2.*"))
+    # two evaluations in one folder (its own, not a training's): the second is refused, nothing moved
+    ev = tmp_path / "ev"
+    build_cli(["test", *_args(tiny_shards, ev), "--ckpt_path", str(ckpt)])
+    before = _tree(ev)
+    with _held(ev / ".anycity-run.lock", "test") as pid:
+        assert main(["test", *_args(tiny_shards, ev), "--ckpt_path", str(ckpt)]) == 2
+    assert f"{ev}: another anycity test (pid {pid} on here) is writing there" in capsys.readouterr().err
+    assert _tree(ev) == before
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="no flock: runs are not guarded")
+def test_a_shard_set_predict_does_not_move_aside_an_export_another_predict_writes(tiny_shards, tmp_path, capsys):
+    """A shard-set predict moves its whole --export.out_dir aside: it did so under another predict writing there."""
+    out = tmp_path / "out"
+    (out / "scene_a").mkdir(parents=True)
+    (out / "scene_a" / "scene.ply").write_bytes(b"being written")
+    ckpt = tmp_path / "run" / "checkpoints" / "last.ckpt"
+    (tmp_path / "ck.yaml").write_text("trainer:\n  callbacks:\n  - class_path: lightning.pytorch.callbacks."
+                                      "ModelCheckpoint\n    init_args: {save_last: true, save_top_k: 0, "
+                                      "every_n_train_steps: 1}\n")
+    build_cli(["fit", *_args(tiny_shards, tmp_path / "run", ["-c", str(tmp_path / "ck.yaml")])])
+    with _held(tmp_path / ".out.anycity-run.lock", "predict") as pid:
+        assert main(["predict", *_args(tiny_shards, tmp_path / "p"), "--ckpt_path", str(ckpt),
+                     "--export.out_dir", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and f"{out}: another anycity predict (pid {pid} on here) is writing there; " \
+                                          "wait for it to end, or pass another --export.out_dir" in err, err
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith("out")) == ["out"]
+    assert _tree(out) == {"scene_a/scene.ply": b"being written"}
+
+
+def test_moving_aside_never_replaces_a_name_another_run_took_meanwhile(tmp_path, monkeypatch):
+    """``move_aside`` chose a free name, then renamed onto it: a file another process moved there in between was
+    silently replaced."""
+    from anycity.lit import keep
+
+    (tmp_path / "config.yaml").write_text("mine")
+    (tmp_path / "config.1.yaml").write_text("the other run's")
+    (tmp_path / "checkpoints").mkdir()
+    (tmp_path / "checkpoints" / "last.ckpt").write_text("mine")
+    (tmp_path / "checkpoints.1").mkdir()
+    (tmp_path / "checkpoints.1" / "last.ckpt").write_text("the other run's")
+    stale = iter([tmp_path / "config.1.yaml", tmp_path / "checkpoints.1"])  # free when chosen, taken at the rename
+    real = keep.free_name
+    monkeypatch.setattr(keep, "free_name", lambda p: next(stale, None) or real(p))
+    assert keep.move_aside(tmp_path / "config.yaml") == tmp_path / "config.2.yaml"
+    assert keep.move_aside(tmp_path / "checkpoints") == tmp_path / "checkpoints.2"
+    assert (tmp_path / "config.1.yaml").read_text() == "the other run's" == \
+        (tmp_path / "checkpoints.1" / "last.ckpt").read_text()
+    assert (tmp_path / "config.2.yaml").read_text() == "mine" == (tmp_path / "checkpoints.2" / "last.ckpt").read_text()
+    assert not (tmp_path / "config.yaml").exists() and not (tmp_path / "checkpoints").exists()

@@ -8,10 +8,16 @@ run will write are moved aside to the first free ``<name>.<N><suffix>`` (never d
   where they were: a fresh ``fit``'s ``checkpoints/`` folder (a resume with ``--ckpt_path`` keeps and extends it),
   and ``predict``'s export folder (``--export.out_dir`` or ``<log_dir>/predictions``), or only the scene's folder
   in it for a photo folder (so several scenes can be predicted into one ``out_dir``).
+
+Two runs never write one folder at once: each holds a run lock (:class:`RunLocks`) on its log folder, and a
+``predict`` also on the export folder it moves aside, from before anything is moved until it ends.
 """
 
 from __future__ import annotations
 
+import os
+import re
+import socket
 import warnings
 from pathlib import Path
 
@@ -20,17 +26,51 @@ from lightning.pytorch.utilities import rank_zero_info
 
 from anycity.atomic import free_name
 
+try:
+    import fcntl
+except ImportError:  # Windows: runs are not guarded against each other
+    fcntl = None
+
 LOG_FILES = ("metrics.csv", "hparams.yaml", "config.yaml")
+RUN_LOCK = ".anycity-run.lock"  # in a run's log folder; ``.<name>.anycity-run.lock`` beside an export folder
 
 
 def move_aside(path: Path) -> Path | None:
     """Rename ``path`` (file or non-empty folder) to :func:`free_name`; returns the new path or None."""
     if not path.exists() or (path.is_dir() and not any(path.iterdir())):
         return None
-    dest = free_name(path)
-    path.rename(dest)
+    while True:
+        dest = free_name(path)
+        try:  # a free name another process took meanwhile is never replaced: the next one is tried
+            _rename_no_replace(path, dest)
+            break
+        except FileExistsError:
+            continue
     rank_zero_info(f"anycity: kept the previous run's {path} as {dest}")
     return dest
+
+
+def _rename_no_replace(path: Path, dest: Path) -> None:
+    """Rename ``path`` to ``dest``, raising FileExistsError where ``dest`` exists (``os.rename`` replaces a file,
+    and an empty folder): a file is linked then unlinked; a folder renamed over an empty one made here first."""
+    if path.is_dir():
+        dest.mkdir()  # FileExistsError where it exists; then only this process renames onto it
+        try:
+            path.rename(dest)
+        except OSError:
+            dest.rmdir()
+            raise
+        return
+    try:
+        os.link(path, dest)
+    except FileExistsError:
+        raise
+    except OSError:  # a filesystem without hard links: check, then rename (the old, racy way)
+        if dest.exists():
+            raise FileExistsError(dest) from None
+        path.rename(dest)
+        return
+    path.unlink()
 
 
 PREDICT_OUTPUTS = ("scene.ply", "cameras.json", "chunks.json", "inputs", "renders")  # what an export writes
@@ -75,8 +115,8 @@ def keep_previous_run(trainer, subcommand: str, ckpt_path=None, export_root: Pat
 
 
 def separate_from_training(trainer, subcommand: str) -> Path | None:
-    """Point a ``validate``/``test``/``predict`` run whose log folder is a training run's (it holds
-    ``checkpoints/*.ckpt``) at that folder's ``<subcommand>/`` subfolder, so that its ``config.yaml``, ``metrics.csv``,
+    """Point a ``validate``/``test``/``predict`` run whose log folder is a training run's (:func:`is_training_folder`)
+    at that folder's ``<subcommand>/`` subfolder, so that its ``config.yaml``, ``metrics.csv``,
     previews and default ``predictions/`` leave the training's own files where they are. Returns the new log folder,
     or None (other subcommands and folders; loggers other than CSV and TensorBoard, whose folder is not
     ``<root>/<version>``)."""
@@ -85,11 +125,22 @@ def separate_from_training(trainer, subcommand: str) -> Path | None:
     lg = trainer.logger
     if subcommand == "fit" or not isinstance(lg, (CSVLogger, TensorBoardLogger)):
         return None
-    if not any(Path(lg.log_dir).glob("checkpoints/*.ckpt")):
+    if not is_training_folder(Path(lg.log_dir)):
         return None
     # read by log_dir; the logger writes nothing before the run
     lg._version = str(Path(_version_folder(lg)) / subcommand)
     return Path(lg.log_dir)
+
+
+def is_training_folder(folder: Path) -> bool:
+    """Whether ``folder`` is a training run's: it holds ``checkpoints/*.ckpt``, an earlier fit's
+    ``checkpoints.<N>/*.ckpt`` (a fresh fit moves them there before it writes its first), or the run lock of a
+    ``fit`` (running, or killed)."""
+    if any(folder.glob("checkpoints/*.ckpt")):
+        return True
+    if any(re.fullmatch(r"checkpoints\.\d+", d.name) and any(d.glob("*.ckpt")) for d in folder.glob("checkpoints.*")):
+        return True
+    return _lock_holder(folder / RUN_LOCK).startswith("fit ")
 
 
 def _version_folder(logger) -> str:
@@ -159,3 +210,96 @@ class KeepPreviousRun(Callback):
 
     def on_predict_batch_end(self, trainer, *args, **kwargs) -> None:
         self._keep(trainer)
+
+
+class RunLocks:
+    """Exclusive ``flock`` run locks, held until :meth:`release` (or the process's end: a killed run's lock needs no
+    clean-up). Each lock file holds ``<subcommand> (pid N on host)`` for the other run's message and is removed
+    when released. Not taken where the OS or the filesystem has no ``flock`` (the folders are then not guarded).
+
+    Args:
+        subcommand: this run's, e.g. ``fit``.
+        enabled: false on every DDP rank but global rank 0, which alone writes the logs, checkpoints and moves.
+    """
+
+    def __init__(self, subcommand: str, enabled: bool = True) -> None:
+        self.subcommand, self.enabled = subcommand, enabled
+        self.held: list[tuple[int, Path, Path | None]] = []  # descriptor, lock file, topmost folder made for it
+
+    def take(self, folder: Path, option: str, beside: bool = False) -> None:
+        """Lock ``folder`` (made if missing): by ``<folder>/.anycity-run.lock``, or with ``beside`` (a folder that
+        is moved aside) by ``.<name>.anycity-run.lock`` in its parent. ``option`` names the fix in the refusal.
+
+        Raises:
+            ValueError: another process holds it (one line: the folder, that run and the fix).
+        """
+        if not self.enabled or fcntl is None:
+            return
+        folder = Path(folder).absolute()
+        lock = folder.parent / f".{folder.name}{RUN_LOCK}" if beside else folder / RUN_LOCK
+        made = next((p for p in reversed([lock.parent, *lock.parent.parents]) if not p.exists()), None)
+        lock.parent.mkdir(parents=True, exist_ok=True)
+        fd = _flock(lock)
+        if fd is False:
+            holder = _lock_holder(lock) or "run"
+            self._remove_made(lock.parent, made)
+            raise ValueError(f"{folder}: another anycity {holder} is writing there; wait for it to end, or pass "
+                             f"another {option}")
+        if fd is not None:
+            os.ftruncate(fd, 0)
+            os.write(fd, f"{self.subcommand} (pid {os.getpid()} on {socket.gethostname()})\n".encode())
+            self.held.append((fd, lock, made))
+
+    def release(self) -> None:
+        """Remove and unlock every lock taken (and the empty folders made for them), newest first."""
+        while self.held:
+            fd, lock, made = self.held.pop()
+            try:
+                if os.fstat(fd).st_ino == os.stat(lock).st_ino:
+                    lock.unlink()
+            except OSError:
+                pass
+            os.close(fd)
+            self._remove_made(lock.parent, made)
+
+    @staticmethod
+    def _remove_made(folder: Path, made: Path | None) -> None:
+        """Remove ``folder`` and its parents up to ``made`` where this run made them and left them empty."""
+        if made is None:
+            return
+        for p in (folder, *folder.parents):
+            try:
+                p.rmdir()
+            except OSError:
+                return
+            if p == made:
+                return
+
+
+def _flock(lock: Path) -> int | None | bool:
+    """An exclusive ``flock`` on the file ``lock`` (created): its descriptor, False where another process holds
+    it, None where the filesystem has no ``flock``."""
+    while True:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            return False
+        except OSError:  # e.g. a network filesystem without flock
+            os.close(fd)
+            return None
+        try:  # the holder before removed the file as it released it: lock the file now at that path
+            if os.fstat(fd).st_ino == os.stat(lock).st_ino:
+                return fd
+        except FileNotFoundError:
+            pass
+        os.close(fd)
+
+
+def _lock_holder(lock: Path) -> str:
+    """The run a lock file names (``fit (pid N on host)``), or "" (no file, or not written yet)."""
+    try:
+        return lock.read_text(errors="replace").strip()
+    except OSError:
+        return ""
