@@ -1,7 +1,8 @@
 """Crash-safe file writes: temp file + fsync + rename, and disk-full errors that name the path and the size.
 
 A reader (or a rerun after SIGKILL / power loss) sees the old file or the new one, never a partial one; a folder
-written by :func:`staged_folder` appears whole or not at all. Files an earlier run left are moved aside to
+written by :func:`staged_folder` appears whole or not at all, also when two runs write it at once (each fills its
+own stage ``.<name>.partial/<pid>-<8 hex>-<host>/``). Files an earlier run left are moved aside to
 :func:`free_name`, never overwritten (:mod:`anycity.lit.keep`).
 
 Temp files: :func:`atomic_open` writes ``.anycity-tmp-<pid>-<16 hex digits>`` and :func:`atomic_path`
@@ -25,6 +26,7 @@ import os
 import re
 import secrets
 import shutil
+import socket
 import stat
 import time
 from collections.abc import Iterator
@@ -36,6 +38,11 @@ TEMP_PREFIX = ".anycity-tmp-"
 """Every temp file this module writes is named ``TEMP_PREFIX + "<pid>-<16 hex digits>" [+ suffix]``."""
 _TEMP_RE = re.compile(re.escape(TEMP_PREFIX) + r"\d+-[0-9a-f]{16}(\.[^/]*)?")
 _writing: set[str] = set()  # this process's temp files being written now (not stale)
+_STAGE_RE = re.compile(r"(\d+)-[0-9a-f]{8}-(.+)")  # a stage's name in ``.<name>.partial``: <pid>-<8 hex>-<host>
+STAGE_MARK = ".anycity-stage"
+"""The file that marks a stage as this run's while it is filled (removed before the stage is renamed): a stage removed
+and re-created by someone's ``mkdir -p`` lacks it (an inode number may be reused at once)."""
+_stages: dict[str, Path] = {}  # this process's stages being filled -> the folder each becomes
 
 
 def temp_name(folder: str | os.PathLike, suffix: str = "") -> Path:
@@ -109,7 +116,7 @@ def atomic_open(path: str | os.PathLike, tmp_dir: str | os.PathLike | None = Non
     unchanged. ``tmp_dir``: where the temp file lives (default: ``path``'s folder; it must be on the same
     filesystem). ``size``: the bytes it will take, for the disk-full message."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    _make_parent(path)
     tmp = temp_name(tmp_dir or path.parent)
     _writing.add(os.path.abspath(tmp))
     try:
@@ -136,7 +143,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     name and pick a format by it, as ffmpeg does), that becomes ``path`` (fsync, rename) only when the block ends
     without an exception; on one it is removed and ``path`` is unchanged."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    _make_parent(path)
     tmp = temp_name(path.parent, path.suffix)
     _writing.add(os.path.abspath(tmp))
     try:
@@ -162,22 +169,123 @@ def publish(src: str | os.PathLike, dst: str | os.PathLike) -> None:
 @contextmanager
 def staged_folder(path: str | os.PathLike) -> Iterator[Path]:
     """A folder to fill that appears as ``path`` only when the block ends without an exception: it is written as
-    the hidden sibling ``.<name>.partial`` and renamed to ``path``, which must not exist. On an exception, or after
-    a kill, there is no ``path``. A ``.<name>.partial`` that a killed run left is never read and is dropped here, as
-    the shard writer drops its ``*.tar.partial`` files. Write the files inside fsynced (:func:`atomic_write_bytes`),
-    so that the renamed folder also survives a power loss."""
+    this run's own stage ``.<name>.partial/<pid>-<8 hex>-<host>/`` beside ``path`` and renamed to ``path``, which
+    must not exist. On an exception, or after a kill, there is no ``path``. Two runs writing ``path`` at once each
+    fill their own stage; a stage whose run no longer runs (same host, pid gone) is never read and is dropped here,
+    as the shard writer drops its ``*.tar.partial`` files. When ``path`` appeared meanwhile (another run published
+    first), this run's complete copy is moved to ``.<name>.kept-<pid>-<8 hex>`` (never dropped automatically) and
+    ``FileExistsError`` names it. Write the files inside fsynced (:func:`atomic_write_bytes`), so that the renamed
+    folder also survives a power loss; :func:`atomic_open` refuses to re-create a stage removed meanwhile."""
     path = Path(path)
-    stage = path.parent / f".{path.name}.partial"
-    shutil.rmtree(stage, ignore_errors=True)
-    stage.mkdir(parents=True)
+    box = path.parent / f".{path.name}.partial"
+    _drop_stale_stages(box)
+    stage = _new_stage(box)
+    (stage / STAGE_MARK).touch()
+    key = os.path.abspath(stage)
+    _stages[key] = path
     try:
-        yield stage
-    except BaseException:
-        shutil.rmtree(stage, ignore_errors=True)
-        raise
-    if path.exists():  # the rename would replace an empty folder that appeared meanwhile
-        raise FileExistsError(f"{path} appeared while it was being written; the new one is kept as {stage}")
-    publish(stage, path)
+        try:
+            yield stage
+        except BaseException:
+            shutil.rmtree(stage, ignore_errors=True)
+            raise
+        try:
+            (stage / STAGE_MARK).unlink()
+        except FileNotFoundError:  # removed (and maybe re-created by a mkdir(parents=True)) while written
+            shutil.rmtree(stage, ignore_errors=True)
+            raise _stage_gone(stage, path) from None
+        _publish_stage(stage, path)
+    finally:
+        _stages.pop(key, None)
+        try:
+            box.rmdir()  # only when no other run's stage is left in it
+        except OSError:
+            pass
+
+
+def _new_stage(box: Path) -> Path:
+    """Create this run's own stage folder ``box/<pid>-<8 hex>-<host>`` (``box`` made as needed)."""
+    for _ in range(100):
+        box.mkdir(parents=True, exist_ok=True)
+        stage = box / f"{os.getpid()}-{secrets.token_hex(4)}-{socket.gethostname()}"
+        try:
+            stage.mkdir()
+            return stage
+        except FileNotFoundError:  # another run removed the empty box between the two mkdirs
+            continue
+    raise FileExistsError(f"{box}: other runs keep removing this staging folder; run one writer of "
+                          f"{box.parent / box.name[1:].removesuffix('.partial')} at a time")
+
+
+def _drop_stale_stages(box: Path) -> None:
+    """Remove what ``box`` holds except the stages of runs that still run (or run on another host: no way to
+    tell); an entry not named as a stage is an older anycity's leftover (it wrote its files into ``box``)."""
+    try:
+        entries = list(box.iterdir())
+    except (FileNotFoundError, NotADirectoryError):
+        return
+    host = socket.gethostname()
+    for p in entries:
+        m = _STAGE_RE.fullmatch(p.name)
+        if m and (m[2] != host or _pid_runs(int(m[1]))):
+            continue
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p, ignore_errors=True)
+        else:
+            p.unlink(missing_ok=True)
+
+
+def _publish_stage(stage: Path, path: Path) -> None:
+    """Rename the finished ``stage`` to ``path``; if ``path`` is there (another run published first), move the
+    stage to a kept name and raise one line naming it."""
+    if not path.exists():  # the rename would replace an empty folder that appeared meanwhile
+        try:
+            publish(stage, path)
+            return
+        except OSError:
+            if not path.exists():
+                raise
+    kept = path.parent / f".{path.name}.kept-{os.getpid()}-{secrets.token_hex(4)}"
+    os.rename(stage, kept)
+    raise FileExistsError(f"{path} appeared while this run wrote it (another run?); this run's complete copy is "
+                          f"kept as {kept}")
+
+
+def _make_parent(path: Path) -> None:
+    """Create ``path``'s folder. Inside a stage this process fills (:func:`staged_folder`) only the folders below
+    the stage are made: a stage removed meanwhile is one line, not silently re-created half empty."""
+    if _stages:
+        parent = Path(os.path.abspath(path.parent))
+        chain = [parent, *parent.parents]
+        for i, d in enumerate(chain):
+            if str(d) not in _stages:
+                continue
+            target = _stages[str(d)]
+            if not (d / STAGE_MARK).is_file():
+                raise _stage_gone(d, target)
+            try:
+                for sub in reversed(chain[:i]):
+                    sub.mkdir(exist_ok=True)
+            except FileNotFoundError:
+                raise _stage_gone(d, target) from None
+            return
+    path.parent.mkdir(parents=True, exist_ok=True)
+
+
+def _stage_gone(stage: Path, target: Path) -> FileNotFoundError:
+    return FileNotFoundError(f"{stage}: this run's unfinished copy of {target} was removed while it was written "
+                             f"(by another program?); nothing is published, rerun to write {target}")
+
+
+def _pid_runs(pid: int) -> bool:
+    """Whether process ``pid`` of this host runs (another user's counts as running)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # another user's process (EPERM), or no way to tell: assume it runs
+        return True
+    return True
 
 
 def _keep_mode(target: Path, fd: int) -> None:

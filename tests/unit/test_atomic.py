@@ -78,3 +78,81 @@ def test_threads_writing_one_path_do_not_collide(tmp_path):
     [t.join() for t in threads]
     assert errors == []
     assert len(set(p.read_bytes())) == 1 and [q.name for q in tmp_path.iterdir()] == ["f.bin"]
+
+
+def _tree(root) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def test_two_writers_of_one_staged_folder_each_publish_or_keep_a_complete_copy(tmp_path):
+    """Two runs of one folder interleaved: B's start deleted A's half-written ``.scene.partial``, A went on into a
+    re-created one and published a scene without its ``scene.ply`` (exit 0)."""
+    import re
+    from contextlib import ExitStack
+
+    from anycity.atomic import staged_folder
+
+    out = tmp_path / "scene"
+    with ExitStack() as a_stack:
+        a = a_stack.enter_context(staged_folder(out))  # writer A starts
+        atomic_write_bytes(a / "scene.ply", b"A-ply")
+        b_cm = staged_folder(out)
+        b = b_cm.__enter__()  # writer B starts while A writes
+        atomic_write_bytes(a / "sub" / "cameras.json", b"A-cams")
+        atomic_write_bytes(b / "scene.ply", b"B-ply")
+    assert _tree(out) == {"scene.ply": b"A-ply", "sub/cameras.json": b"A-cams"}  # A's, complete
+    atomic_write_bytes(b / "sub" / "cameras.json", b"B-cams")
+    with pytest.raises(FileExistsError, match=r"scene appeared while this run wrote it \(another run\?\); this "
+                                              r"run's complete copy is kept as .*/\.scene\.kept-\d+-[0-9a-f]{8}$") as e:
+        b_cm.__exit__(None, None, None)
+    kept = Path(re.search(r"kept as (\S+)$", str(e.value))[1])
+    assert _tree(kept) == {"scene.ply": b"B-ply", "sub/cameras.json": b"B-cams"}  # B's, complete, not dropped
+    assert _tree(out) == {"scene.ply": b"A-ply", "sub/cameras.json": b"A-cams"}
+    assert sorted(p.name for p in tmp_path.iterdir()) == [kept.name, "scene"]  # both stages gone
+    with staged_folder(tmp_path / "next") as c:  # a later run of another folder leaves the kept copy alone
+        atomic_write_bytes(c / "f", b"c")
+    assert kept.is_dir()
+
+
+def test_a_stage_removed_while_written_is_one_line_not_silently_recreated(tmp_path):
+    import shutil
+
+    from anycity.atomic import staged_folder
+
+    out = tmp_path / "scene"
+    with pytest.raises(FileNotFoundError, match=r"this run's unfinished copy of .*scene was removed while it was "
+                                                r"written \(by another program\?\); nothing is published"):
+        with staged_folder(out) as stage:
+            atomic_write_bytes(stage / "scene.ply", b"ply")
+            shutil.rmtree(stage)
+            atomic_write_bytes(stage / "renders" / "000.png", b"png")
+    assert not out.exists() and not stage.exists()
+    with pytest.raises(FileNotFoundError, match="nothing is published"):  # re-created by someone's mkdir -p
+        with staged_folder(out) as stage:
+            shutil.rmtree(stage)
+            stage.mkdir(parents=True)
+            (stage / "half").write_bytes(b"")
+    assert not out.exists()
+
+
+def test_only_the_stages_of_runs_that_no_longer_run_are_dropped(tmp_path):
+    import socket
+    import subprocess
+    import sys
+
+    from anycity.atomic import staged_folder
+
+    out, box = tmp_path / "scene", tmp_path / ".scene.partial"
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    host = socket.gethostname()
+    killed = box / f"{int(dead.stdout)}-0123abcd-{host}"  # what a killed run leaves
+    live = box / f"{os.getpid()}-89abcdef-{host}"  # another live writer of this host (its pid runs)
+    remote = box / f"{int(dead.stdout)}-0123abcd-another-host.example"  # a writer on another machine
+    for d in (killed, live, remote):
+        (d / "sub").mkdir(parents=True)
+        (d / "sub" / "f").write_bytes(b"x")
+    (box / "scale.json").write_text("{}")  # an older anycity's stage: its files directly in .scene.partial
+    with staged_folder(out) as stage:
+        atomic_write_bytes(stage / "f", b"mine")
+    assert _tree(out) == {"f": b"mine"}
+    assert sorted(p.name for p in box.iterdir()) == sorted([live.name, remote.name])

@@ -48,9 +48,27 @@ def render_view(scene: ViewScene, w2c: torch.Tensor, K: torch.Tensor, width: int
     return (out.rgb[0, 0].clamp(0, 1).permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8)
 
 
-def save_render(scene: ViewScene, wxyz, position, fov_y: float, aspect: float, height: int = 480) -> Path:
+def scene_identity(path: str | Path) -> tuple[int, int] | None:
+    """``(st_dev, st_ino)`` of the scene folder at ``path`` (a predict folder, or the folder of a ``scene.ply``);
+    None when it is gone. A re-predict moves the folder aside and writes a new one, so the identity taken when the
+    viewer loads the scene tells the loaded folder from the one now at its path."""
+    path = Path(path)
+    try:
+        st = (path if path.is_dir() else path.parent).stat()
+    except OSError:
+        return None
+    return st.st_dev, st.st_ino
+
+
+def save_render(scene: ViewScene, wxyz, position, fov_y: float, aspect: float, height: int = 480,
+                loaded: tuple[int, int] | None = None) -> Path:
     """Our render of the viewer's current camera (as :func:`camera_w2c` takes it) at ``height`` px, written to
-    ``<scene folder>/view_renders/render_<time>[_N].png`` (never over an earlier one); returns the file."""
+    ``<scene folder>/view_renders/render_<time>[_N].png`` (never over an earlier one); returns the file.
+    ``loaded``: the :func:`scene_identity` taken when ``scene`` was loaded; a scene folder that has changed since
+    (re-predicted, or moved aside while a re-predict runs) gets nothing, and ``FileNotFoundError`` says so."""
+    if loaded is not None and scene_identity(scene.folder) != loaded:
+        raise FileNotFoundError(f"{scene.folder}: the scene was replaced on disk (re-predicted?) since this viewer "
+                                f"loaded it; no render saved; restart anycity view {scene.folder} to load the new one")
     w = max(1, round(height * aspect))
     w2c, K = camera_w2c(wxyz, position, fov_y, w, height)
     out = scene.folder / "view_renders"
@@ -152,6 +170,7 @@ def build_server(path: str | Path, host: str = "127.0.0.1", port: int = 8080, ca
     taken one moves up (:func:`listen_port`); ``cameras=False`` hides the camera frustums."""
     viser = _viser()
     port = listen_port(host, port)
+    loaded = scene_identity(path)  # before loading: a scene replaced meanwhile reads as changed, never the reverse
     scene = load_view_scene(path)
     server = viser.ViserServer(host=host, port=port, verbose=False)
     server.scene.set_up_direction("-y")  # no cameras: the first camera's "up" (OpenCV: y points down)
@@ -191,7 +210,11 @@ def build_server(path: str | Path, host: str = "127.0.0.1", port: int = 8080, ca
     @button.on_click
     def _(event) -> None:
         cam = event.client.camera
-        f = save_render(scene, cam.wxyz, cam.position, cam.fov, cam.aspect)
+        try:
+            f = save_render(scene, cam.wxyz, cam.position, cam.fov, cam.aspect, loaded=loaded)
+        except OSError as e:  # a callback's exception is a server-side traceback and nothing in the browser
+            info.content = _share_text(scene) + f"\n\nno render saved: {e}"
+            return
         info.content = _share_text(scene) + f"\n\nsaved `{f}`"
 
     return server, scene

@@ -107,3 +107,43 @@ def test_a_ply_of_sh_degree_5_is_one_line_naming_it(tmp_path):
                                          r"degree 5; anycity reads degree 0 to 4") as e:
         load_view_scene(folder)
     assert "\n" not in str(e.value)
+
+
+def test_save_render_during_and_after_a_re_predict_saves_nowhere_and_says_so_in_the_panel(tmp_path, monkeypatch):
+    """"Save render" wrote by path: while a re-predict had the folder moved aside it raised FileNotFoundError (a
+    server traceback, nothing in the browser), and afterwards it saved the old scene's render into the new folder."""
+    import os
+    import re
+    from types import SimpleNamespace
+
+    import viser
+    from viser._gui_handles import GuiButtonHandle
+
+    clicks, panels, add_markdown = [], [], viser.GuiApi.add_markdown
+    monkeypatch.setattr(GuiButtonHandle, "on_click", lambda self, f: clicks.append(f) or f)
+    monkeypatch.setattr(viser.GuiApi, "add_markdown",
+                        lambda self, *a, **k: panels.append(add_markdown(self, *a, **k)) or panels[-1])
+    (tmp_path / "out").mkdir()
+    folder = tmp_path / "out" / "scene"
+    folder.mkdir()
+    tiny_predict_folder(folder, n=50)
+    server, scene = build_server(folder, port=0)
+    try:
+        (click,), (info,) = clicks, panels
+        cam = SimpleNamespace(wxyz=np.array([1.0, 0, 0, 0]), position=np.array([0.0, 0, -4]), fov=1.0, aspect=1.0)
+        click(SimpleNamespace(client=SimpleNamespace(camera=cam)))  # the scene as loaded: saved in its folder
+        assert len(list((folder / "view_renders").glob("render_*.png"))) == 1 and "saved `" in info.content
+        os.rename(folder, tmp_path / "out" / "scene.1")  # a re-predict moves the scene aside first
+        click(SimpleNamespace(client=SimpleNamespace(camera=cam)))
+        replaced = (rf"no render saved: {re.escape(str(folder))}: the scene was replaced on disk \(re-predicted\?\) "
+                    rf"since this viewer loaded it; no render saved; restart anycity view {re.escape(str(folder))} to "
+                    "load the new one$")
+        assert re.search(replaced, info.content), info.content
+        folder.mkdir()
+        tiny_predict_folder(folder, n=60)  # ... and writes the new scene at the old path
+        click(SimpleNamespace(client=SimpleNamespace(camera=cam)))
+        assert re.search(replaced, info.content), info.content
+        assert not (folder / "view_renders").exists()  # not the old scene's render in the new scene's folder
+        assert len(list((tmp_path / "out" / "scene.1" / "view_renders").glob("*.png"))) == 1
+    finally:
+        server.stop()
