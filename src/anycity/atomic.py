@@ -227,7 +227,7 @@ def _drop_stale_stages(box: Path) -> None:
     host = socket.gethostname()
     for p in entries:
         m = _STAGE_RE.fullmatch(p.name)
-        if m and (m[2] != host or _pid_runs(int(m[1]))):
+        if m and (m[2] != host or pid_runs(int(m[1]))):
             continue
         if p.is_dir() and not p.is_symlink():
             shutil.rmtree(p, ignore_errors=True)
@@ -277,7 +277,7 @@ def _stage_gone(stage: Path, target: Path) -> FileNotFoundError:
                              f"(by another program?); nothing is published, rerun to write {target}")
 
 
-def _pid_runs(pid: int) -> bool:
+def pid_runs(pid: int) -> bool:
     """Whether process ``pid`` of this host runs (another user's counts as running)."""
     try:
         os.kill(pid, 0)

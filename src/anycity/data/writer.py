@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import webdataset as wds
 
-from anycity.atomic import atomic_write_bytes
+from anycity.atomic import atomic_write_bytes, pid_runs
 from anycity.data.schema import CAMERAS_KEY, SCHEMA_VERSION, SceneRecord, encode_scene, split_windows, window_bounds
 
 SPLITS = ("train", "val", "test")
@@ -313,16 +313,6 @@ def _read_lock(path: Path) -> tuple[str, dict | None] | None:
     return text, holder if ok else None
 
 
-def _pid_runs(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except OSError:  # another user's process (EPERM), or no way to tell: assume it runs
-        return True
-    return True
-
-
 def _acquire_lock(out: Path) -> tuple[Path, str]:
     """Create ``out/LOCK_NAME`` exclusively (O_CREAT | O_EXCL) with this run's pid and host, or refuse in one line;
     a lock of a process of this host that no longer runs is taken over with a warning. Returns the lock's path and
@@ -343,7 +333,7 @@ def _acquire_lock(out: Path) -> tuple[Path, str]:
                 raise FileExistsError(f"{out}: another run may be writing a shard set here (lock file {path}, not "
                                       f"readable as one); wait for it or choose another --out, or, if no run writes "
                                       f"there, delete {path}") from None
-            if holder["host"] != host or _pid_runs(holder["pid"]):
+            if holder["host"] != host or pid_runs(holder["pid"]):
                 since = f", since {holder['started']}" if isinstance(holder.get("started"), str) else ""
                 raise FileExistsError(f"{out}: another run (pid {holder['pid']} on {holder['host']}{since}) is "
                                       f"writing a shard set here (lock file {path}); wait for it to finish or choose "
@@ -435,7 +425,7 @@ def _no_index_hint(root: Path) -> str:
         names = []
     found = _read_lock(root / LOCK_NAME) if LOCK_NAME in names else None
     holder = found[1] if found else None
-    if holder and holder["host"] == socket.gethostname() and _pid_runs(holder["pid"]):
+    if holder and holder["host"] == socket.gethostname() and pid_runs(holder["pid"]):
         return (f"{p}: no index.json yet: `anycity data` (pid {holder['pid']}) is still writing this shard set; "
                 "wait for it to finish")
     left = sorted(n for n in names if n == LOCK_NAME or n.endswith(".tar.partial"))
