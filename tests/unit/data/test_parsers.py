@@ -682,6 +682,18 @@ def test_every_jpeg_suffix_a_photo_folder_reads_is_stored_as_its_own_jpeg_bytes(
     assert rec.ext == "jpg" and rec.image == buf.tobytes()
 
 
+def test_an_image_name_that_names_the_images_folder_is_one_line(tmp_path):
+    """A damaged images.bin whose image name came out empty put ``images/`` itself as the image: a raw
+    IsADirectoryError (found by the slow fuzz of images.bin)."""
+    from anycity.data.parsers.base import ParsedView, _load_view
+
+    (tmp_path / "images").mkdir()
+    view = ParsedView("", tmp_path / "images" / "", np.eye(4), K, W, H)
+    with pytest.raises(ValueError, match=r"images: a folder, not the image of view ''; the camera file's image name "
+                                         r"is damaged"):
+        _load_view(view, None)
+
+
 def _image_blocks(gt, points="1.0 2.0 -1"):
     """``images.txt`` blocks: per image its line and its POINTS2D line ``points``, each ending in a newline."""
     blocks = []

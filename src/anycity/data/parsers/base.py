@@ -134,6 +134,9 @@ def _check_maps(mx: np.ndarray, my: np.ndarray, bad: str) -> None:
 def _decode(v: ParsedView) -> tuple[bytes, np.ndarray]:
     """The file's bytes and its stored pixels ``[H, W, 3]`` uint8 BGR, or one line naming the file."""
     path = require(v.image_path, f"the image of view {v.name}")
+    if path.is_dir():  # an empty image name in the camera file names the images folder itself
+        raise ValueError(f"{path}: a folder, not the image of view {v.name!r}; the camera file's image name is "
+                         "damaged (re-export the model)")
     check_jpeg_complete(path)  # OpenCV 4.x decodes a cut JPEG without a word, the missing rows grey
     raw = path.read_bytes()
     # The stored pixels, which the cameras describe (COLMAP ignores the EXIF orientation); the shards are decoded so.
