@@ -17,6 +17,21 @@ import torch
 from torch import Tensor
 
 SH_C0 = 0.28209479177387814  # Y_0^0, so that colour = SH_C0 * sh_dc + 0.5
+IMAGE_MIN, IMAGE_MAX = -1e-3, 1.0 + 1e-3  # [0, 1] images, with room for a resize's rounding
+
+
+def image_range(images: Tensor) -> tuple[float, float, str | None]:
+    """``(min, max, fault)`` of images meant to hold [0, 1] values (one reduction, one host sync). ``fault`` says
+    what they look like instead, for the caller's fix: None (fine), "nonfinite" (NaN or inf), "signed" ([-1, 1]),
+    "normalised" (mean/std, e.g. ImageNet), "0-255", or "over" (a little above 1)."""
+    lo, hi = torch.stack(torch.aminmax(images.detach())).tolist()
+    if not (math.isfinite(lo) and math.isfinite(hi)):  # aminmax spreads a NaN to both
+        return lo, hi, "nonfinite"
+    if lo < IMAGE_MIN:
+        return lo, hi, "signed" if lo >= -1 + IMAGE_MIN and hi <= IMAGE_MAX else "normalised"
+    if hi > IMAGE_MAX:
+        return lo, hi, "0-255" if hi > 2 else "over"
+    return lo, hi, None
 
 
 def _shape_error(name: str, expected: str, t: Tensor) -> ValueError:

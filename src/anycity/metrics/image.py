@@ -12,14 +12,12 @@ also counts the border pixels, whose windows read a reflected image (at 48 px 38
 
 from __future__ import annotations
 
-import math
-
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 from torchmetrics.functional.image import peak_signal_noise_ratio
 
-TARGET_MIN, TARGET_MAX = -1e-3, 1.0 + 1e-3  # [0, 1], with room for a resize's rounding (as the network's check)
+from anycity.structures import image_range
 
 
 def _flat(x: Tensor) -> Tensor:
@@ -46,17 +44,17 @@ def check_pair(name: str, pred: Tensor, target: Tensor) -> None:
                          "per predicted image (no broadcasting)")
     if not target.numel() or target.is_meta:
         return
-    lo, hi = torch.stack(torch.aminmax(target.detach())).tolist()
-    if not (math.isfinite(lo) and math.isfinite(hi)):  # aminmax spreads a NaN to both
+    lo, hi, fault = image_range(target)
+    if fault == "nonfinite":
         raise ValueError(f"{name}: target: holds NaN or infinite values; find them with ~torch.isfinite(target)")
-    if lo < TARGET_MIN:
-        fix = ("it looks like [-1, 1]; use (x + 1) / 2" if lo >= -1 + TARGET_MIN and hi <= TARGET_MAX
-               else "it looks mean/std-normalised (e.g. ImageNet); undo it: x * std + mean")
+    if fault in ("signed", "normalised"):
+        fix = {"signed": "it looks like [-1, 1]; use (x + 1) / 2",
+               "normalised": "it looks mean/std-normalised (e.g. ImageNet); undo it: x * std + mean"}
         raise ValueError(f"{name}: target: expected values in [0, 1], got a minimum of {lo:.4g} (maximum {hi:.4g}); "
-                         f"{fix}")
-    if hi > TARGET_MAX:
-        fix = "it looks like 0-255; divide by 255" if hi > 2 else "clamp it to [0, 1]"
-        raise ValueError(f"{name}: target: expected values in [0, 1], got a maximum of {hi:.4g}; {fix}")
+                         f"{fix[fault]}")
+    if fault in ("0-255", "over"):
+        fix = {"0-255": "it looks like 0-255; divide by 255", "over": "clamp it to [0, 1]"}
+        raise ValueError(f"{name}: target: expected values in [0, 1], got a maximum of {hi:.4g}; {fix[fault]}")
 
 
 def psnr(pred: Tensor, target: Tensor) -> Tensor:

@@ -17,11 +17,11 @@ from anycity.models.heads import CameraHead, DepthHead, GaussianHead
 from anycity.models.pose_prior import load_pose_prior, pose_features
 from anycity.models.presets import NetConfig
 from anycity.models.video_prior import WanVideoPrior, build_video_prior
+from anycity.structures import image_range
 
 SCAFFOLD_PREFIXES = ("aggregator.", "camera_head.", "depth_head.", "gaussian_head.")
 REFINEMENT_PREFIXES = ("completion.", "video_prior.")
 IMAGE_DTYPES = (torch.float32, torch.bfloat16, torch.float16)
-IMAGE_MIN, IMAGE_MAX = -1e-3, 1.0 + 1e-3  # [0, 1] images, with room for a resize's rounding
 
 
 def _float32_region(device: torch.device) -> contextlib.AbstractContextManager:
@@ -36,18 +36,19 @@ def _float32_region(device: torch.device) -> contextlib.AbstractContextManager:
 def _check_range(images: Tensor) -> None:
     """One-line error for ``images`` with values outside [0, 1] (a resize's rounding allowed) or NaN/inf, with the
     fix that fits what they look like: [-1, 1], mean/std-normalised (ImageNet), 0-255."""
-    lo, hi = torch.stack(torch.aminmax(images.detach())).tolist()  # one reduction, one host sync
-    if not (math.isfinite(lo) and math.isfinite(hi)):  # aminmax spreads a NaN to both
+    lo, hi, fault = image_range(images)  # one reduction, one host sync
+    if fault == "nonfinite":
         got = "NaN" if math.isnan(lo) else f"a minimum of {lo:.4g} and a maximum of {hi:.4g}"
         raise ValueError(f"images: expected finite values in [0, 1], got {got}; find the non-finite pixels "
                          "(~torch.isfinite(images)) and fix the loading or preprocessing that made them")
-    if lo < IMAGE_MIN:
-        fix = ("they look like [-1, 1]; use (x + 1) / 2" if lo >= -1 + IMAGE_MIN and hi <= IMAGE_MAX
-               else "they look mean/std-normalised (e.g. ImageNet); undo the normalisation: x * std + mean")
-        raise ValueError(f"images: expected values in [0, 1], got a minimum of {lo:.4g} (maximum {hi:.4g}); {fix}")
-    if hi > IMAGE_MAX:
-        fix = "images look like 0-255; divide by 255" if hi > 2 else "clamp them to [0, 1]"
-        raise ValueError(f"images: expected values in [0, 1], got a maximum of {hi:.4g}; {fix}")
+    if fault in ("signed", "normalised"):
+        fix = {"signed": "they look like [-1, 1]; use (x + 1) / 2",
+               "normalised": "they look mean/std-normalised (e.g. ImageNet); undo the normalisation: x * std + mean"}
+        raise ValueError(f"images: expected values in [0, 1], got a minimum of {lo:.4g} (maximum {hi:.4g}); "
+                         f"{fix[fault]}")
+    if fault in ("0-255", "over"):
+        fix = {"0-255": "images look like 0-255; divide by 255", "over": "clamp them to [0, 1]"}
+        raise ValueError(f"images: expected values in [0, 1], got a maximum of {hi:.4g}; {fix[fault]}")
 
 
 def _layout_fix(images) -> str:
