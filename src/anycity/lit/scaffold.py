@@ -15,6 +15,7 @@ from torch import Tensor
 from anycity.geometry.pose_encoding import extri_intri_to_pose_encoding
 from anycity.lit.base import AnyCityModule, float32_outside_net
 from anycity.losses import camera_loss, depth_z_loss, normal_loss, ray_anchor_loss, rgb_loss
+from anycity.models.anycity import REFINEMENT_PREFIXES
 from anycity.structures import ViewBatch
 
 
@@ -72,7 +73,7 @@ class ScaffoldModule(AnyCityModule):
         # Stage I checkpoints written before Stage I stopped building the completion branch carry its (untrained)
         # weights; this module has no place for them
         sd = checkpoint.get("state_dict", {})
-        for k in [k for k in sd if k.startswith(("net.completion.", "net.video_prior."))]:
+        for k in [k for k in sd if k.startswith(tuple(f"net.{p}" for p in REFINEMENT_PREFIXES))]:
             del sd[k]
 
     @float32_outside_net

@@ -30,6 +30,7 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor, nn
 
+from anycity.models.anycity import REFINEMENT_PREFIXES
 from anycity.models.pose_prior import rebuild_pose_prior
 from anycity.models.presets import build_network
 from anycity.safe_load import safe_torch_load
@@ -49,7 +50,6 @@ LAYOUT_HINTS = {
 }
 NET_PREFIX = "net."  # the Lightning modules hold the network as ``self.net``
 STAGE1_CLASS = "ScaffoldModule"  # lit/scaffold.py: Stage I, which builds no completion branch
-STAGE1_DROPPED = ("completion.", "video_prior.")  # untrained branch older Stage I checkpoints carry
 
 
 @dataclass
@@ -298,7 +298,7 @@ def load_checkpoint(path: str | Path, *, map_location: str | torch.device = "cpu
         raise ValueError(f"checkpoint {path}: {e} (written by another anycity version?)") from None
     weights = {k[len(NET_PREFIX):]: v for k, v in state.items() if k.startswith(NET_PREFIX)}
     if net.completion is None:  # as ScaffoldModule.on_load_checkpoint
-        weights = {k: v for k, v in weights.items() if not k.startswith(STAGE1_DROPPED)}
+        weights = {k: v for k, v in weights.items() if not k.startswith(REFINEMENT_PREFIXES)}
     rebuild_pose_prior(net, weights, "pose_prior.", ckpt.get("pose_prior") or {})
     _load_strict(net, weights, path)
     return net.to(map_location).eval()
