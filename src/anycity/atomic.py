@@ -34,6 +34,13 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import BinaryIO
 
+try:
+    import fcntl
+except ImportError:  # not POSIX: no flock, and what it guards goes unguarded
+    fcntl = None
+
+HAS_FLOCK = fcntl is not None
+
 TEMP_PREFIX = ".anycity-tmp-"
 """Every temp file this module writes is named ``TEMP_PREFIX + "<pid>-<16 hex digits>" [+ suffix]``."""
 _TEMP_RE = re.compile(re.escape(TEMP_PREFIX) + r"\d+-[0-9a-f]{16}(\.[^/]*)?")
@@ -275,6 +282,21 @@ def _make_parent(path: Path) -> None:
 def _stage_gone(stage: Path, target: Path) -> FileNotFoundError:
     return FileNotFoundError(f"{stage}: this run's unfinished copy of {target} was removed while it was written "
                              f"(by another program?); nothing is published, rerun to write {target}")
+
+
+def try_flock(fd: int) -> bool | None:
+    """An exclusive, non-blocking ``flock`` on the open descriptor ``fd``: True when taken (held until ``fd`` is
+    closed or the process ends), False when another process holds it, None where the OS or the filesystem (a network
+    one) has no ``flock``, so the caller goes unguarded. ``fd`` stays open either way."""
+    if fcntl is None:
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return False
+    except OSError:
+        return None
+    return True
 
 
 def pid_runs(pid: int) -> bool:

@@ -29,18 +29,13 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from anycity.atomic import atomic_write_bytes, publish
+from anycity.atomic import HAS_FLOCK, atomic_write_bytes, publish, try_flock
 from anycity.city.align import ChunkGeometry, sim3_parts, w2c_to_world
 from anycity.city.merge import PlyStream, sim3_gaussians
 from anycity.city.plan import owners
 from anycity.city.posegraph import align_chunks
 from anycity.export.cameras import save_cameras
 from anycity.structures import Gaussians
-
-try:
-    import fcntl
-except ImportError:  # not POSIX: spill folders are not guarded against a concurrent run
-    fcntl = None
 
 WORK_SUFFIX = ".anycity_city_work"
 _HELD: dict[str, int] = {}  # spill folder -> descriptor holding its lock, for this process's ChunkedScenes
@@ -236,16 +231,14 @@ def _lock(folder: Path) -> int | None:
     Raises:
         BlockingIOError: another process holds it.
     """
-    if fcntl is None:
+    if not HAS_FLOCK:
         return None
     fd = os.open(folder, os.O_RDONLY)
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
+    taken = try_flock(fd)
+    if not taken:
         os.close(fd)
-        raise
-    except OSError:  # e.g. a network filesystem without flock
-        os.close(fd)
+        if taken is False:
+            raise BlockingIOError(f"{folder}: locked by another process")
         return None
     return fd
 

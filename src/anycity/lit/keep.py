@@ -24,12 +24,7 @@ from pathlib import Path
 from lightning.pytorch import Callback
 from lightning.pytorch.utilities import rank_zero_info
 
-from anycity.atomic import free_name
-
-try:
-    import fcntl
-except ImportError:  # Windows: runs are not guarded against each other
-    fcntl = None
+from anycity.atomic import HAS_FLOCK, free_name, try_flock
 
 LOG_FILES = ("metrics.csv", "hparams.yaml", "config.yaml")
 RUN_LOCK = ".anycity-run.lock"  # in a run's log folder; ``.<name>.anycity-run.lock`` beside an export folder
@@ -233,7 +228,7 @@ class RunLocks:
         Raises:
             ValueError: another process holds it (one line: the folder, that run and the fix).
         """
-        if not self.enabled or fcntl is None:
+        if not self.enabled or not HAS_FLOCK:
             return
         folder = Path(folder).absolute()
         lock = folder.parent / f".{folder.name}{RUN_LOCK}" if beside else folder / RUN_LOCK
@@ -281,14 +276,10 @@ def _flock(lock: Path) -> int | None | bool:
     it, None where the filesystem has no ``flock``."""
     while True:
         fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
+        taken = try_flock(fd)
+        if not taken:  # another process holds it (False), or no flock here (None)
             os.close(fd)
-            return False
-        except OSError:  # e.g. a network filesystem without flock
-            os.close(fd)
-            return None
+            return taken
         try:  # the holder before removed the file as it released it: lock the file now at that path
             if os.fstat(fd).st_ino == os.stat(lock).st_ino:
                 return fd
