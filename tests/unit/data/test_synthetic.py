@@ -313,7 +313,9 @@ def test_a_failure_in_the_main_process_cancels_the_queued_scenes(tmp_path, monke
     monkeypatch.setattr(synthetic, "ProcessPoolExecutor", Recording)
     monkeypatch.setattr(ShardSetWriter, "write", full)
     with pytest.raises(OSError, match="No space left"):
-        synth(tmp_path / "s", scenes=24, views=4, size="32x32", workers=2, window=None)
+        # scenes of about 0.25 s each (32x32 x 4 views took 0.08 s): a main thread slowed by a busy machine let a
+        # seventh finish before the shutdown
+        synth(tmp_path / "s", scenes=24, views=8, size="96x96", workers=2, window=None)
     assert len(futures) == 24
     # at most the two running scenes, the three in the pool's call queue and one more finished meanwhile
     assert sum(f.cancelled() for f in futures) >= 24 - 6, [f._state for f in futures]
