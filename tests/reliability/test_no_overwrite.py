@@ -1,6 +1,7 @@
 """Every command leaves earlier runs' logs, checkpoints and outputs intact (moved aside or refused)."""
 
 import contextlib
+import os
 import subprocess
 import sys
 import warnings
@@ -310,3 +311,62 @@ def test_moving_aside_never_replaces_a_name_another_run_took_meanwhile(tmp_path,
         (tmp_path / "checkpoints.1" / "last.ckpt").read_text()
     assert (tmp_path / "config.2.yaml").read_text() == "mine" == (tmp_path / "checkpoints.2" / "last.ckpt").read_text()
     assert not (tmp_path / "config.yaml").exists() and not (tmp_path / "checkpoints").exists()
+
+
+def test_a_folder_holding_only_an_earlier_fits_moved_checkpoints_is_a_training_folder(tmp_path):
+    """A fresh fit moves its earlier checkpoints to ``checkpoints.<N>/`` before it writes its first: an evaluation
+    there took the folder for its own and moved the training's config.yaml and metrics.csv aside."""
+    from anycity.lit.keep import is_training_folder
+
+    moved, empty, other = (tmp_path / n for n in ("moved", "empty", "other"))
+    (moved / "checkpoints.1").mkdir(parents=True)
+    (moved / "checkpoints.1" / "last.ckpt").write_bytes(b"x")
+    assert is_training_folder(moved)
+    (empty / "checkpoints.1").mkdir(parents=True)  # no checkpoint in it
+    (empty / "checkpoints").mkdir()
+    assert not is_training_folder(empty)
+    (other / "checkpoints.x").mkdir(parents=True)  # not a name move_aside gives
+    (other / "checkpoints.x" / "a.ckpt").write_bytes(b"x")
+    assert not is_training_folder(other)
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="no flock: runs are not guarded")
+def test_releasing_a_run_lock_leaves_a_lock_file_another_run_made_at_its_path(tmp_path):
+    """``release`` unlinked whatever file was at the lock's path: one another run had made there (after this one's
+    was removed) and locked went too, so a third run found the folder free while the second wrote to it."""
+    from anycity.lit.keep import RUN_LOCK, RunLocks
+
+    run = tmp_path / "run"
+    locks = RunLocks("fit")
+    locks.take(run, "--trainer.default_root_dir")
+    lock = run / RUN_LOCK
+    lock.unlink()  # removed while held, and made again by another run (a new file: this run's is still open)
+    lock.write_text("test (pid 1 on there)\n")
+    locks.release()
+    assert lock.is_file() and lock.read_text() == "test (pid 1 on there)\n"
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="no flock: runs are not guarded")
+def test_a_run_lock_taken_on_a_file_removed_meanwhile_is_taken_again_on_the_file_at_the_path(tmp_path, monkeypatch):
+    """The run before released (unlinked) the lock file between this run's open and its flock: the flock held a
+    file no longer at the path, so the next run locked a new file there and two runs wrote one folder."""
+    from anycity.lit import keep
+
+    real, calls = keep.try_flock, []
+
+    def released_meanwhile(fd):
+        if not calls:
+            (tmp_path / "run" / keep.RUN_LOCK).unlink()
+        calls.append(fd)
+        return real(fd)
+
+    monkeypatch.setattr(keep, "try_flock", released_meanwhile)
+    locks = keep.RunLocks("fit")
+    locks.take(tmp_path / "run", "--trainer.default_root_dir")
+    try:
+        lock = tmp_path / "run" / keep.RUN_LOCK
+        assert len(calls) == 2 and lock.exists()
+        assert os.fstat(locks.held[0][0]).st_ino == os.stat(lock).st_ino
+        assert lock.read_text().startswith(f"fit (pid {os.getpid()} on ")
+    finally:
+        locks.release()

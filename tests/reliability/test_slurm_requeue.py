@@ -97,3 +97,73 @@ def test_the_fit_trainer_ends_with_the_requeue_callback(tiny_shards, tmp_path):
     trainer = build_cli(tiny_fit_args(tiny_shards, tmp_path / "run", 1)[1:], run=False).trainer
     assert isinstance(trainer.callbacks[-1], RequeueAtSafePoint) and isinstance(trainer.callbacks[-2], ModelCheckpoint)
     assert missing_private_api(trainer) == []
+
+
+def _stub_trainer(accumulates):
+    """The trainer internals RequeueAtSafePoint reads (one rank under SLURM's auto_requeue): Lightning's
+    save-and-requeue records its calls, and the epoch loop's ``_should_accumulate`` answers from ``accumulates``."""
+    from types import SimpleNamespace
+
+    from lightning.fabric.plugins.environments import SLURMEnvironment
+
+    saves = []
+    steps = iter(accumulates)
+    return SimpleNamespace(
+        world_size=1, _accelerator_connector=SimpleNamespace(cluster_environment=SLURMEnvironment(auto_requeue=True)),
+        _signal_connector=SimpleNamespace(_slurm_sigusr_handler_fn=lambda signum, frame: saves.append(signum)),
+        fit_loop=SimpleNamespace(epoch_loop=SimpleNamespace(_should_accumulate=lambda: next(steps)))), saves
+
+
+def test_a_time_limit_signal_waits_for_the_batch_that_steps_the_optimiser():
+    """With gradient accumulation the checkpoint was also due after a batch that only accumulates: the saved state
+    then lost the gradients gathered so far, and the resumed run stepped on fewer batches."""
+    from lightning.pytorch.trainer.connectors.signal_connector import _HandlersCompose
+
+    from anycity.callbacks import RequeueAtSafePoint
+
+    trainer, saves = _stub_trainer([True, False])  # batch 1 accumulates, batch 2 steps
+    cb, before = RequeueAtSafePoint(), signal.getsignal(signal.SIGUSR1)
+    try:
+        signal.signal(signal.SIGUSR1, _HandlersCompose([trainer._signal_connector._slurm_sigusr_handler_fn]))
+        cb.on_train_start(trainer, None)
+        assert cb._active and signal.getsignal(signal.SIGUSR1) == cb._on_signal
+        os.kill(os.getpid(), signal.SIGUSR1)  # only noted
+        assert saves == []
+        cb.on_train_batch_end(trainer, None, None, None, 0)
+        assert saves == []  # the batch only accumulated: no save yet
+        cb.on_train_batch_end(trainer, None, None, None, 1)
+        assert saves == [signal.SIGUSR1]  # the batch that steps: one save and requeue
+    finally:
+        cb.teardown(trainer, None, "fit")
+        signal.signal(signal.SIGUSR1, before)
+
+
+def test_a_sigusr1_handler_lightning_did_not_install_is_left_alone():
+    """The callback took SIGUSR1 over whatever handler was in place; it replaces Lightning's own only, so a user's
+    handler keeps the signal and the callback stays inactive."""
+    from lightning.pytorch.trainer.connectors.signal_connector import _HandlersCompose
+
+    from anycity.callbacks import RequeueAtSafePoint
+
+    trainer, saves = _stub_trainer([False])
+    before = signal.getsignal(signal.SIGUSR1)
+
+    def mine(signum, frame):
+        pass
+
+    try:
+        signal.signal(signal.SIGUSR1, mine)
+        cb = RequeueAtSafePoint()
+        cb.on_sanity_check_start(trainer, None)
+        cb.on_train_start(trainer, None)
+        assert signal.getsignal(signal.SIGUSR1) is mine and not cb._active
+        cb._on_signal(signal.SIGUSR1, None)
+        cb.on_train_batch_end(trainer, None, None, None, 0)
+        assert saves == []  # inactive: it never saves on Lightning's behalf
+        # the same trainer with Lightning's handler in place: taken over (the stub is complete)
+        signal.signal(signal.SIGUSR1, _HandlersCompose([trainer._signal_connector._slurm_sigusr_handler_fn]))
+        cb = RequeueAtSafePoint()
+        cb.on_train_start(trainer, None)
+        assert cb._active and signal.getsignal(signal.SIGUSR1) == cb._on_signal
+    finally:
+        signal.signal(signal.SIGUSR1, before)

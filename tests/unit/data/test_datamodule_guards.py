@@ -40,6 +40,16 @@ def test_an_epoch_that_leaves_a_worker_no_whole_batch_is_refused(synth_root, epo
     _dm(synth_root, epoch_samples=max(1, workers) * batch, num_workers=workers, batch_size=batch)
 
 
+def test_epoch_samples_is_not_checked_where_it_is_not_used(synth_root):
+    """With ``resampled: false`` an epoch is one pass and ``epoch_samples`` is unused: a leftover small value was
+    refused as an epoch with no batch; the resampled stream, which reads it, still refuses it."""
+    kw = dict(epoch_samples=1, num_workers=2, batch_size=2)
+    dm = _dm(synth_root, resampled=False, **kw)
+    assert not dm.hp.resampled and dm.hp.epoch_samples == 1
+    with pytest.raises(ValueError, match=r"^epoch_samples: 1 samples over num_workers 2 leave each worker fewer "):
+        _dm(synth_root, resampled=True, **kw)
+
+
 @pytest.mark.timeout(120)
 def test_an_eval_stream_whose_every_sample_fails_ends_quietly_with_two_workers(synth_root, tmp_path, monkeypatch):
     """An evaluation stream holds 1/(ranks x workers) of the samples: its whole share failing says nothing about the

@@ -800,3 +800,8 @@ def test_undistort_keeps_a_real_lens_and_names_where_it_refuses(tmp_path):
     with pytest.raises(ValueError, match=r"^a\.png: lens terms \[0\.0, 0\.0, 0\.5, 0\.0\] are not a lens: undistorting "
                                          r"them takes .*; check the camera file's distortion parameters"):
         undistort(img, None, K, np.array([0.0, 0.0, 0.5, 0.0]), "a.png")
+    # non-finite terms get their own reason (OpenCV gave fx 4.6e-38 for NaN, a black image), not the focal's
+    for dist in ((float("nan"), 0, 0, 0), (0.0, float("inf"), 0, 0)):
+        with pytest.raises(ValueError, match=r"^a\.png: lens terms \[.*\] are not a lens \(not finite\); check the "
+                                             r"camera file's distortion parameters, or re-export it$"):
+            undistort(img, None, K, np.array(dist), "a.png")

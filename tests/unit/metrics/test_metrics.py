@@ -162,6 +162,8 @@ def _pair(v=2, size=16):
                         r"divide by 255"),
     (lambda t: t * 2 - 1, r"target: expected values in \[0, 1\], got a minimum of .*; it looks like \[-1, 1\]; "
                           r"use \(x \+ 1\) / 2"),
+    # a little above 1 (a resize's overshoot kept unclamped): scored as if in range
+    (lambda t: t * 1.05, r"target: expected values in \[0, 1\], got a maximum of 1\.0\d*; clamp it to \[0, 1\]$"),
     (lambda t: t[:, :1], r"pred \(1, 2, 3, 16, 16\) and target \(1, 1, 3, 16, 16\) differ; pass one target per "),
     (lambda t: t.permute(0, 1, 3, 4, 2), r"target: expected \[\.\.\., 3, H, W\] .*; it looks channels-last: use "
                                          r"target.movedim\(-1, -3\)"),
