@@ -45,7 +45,11 @@ def align_scale_shift(pred: Tensor, target: Tensor, mask: Tensor) -> tuple[Tenso
 
 
 def _gradient_matching(residual: Tensor, mask: Tensor, scales: int) -> Tensor:
-    """MiDaS gradient-matching term on ``[M, H, W]`` residuals, averaged over ``scales`` dyadic levels."""
+    """MiDaS-style gradient-matching term on ``[M, H, W]`` residuals, averaged over ``scales`` dyadic levels.
+
+    Each level is the mean absolute residual difference over the valid neighbour pairs (MiDaS divides the sum by the
+    number of valid pixels and sums the levels): a level's weight does not grow with how many pairs it keeps.
+    """
     total = residual.new_zeros(())
     for k in range(scales):
         if k > 0:

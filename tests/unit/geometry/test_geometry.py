@@ -157,6 +157,26 @@ def test_umeyama_recovers_a_similarity():
         umeyama(src, dst[:10])
 
 
+
+def test_umeyama_returns_a_proper_rotation_for_mirrored_and_noisy_three_point_data():
+    """A mirror image has no rotation that fits it: the best proper one flips the axis of least spread as well, here
+    R = diag(-1, 1, -1) and s = (9 + 4 - 1) / (9 + 4 + 1). Without the reflection fix R has det -1 (a mirror that
+    turns the cameras and scenes it aligns inside out), and so does about half of all noisy 3-point fits."""
+    src = torch.tensor([[3.0, 0, 0], [-3, 0, 0], [0, 2, 0], [0, -2, 0], [0, 0, 1], [0, 0, -1]], dtype=F64)
+    dst = src * torch.tensor([-1.0, 1.0, 1.0], dtype=F64) + torch.tensor([0.5, -1.0, 2.0], dtype=F64)
+    s, R, t = umeyama(src, dst)
+    torch.testing.assert_close(R, torch.diag(torch.tensor([-1.0, 1.0, -1.0], dtype=F64)))
+    torch.testing.assert_close(s, torch.tensor(12 / 14, dtype=F64))
+    torch.testing.assert_close(t, torch.tensor([0.5, -1.0, 2.0], dtype=F64))
+    g = torch.Generator().manual_seed(0)
+    src = torch.randn(32, 3, 3, generator=g, dtype=F64)
+    R_true = quat_to_rotmat(torch.randn(32, 4, generator=g, dtype=F64))
+    dst = 1.5 * src @ R_true.transpose(-1, -2) + 0.01 * torch.randn(32, 3, 3, generator=g, dtype=F64)
+    _, R, _ = umeyama(src, dst)
+    torch.testing.assert_close(torch.linalg.det(R), torch.ones(32, dtype=F64))
+    torch.testing.assert_close(R @ R.transpose(-1, -2), torch.eye(3, dtype=F64).expand(32, 3, 3))
+    assert (R - R_true).abs().amax() < 0.1  # the right rotation, not merely a proper one
+
 def test_umeyama_refuses_weights_of_another_shape_or_sign():
     g = torch.Generator().manual_seed(0)
     src = torch.randn(6, 3, generator=g, dtype=F64)

@@ -52,3 +52,18 @@ def test_a_non_positive_prediction_is_ignored_like_a_masked_pixel():
     mask = torch.ones_like(gt, dtype=torch.bool)
     mask[..., 0, 0] = False
     torch.testing.assert_close(depth_z_loss(bad, gt)["total"], depth_z_loss(pred, gt, mask)["total"])
+
+
+def test_gradient_matching_known_value_of_a_unit_step_across_scales():
+    """A unit step in the residual between columns 3 and 4 of an 8x8 image: per level, the mean |difference| over
+    all valid neighbour pairs (x and y), averaged over the dyadic levels 8x8, 4x4, 2x2, 1x1. A wrong divisor or a
+    level that is not downsampled reweights edges against flat areas at every scale."""
+    step = (torch.arange(8) >= 4).float().expand(8, 8).reshape(1, 1, 1, 8, 8)
+    gt = torch.ones(1, 1, 1, 8, 8)
+    pred = torch.exp(-step)  # residual log(gt / pred) = the step
+    # 8x8: one jump per row (8) over 8*7 + 7*8 = 112 pairs
+    one = depth_z_loss(pred, gt, align=False, grad_scales=1)["depth_grad"].item()
+    assert abs(one - 8 / 112) < 1e-6
+    # 4x4 (columns 0, 2, 4, 6): 4 jumps / 24 pairs; 2x2 (columns 0, 4): 2 / 4; 1x1: no pair, 0
+    four = depth_z_loss(pred, gt, align=False, grad_scales=4)["depth_grad"].item()
+    assert abs(four - (8 / 112 + 4 / 24 + 2 / 4 + 0) / 4) < 1e-6

@@ -84,6 +84,15 @@ def test_ray_anchor_zero_on_ray_and_known_offset():
     assert ray_anchor_loss(shifted, w2c, K, mask).item() == pytest.approx(1.0, rel=1e-4)
 
 
+
+def test_ray_anchor_penalises_a_centre_behind_the_camera_in_pixels():
+    """A centre 0.5 behind its camera costs (eps - z) * focal = about 50 px at f = 100: in pixels, like the
+    reprojection error beside it; without the focal it would cost 0.5 and barely be pushed back in front."""
+    K = make_intrinsics(100.0, 100.0, 0.5, 0.5).expand(1, 1, 3, 3)
+    w2c = torch.eye(4).expand(1, 1, 4, 4)
+    means = torch.tensor([0.0, 0.0, -0.5]).reshape(1, 1, 1, 1, 3)
+    assert ray_anchor_loss(means, w2c, K).item() == pytest.approx((1e-6 + 0.5) * 100, rel=1e-5)
+
 def test_ray_anchor_nonzero_with_network_offsets_and_gradient_reaches_offset_conv():
     from anycity.models import build_network
 
@@ -130,6 +139,32 @@ def test_normal_loss_is_zero_around_a_hole_in_the_render():
     assert normal_loss(depth, n, K, alpha=alpha)["normal"].item() == 0.0
     assert normal_loss(depth, n, K)["normal"].item() == 0.0
 
+
+
+def test_normal_loss_is_the_structure_weighted_sum_over_the_number_of_valid_pixels():
+    """A grey ramp of slope 0.08 per column has a (normalised) Sobel gradient of 0.08 inside the image, so every
+    interior pixel weighs exp(-edge_alpha * 0.08); the term is sum(w * Huber) / #valid, not / sum(w), which would
+    undo the weighting whenever it is uniform and rescale the loss by the image's edge content otherwise."""
+    depth, K = _plane_render()  # fronto-parallel plane: n_surf = (0, 0, -1)
+    n = torch.tensor([1.0, 0.0, -1.0]).view(1, 1, 3, 1, 1).expand(1, 1, 3, 12, 12)  # 45 degrees off
+    huber = 0.1 * (1 - 1 / math.sqrt(2) - 0.05)  # Huber(1 - cos 45, delta=0.1)
+    ramp = (0.08 * torch.arange(12.0)).expand(1, 1, 3, 12, 12)
+    assert normal_loss(depth, n, K)["normal"].item() == pytest.approx(huber, rel=1e-5)
+    for edge_alpha in (1.0, 5.0):
+        out = normal_loss(depth, n, K, image=ramp, edge_alpha=edge_alpha)["normal"].item()
+        assert out == pytest.approx(math.exp(-edge_alpha * 0.08) * huber, rel=1e-5), edge_alpha
+
+
+def test_structure_weight_is_exp_of_minus_edge_alpha_times_the_gradient():
+    """exp(-alpha * |grad I|) of the grey image: alpha = 2 squares the alpha = 1 weight; ignoring alpha would leave
+    the configured edge relaxation of the normal and flatness terms without effect."""
+    from anycity.losses import structure_weight
+
+    ramp = (0.08 * torch.arange(12.0)).expand(1, 3, 12, 12)
+    torch.testing.assert_close(structure_weight(ramp, 2.0)[..., 1:-1, 1:-1],
+                               torch.full((1, 1, 10, 10), math.exp(-0.16)), rtol=1e-5, atol=0)
+    image = torch.rand(1, 3, 12, 12, generator=torch.Generator().manual_seed(0))
+    torch.testing.assert_close(structure_weight(image, 2.0), structure_weight(image, 1.0) ** 2, rtol=1e-5, atol=1e-7)
 
 def test_normal_flat_term_uses_min_scale():
     depth, K = _plane_render()
@@ -228,6 +263,13 @@ def test_regularizer_terms():
     assert out["reg_residual"].item() == 2.0 and out["reg_gate"].item() == pytest.approx(0.25)
     moved = Gaussians(g.means + 1.0, g.quats, g.scales, g.opacities, g.sh)
     assert regularizer_loss(final=moved, scaffold=g)["reg_stability"].item() == pytest.approx(1.0)
+    # each attribute moved by 1 in turn (scales by a factor e: log-scale + 1) costs 1; all four together 4
+    for moved in (Gaussians(g.means, g.quats, g.scales * math.e, g.opacities, g.sh),
+                  Gaussians(g.means, g.quats, g.scales, g.opacities + 1.0, g.sh),
+                  Gaussians(g.means, g.quats, g.scales, g.opacities, g.sh + 1.0)):
+        assert regularizer_loss(final=moved, scaffold=g)["reg_stability"].item() == pytest.approx(1.0, rel=1e-5)
+    moved = Gaussians(g.means + 1.0, g.quats, g.scales * math.e, g.opacities + 1.0, g.sh + 1.0)
+    assert regularizer_loss(final=moved, scaffold=g)["reg_stability"].item() == pytest.approx(4.0, rel=1e-5)
     with pytest.raises(ValueError, match="gate_mode"):
         regularizer_loss(gate_mode="max")
 

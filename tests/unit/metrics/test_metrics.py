@@ -128,6 +128,10 @@ def test_depth_metrics_known_values():
     assert out["delta1"].item() == pytest.approx(0.5)
     mask = torch.tensor([True, True, False, False]).reshape(1, 1, 1, 2, 2)
     assert depth_metrics(pred, gt, mask)["delta1"].item() == 1.0
+    # under-prediction: max(p/g, g/p) is 2 for 0.5 (fails) and 1/0.85 = 1.18 for 0.85 (passes)
+    under = depth_metrics(torch.tensor([0.5, 0.85]).reshape(1, 1, 1, 1, 2), torch.ones(1, 1, 1, 1, 2))
+    assert under["delta1"].item() == pytest.approx(0.5)
+    assert under["abs_rel"].item() == pytest.approx((0.5 + 0.15) / 2)
 
 
 def test_a_pixel_the_render_leaves_empty_is_a_depth_failure_not_left_out():

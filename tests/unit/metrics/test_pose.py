@@ -51,6 +51,15 @@ def test_auc_counts_thresholds_below_the_worse_error():
     torch.testing.assert_close(pose_auc(rre, rte, 30), expected)
 
 
+
+def test_auc_an_error_equal_to_a_threshold_is_not_below_it():
+    """VGGT bins the worse error with np.histogram(bins=0..30): an error of exactly t degrees lands in [t, t + 1)
+    and counts from threshold t + 1 on. Counting it at t would inflate every AUC on rounded or clamped errors."""
+    rre = torch.tensor([1.0, 5.0, 0.0, 29.0])
+    rte = torch.tensor([0.0, 0.0, 5.0, 2.0])
+    expected = torch.tensor([29 / 30, 25 / 30, 25 / 30, 1 / 30])
+    torch.testing.assert_close(pose_auc(rre, rte, 30), expected)
+
 def test_a_non_finite_predicted_camera_is_the_worst_error_in_every_pose_metric():
     gt = _cams([torch.eye(3), _rot_y(20), _rot_y(-35)], [(0, 0, 0), (1, 0, 0.2), (-0.5, 0.3, 1)])
     pred = gt.clone()

@@ -1,7 +1,10 @@
+import math
+
 import pytest
 import torch
 
-from anycity.models.gaussians import activate_raw, raw_to_gaussians, sh_band_mask, voxel_merge
+from anycity.models.gaussians import activate_raw, pixel_footprint, raw_to_gaussians, sh_band_mask, voxel_merge
+from anycity.models.heads.activations import activate_dense
 
 
 def test_activations_and_xyzw_to_wxyz():
@@ -69,3 +72,22 @@ def test_rgb_and_footprint_survive_voxel_merge():
     assert g.num_gaussians == 1
     assert torch.allclose(0.5 + 0.28209479177387814 * g.sh[0, 0, 0], torch.full((3,), 0.5), atol=1e-5)
     assert torch.allclose(g.scales[0, 0], torch.full((3,), 0.02 * torch.log(torch.tensor(2.0))), atol=1e-6)
+
+
+def test_pixel_footprint_divides_depth_by_the_mean_focal():
+    """fx = 100, fy = 50: a pixel at depth d is d / 75 scene units wide (the mean of its two sides), not d / 100;
+    one focal alone would size every Gaussian of a non-square-pixel camera for one axis only."""
+    K = torch.tensor([[100.0, 0, 2], [0, 50.0, 2], [0, 0, 1]]).expand(1, 2, 3, 3)
+    depth = torch.tensor([1.5, 3.0, 7.5, 30.0]).reshape(1, 1, 1, 2, 2).expand(1, 2, 1, 2, 2)
+    torch.testing.assert_close(pixel_footprint(depth, K), depth / 75.0)
+
+
+def test_depth_confidence_is_one_plus_exp():
+    """VGGT's "expp1" confidence is 1 + exp(raw) >= 1: a plain exp would shift every confidence by 1, so a
+    ``depth_conf_threshold`` (or VGGT weights) set on VGGT's scale would keep or drop the wrong pixels."""
+    raw = torch.tensor([-30.0, -1.0, 0.0, 2.0]).reshape(1, 1, 1, 4).expand(1, 2, 1, 4).clone()  # [N, C, H, W]
+    raw[:, 0] = 7.0  # the depth channel
+    values, conf = activate_dense(raw)
+    torch.testing.assert_close(conf, 1 + torch.tensor([[[math.exp(-30.0), math.exp(-1.0), 1.0, math.exp(2.0)]]]))
+    assert conf.min() >= 1.0
+    torch.testing.assert_close(values, torch.full((1, 1, 4, 1), math.exp(7.0)))

@@ -7,7 +7,7 @@ import torch
 from helpers.render_reference import render_reference
 from helpers.scenes import make_cameras, make_gaussians
 
-from anycity.render import render, resolve_backend
+from anycity.render import api, render, resolve_backend
 from anycity.render.torch_backend import render_torch
 from anycity.structures import Gaussians
 
@@ -144,6 +144,30 @@ def test_early_stop_and_alpha_cap_semantics():
     expected_z = (0.98 * 2.0 + 0.02 * 0.99 * 3.0) / (1 - 2e-4)
     torch.testing.assert_close(out.depth[0, 0, 0, 4, 4], torch.tensor(expected_z, dtype=F64), atol=1e-12, rtol=0)
 
+
+_BACKENDS = [
+    "torch",
+    pytest.param("cpu", marks=pytest.mark.skipif(not api._cpu_backend_available(), reason="needs numba")),
+    pytest.param("gsplat", marks=pytest.mark.skipif(not (torch.cuda.is_available() and api._module_available("gsplat")),
+                                                    reason="needs gsplat and CUDA")),
+]
+
+
+@pytest.mark.parametrize("backend", _BACKENDS)
+def test_a_gaussian_beyond_the_far_plane_is_culled_by_every_backend(backend):
+    """One Gaussian on the optical axis at z = 5: far = 4 culls it (alpha 0 everywhere), far = 6 keeps it. A
+    backend that ignored ``far`` would draw geometry the caller clipped away (e.g. a distant backdrop)."""
+    device = "cuda" if backend == "gsplat" else "cpu"
+    g = Gaussians(means=torch.tensor([[[0.0, 0.0, 5.0]]]), quats=torch.tensor([[[1.0, 0, 0, 0]]]),
+                  scales=torch.full((1, 1, 3), 0.5), opacities=torch.full((1, 1), 0.9),
+                  sh=torch.ones(1, 1, 1, 3)).to(device=device)
+    w2c = torch.eye(4, device=device)[None, None]
+    K = torch.tensor([[20.0, 0, 12.0], [0, 20.0, 8.0], [0, 0, 1]], device=device)[None, None]  # a 2 px std
+    culled = render(g, w2c, K, 24, 16, near=0.01, far=4.0, backend=backend)
+    assert torch.all(culled.alpha == 0) and torch.all(culled.depth == 0)
+    kept = render(g, w2c, K, 24, 16, near=0.01, far=6.0, backend=backend)
+    assert kept.alpha.max() > 0.8
+    torch.testing.assert_close(kept.depth[0, 0, 0, 8, 12].cpu(), torch.tensor(5.0))
 
 def test_gradcheck_tiny():
     g = make_gaussians(N=4, K=4, seed=17, scale=(0.15, 0.3), spread=(0.3, 0.3, 0.2))
