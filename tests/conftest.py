@@ -11,6 +11,10 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
     # count; NUMBA_NUM_THREADS stays as it is, so tests that set 2 threads still get them. Set before torch loads.
     for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(_var, "1")
+# torch and numba share one libgomp, which reads its wait policy when torch loads: the policy the fused CPU renderer
+# sets on import comes too late, and after its first render the pool's spinning made a worker's later torch work 5x
+# slower on a loaded machine (a 5 s test took 25-32 s beside one busy process), shrinking every timing margin
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 
 @pytest.fixture(scope="session", autouse=True)
@@ -24,6 +28,25 @@ def _tmpdir_in_pytest_folder(tmp_path_factory):
         os.environ.pop("TMPDIR", None)
     else:
         os.environ["TMPDIR"] = old
+
+
+@pytest.fixture(autouse=True)
+def _no_state_leaks_between_tests():
+    """Restore what an in-process run changes for the rest of its worker, so that no test's outcome depends on which
+    tests pytest-xdist handed that worker before it: a fit with ``--trainer.deterministic true`` leaves torch's
+    deterministic algorithms on (slower, and some ops refuse), LightningCLI's seeding leaves ``PL_GLOBAL_SEED`` and
+    ``PL_SEED_WORKERS`` in the environment and moves the global RNG."""
+    import torch
+
+    env, rng = dict(os.environ), torch.get_rng_state()
+    deterministic, warn_only = torch.are_deterministic_algorithms_enabled(), \
+        torch.is_deterministic_algorithms_warn_only_enabled()
+    yield
+    torch.use_deterministic_algorithms(deterministic, warn_only=warn_only)
+    torch.set_rng_state(rng)
+    if dict(os.environ) != env:
+        os.environ.clear()
+        os.environ.update(env)
 
 
 @pytest.fixture(scope="session")
