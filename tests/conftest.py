@@ -11,9 +11,9 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
     # count; NUMBA_NUM_THREADS stays as it is, so tests that set 2 threads still get them. Set before torch loads.
     for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(_var, "1")
-# torch and numba share one libgomp, which reads its wait policy when torch loads: the policy the fused CPU renderer
-# sets on import comes too late, and after its first render the pool's spinning made a worker's later torch work 5x
-# slower on a loaded machine (a 5 s test took 25-32 s beside one busy process), shrinking every timing margin
+# torch's own libgomp reads its wait policy when torch loads (the fused CPU renderer's setting reaches only numba's
+# libgomp): after a first fused render, a worker's later torch work ran 5x slower beside one busy process (a 5 s test
+# took 25-32 s), shrinking every timing margin. Tests only: with 2 torch threads a training step is 2x slower passive
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 
