@@ -391,8 +391,11 @@ def test_hparams_hold_the_subclass_and_base_arguments():
     m = ScaffoldModule(lr=3e-3, depth_weight=0.5, eval_align="none")
     assert (m.hparams.lr, m.hparams.depth_weight, m.hparams.eval_align) == (3e-3, 0.5, "none")
     assert m.hparams.preset == "tiny" and m.hparams.warmup_steps == 100 and "base" not in m.hparams
+    d = ScaffoldModule().hparams  # the paper's loss weights (Stage I lambda_depth, lambda_normal)
+    assert (d.depth_weight, d.normal_weight) == (0.1, 0.1)
     r = RefinementModule()
     assert r.hparams.lr == 1e-4 and r.hparams.d2s_weight == 1.0 and r.hparams.eval_pose_align_steps == 0
+    assert (r.hparams.pres_weight, r.hparams.reg_weight) == (0.1, 0.01)  # Stage II lambda_pres, lambda_reg
     with pytest.raises(TypeError, match="depht_weight"):
         ScaffoldModule(depht_weight=0.1)
 
