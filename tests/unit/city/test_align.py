@@ -47,6 +47,15 @@ def test_plan_chunks_overlap_and_cover():
     assert plan_chunks(8, 8, 0) == [list(range(8))]  # one chunk: nothing to align
 
 
+
+def test_a_view_equally_central_in_two_chunks_is_owned_by_the_earlier():
+    """owners' documented tie rule: view 3 sits 1 view from an end in both chunks; taking it from the later chunk
+    would make ownership depend on the chunk loop's tie handling."""
+    own = owners([[0, 1, 2, 3, 4], [2, 3, 4, 5, 6]])
+    assert own[3] == 0
+    assert own[2] == 0 and own[4] == 1  # 2 is central in chunk 0, 4 in chunk 1
+
+
 def test_order_from_descriptors_recovers_a_shuffled_sequence():
     t = torch.linspace(0, 3, 30)
     desc = torch.stack([t.cos(), t.sin(), 0.2 * t], -1)  # a smooth curve: neighbours are similar
@@ -136,6 +145,46 @@ def test_sim3_gaussians_rotates_view_dependent_colour(deg):
     torch.testing.assert_close(moved.sh[..., 0, :], g.sh[..., 0, :])  # the base colour does not turn
     back = sim3_gaussians(moved, sim3_inverse(T))
     assert torch.allclose(back.means, g.means, atol=1e-4) and torch.allclose(back.scales, g.scales, atol=1e-5)
+
+
+
+def _wxyz_to_matrix(q):
+    """The standard unit-quaternion (w, x, y, z) rotation matrix, written out (Hamilton convention)."""
+    w, x, y, z = (q / q.norm(dim=-1, keepdim=True)).unbind(-1)
+    return torch.stack([
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+    ], -1).unflatten(-1, (3, 3))
+
+
+def test_sim3_gaussians_moves_each_covariance():
+    """A Sim(3) (s, R, t) maps a Gaussian N(mu, Sigma) to N(s R mu + t, s^2 R Sigma R^T): unscaled sizes or a rotation
+    composed on the wrong side would warp every merged chunk's splats."""
+    g = torch.Generator().manual_seed(7)
+    n = 16
+    gs = Gaussians(torch.randn(1, n, 3, generator=g, dtype=torch.float64),
+                   torch.nn.functional.normalize(torch.randn(1, n, 4, generator=g, dtype=torch.float64), dim=-1),
+                   torch.rand(1, n, 3, generator=g, dtype=torch.float64) * torch.tensor([1.0, 0.3, 0.05],
+                                                                                       dtype=torch.float64) + 0.01,
+                   torch.rand(1, n, generator=g, dtype=torch.float64),
+                   torch.zeros(1, n, 1, 3, dtype=torch.float64))
+    s, t = 2.5, torch.tensor([1.0, -2.0, 3.0], dtype=torch.float64)
+    axis = torch.nn.functional.normalize(torch.tensor([0.3, -0.5, 0.8], dtype=torch.float64), dim=0)
+    a = math.radians(70)
+    kx = torch.tensor([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]], dtype=torch.float64)
+    R = torch.eye(3, dtype=torch.float64) + math.sin(a) * kx + (1 - math.cos(a)) * kx @ kx  # Rodrigues
+    S = torch.eye(4, dtype=torch.float64)
+    S[:3, :3], S[:3, 3] = s * R, t
+    out = sim3_gaussians(gs, S)
+
+    def cov(q, sc):
+        Rq = _wxyz_to_matrix(q[0])
+        return Rq @ torch.diag_embed(sc[0] ** 2) @ Rq.transpose(-1, -2)
+
+    torch.testing.assert_close(out.means[0], gs.means[0] @ (s * R).T + t, atol=1e-10, rtol=0)
+    torch.testing.assert_close(cov(out.quats, out.scales), s ** 2 * R @ cov(gs.quats, gs.scales) @ R.T,
+                               atol=1e-10, rtol=0)
 
 
 def test_chunked_scene_writes_one_ply_and_cameras(tmp_path):

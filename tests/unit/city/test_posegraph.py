@@ -124,6 +124,28 @@ def test_normal_equations_match_the_dense_jacobians():
     torch.testing.assert_close(g, J.T @ dense(X[1:].flatten()))
 
 
+
+def test_each_edge_term_is_a_mean_over_its_points():
+    """pose_graph minimises each edge's mean squared residual: an edge that repeats its points 10x must pull no
+    harder, or chunks sharing more photos would outvote the rest of a cycle by their point count alone."""
+    from anycity.city.align import Edge, Sim3Fit
+
+    g = torch.Generator().manual_seed(0)
+    eye = torch.eye(4, dtype=torch.float64)
+
+    def edge(a, b, n, bias):
+        src = torch.randn(n, 3, generator=g, dtype=torch.float64)
+        return Edge(a, b, [0, 1], Sim3Fit(eye, torch.ones(n, dtype=torch.bool), 0.0, 0.0, 0.05), src,
+                    src + torch.tensor(bias, dtype=torch.float64))
+
+    e01, e12, e02 = edge(0, 1, 30, [0.0, 0, 0]), edge(1, 2, 30, [0.0, 0, 0]), edge(0, 2, 30, [0.3, 0, 0])
+    rep = Edge(0, 2, [0, 1], e02.fit, e02.src.repeat(10, 1), e02.dst.repeat(10, 1))
+    S1, _ = pose_graph(3, [e01, e12, e02])
+    S2, _ = pose_graph(3, [e01, e12, rep])
+    assert 0.05 < float(S1[2, 0, 3]) < 0.25  # the disagreeing edge pulls chunk 2 part of the way, not all of it
+    torch.testing.assert_close(S2, S1, atol=1e-9, rtol=0)
+
+
 def _strip(n: int, P: int = 64):
     """Nadir cameras every 2 units along x at height 30, ground points below each: a straight strip flight."""
     g = torch.Generator().manual_seed(0)

@@ -133,16 +133,23 @@ def _centroids(img, near, r=4):
     return np.array(out)
 
 
-@pytest.mark.parametrize("fmt,model", [("colmap", "OPENCV"), ("colmap", "FULL_OPENCV"), ("nerfstudio", "OPENCV")])
+@pytest.mark.parametrize("fmt,model", [("colmap", "OPENCV"), ("colmap", "FULL_OPENCV"), ("nerfstudio", "OPENCV"),
+                                       ("colmap", "SIMPLE_RADIAL"), ("colmap", "RADIAL"), ("nerfstudio", "OPENCV+k3")])
 def test_a_distorted_camera_is_stored_undistorted_with_its_pinhole_k(tmp_path, fmt, model):
     """Each point of the scene is where the stored pinhole K puts it: COLMAP's OPENCV and FULL_OPENCV (OpenCV's
-    rational model: k1 k2 p1 p2 k3 k4 k5 k6, once refused as "a fisheye or thin-prism lens") models, and DL3DV's
-    layout (a json for the full resolution with k1 k2 p1 p2, the images in ``images_4``)."""
+    rational model: k1 k2 p1 p2 k3 k4 k5 k6, once refused as "a fisheye or thin-prism lens") models, SIMPLE_RADIAL
+    (f cx cy k) and RADIAL (f cx cy k1 k2), and DL3DV's layout (a json for the full resolution with k1 k2 p1 p2,
+    or also k3, the images in ``images_4``); a lens term read into the wrong slot moves the points."""
     gt, w, h = _gt(), 64, 48
     K_img = np.array([[40.0, 0, 32.0], [0, 41.0, 24.0], [0, 0, 1]])  # at the images' 64x48
     dist = np.array([-0.25, 0.05, 0.002, -0.001])  # k1 k2 p1 p2: a wide drone lens
     if model == "FULL_OPENCV":
         dist = np.r_[dist, 0.01, 0.15, -0.02, 0.01]  # k3, and the rational denominator's k4 k5 k6
+    if model in ("SIMPLE_RADIAL", "RADIAL"):  # one focal; RADIAL's k2 differs from its k1
+        K_img[1, 1] = 40.0
+        dist = np.array([0.3, 0, 0, 0]) if model == "SIMPLE_RADIAL" else np.array([-0.25, 0.05, 0, 0])
+    if model == "OPENCV+k3":  # OpenCV's order k1 k2 p1 p2 k3; tangential terms that move points past the tolerance
+        dist = np.array([-0.35, 0.05, 0.01, -0.008, 0.1])
     pts = np.array([[0.0, 0.0], [0.35, 0.25], [-0.4, -0.3], [0.45, -0.2]])
     img, seen = _blobs(K_img, dist, pts, h, w)
     src = tmp_path / "scene"
@@ -151,14 +158,20 @@ def test_a_distorted_camera_is_stored_undistorted_with_its_pinhole_k(tmp_path, f
     for i in range(N):
         cv2.imwrite(str(folder / f"v{i}.png"), img)
     if fmt == "colmap":  # its camera is for 32x24: rescaled to the images first
-        _write_colmap_bin(src / "sparse" / "0", gt, model_id={"OPENCV": 4, "FULL_OPENCV": 6}[model],
-                          params=(20.0, 20.5, 16.0, 12.0, *dist))
+        # COLMAP's documented parameter order (src/colmap/sensor/models.h)
+        params = {"SIMPLE_RADIAL": (20.0, 16.0, 12.0, dist[0]), "RADIAL": (20.0, 16.0, 12.0, dist[0], dist[1])}.get(
+            model, (20.0, 20.5, 16.0, 12.0, *dist))
+        _write_colmap_bin(src / "sparse" / "0", gt, params=params,
+                          model_id={"SIMPLE_RADIAL": 2, "RADIAL": 3, "OPENCV": 4, "FULL_OPENCV": 6}[model])
     else:
         frames = [{"file_path": f"images/v{i}.png", "transform_matrix": (np.linalg.inv(g) @ GL_TO_CV).tolist()}
                   for i, g in enumerate(gt)]
+        terms = {"k1": dist[0], "k2": dist[1], "p1": dist[2], "p2": dist[3]}  # nerfstudio's keys, by name
+        if len(dist) == 5:
+            terms["k3"] = dist[4]
         (src / "transforms.json").write_text(json.dumps({
             "camera_model": "OPENCV", "fl_x": 160.0, "fl_y": 164.0, "cx": 128.0, "cy": 96.0, "w": 4 * w, "h": 4 * h,
-            **dict(zip(("k1", "k2", "p1", "p2"), dist.tolist())), "frames": frames}))
+            **{k: float(v) for k, v in terms.items()}, "frames": frames}))
     convert(fmt, src, tmp_path / "out")
     sample = next(iter(wds.WebDataset(str(next((tmp_path / "out").glob("*.tar"))), shardshuffle=False)))
     meta = read_meta(sample)
@@ -235,6 +248,38 @@ def test_nerfstudio(tmp_path):
     with pytest.raises(ValueError, match=r"depth/f1\.png: not a one-channel depth png; re-export it"):
         convert("nerfstudio", src, tmp_path / "o3")
     assert not (tmp_path / "o3" / "index.json").exists()
+
+
+
+def test_nerfstudio_without_cx_cy_puts_the_principal_point_at_the_image_centre(tmp_path):
+    """transforms.json may leave out cx/cy: the principal point is then (w/2, h/2) of a w x h image; taking w/2 for
+    cy on a non-square image shifts every ray of the scene vertically."""
+    gt = _gt()
+    src = tmp_path / "ns"
+    _images(src / "images", [f"f{i}.png" for i in range(N)])
+    frames = [{"file_path": f"images/f{i}.png", "transform_matrix": (np.linalg.inv(g) @ GL_TO_CV).tolist()}
+              for i, g in enumerate(gt)]
+    (src / "transforms.json").write_text(json.dumps({"fl_x": 30, "fl_y": 31, "w": W, "h": H, "frames": frames}))
+    meta = _check_convert("nerfstudio", src, tmp_path / "out", gt)
+    assert W != H
+    for v in meta["views"]:
+        np.testing.assert_allclose(np.array(v["K"])[:2, 2], [W / 2, H / 2])
+
+
+def test_a_scene_over_max_views_is_cut_into_windows_that_keep_every_view(tmp_path):
+    """70 views with max_views 64: windows of consecutive views that hold every view once, in order; dropping the
+    last window would lose views from the shards without a word."""
+    from anycity.data.parsers.base import ParsedScene, ParsedView, to_records
+
+    cv2.imwrite(str(tmp_path / "a.png"), np.zeros((8, 8, 3), np.uint8))
+    Kv = np.array([[8.0, 0, 4], [0, 8, 4], [0, 0, 1]])
+    views = [ParsedView(f"v{i:02d}", tmp_path / "a.png", np.eye(4), Kv, 8, 8) for i in range(70)]
+    recs = list(to_records(ParsedScene("s", views, "colmap", "sfm"), max_views=64))
+    assert [v.name for r in recs for v in r.views] == [f"v{i:02d}" for i in range(70)]
+    assert len(recs) > 1 and all(2 <= len(r.views) <= 64 for r in recs)
+    assert [r.first_index for r in recs] == [sum(len(q.views) for q in recs[:k]) for k in range(len(recs))]
+    assert all(r.scene_views == 70 for r in recs)
+    assert len({r.key for r in recs}) == len(recs)
 
 
 def _split_frames(gt, folder, last=1.0):

@@ -189,3 +189,38 @@ def test_a_member_claiming_more_bytes_than_the_shard_holds_is_a_corrupt_shard(tm
         list(make_pipeline([str(shard)], builder, train=False))
     with pytest.raises(ValueError, match=r"none of the 1 shard\(s\) gives a sample .*huge.tar.*claims"):
         list(make_pipeline([str(shard)], builder, train=False, skip_corrupt=True))
+
+
+def test_world_from_source_and_scale_map_source_metres_into_the_batch():
+    """A record stores cameras in the converter's frame (``p_stored = wfs @ p_source``) and ``metres_per_unit`` of
+    that frame; the batch's ``world_from_source`` must take a source point to where the batch cameras see it, and its
+    ``scale`` must turn normalised depth back into metres, or exports land in the wrong place and size."""
+    from anycity.data.raycast import look_at
+
+    a = np.radians(30)
+    wfs = np.eye(4)
+    wfs[:3, :3] = 100 * np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+    wfs[:3, 3] = [50.0, -20.0, 10.0]  # a similarity of scale 100, as MatrixCity's split files
+    mpu, h, w = 0.5, 16, 20
+    K = np.array([[20.0, 0, 10], [0, 20.0, 8], [0, 0, 1]])
+    rng = np.random.default_rng(0)
+    eyes = [[300, 0, 200], [0, 300, 200], [-300, 0, 200], [0, -300, 200]]
+    views = [ViewRecord(f"v{i}.png", rng.integers(0, 255, (h, w, 3), dtype=np.uint8), look_at(e, [0, 0, 0]), K, w,
+                        h, depth=np.full((h, w), 360.0, np.float32), ext="png") for i, e in enumerate(eyes)]
+    rec = SceneRecord("s", views, "t", "metres", metres_per_unit=mpu, world_from_source=wfs)
+    item = SampleBuilder(2, 2, 0, (h, w), seed=0)(encode_scene(rec, "train"))[0]
+
+    def pixel(p, w2c, k):  # pinhole projection, written out
+        c = w2c[:3, :3] @ p + w2c[:3, 3]
+        return (k @ c)[:2] / c[2]
+
+    p_src = np.linalg.solve(wfs, [30.0, -20.0, 10.0, 1.0])  # a source point near the cameras' target
+    p_norm = item["world_from_source"].double().numpy() @ p_src
+    for g in ("context", "target"):
+        for j, i in enumerate(item[g]["index"].tolist()):
+            want = pixel((wfs @ p_src)[:3], views[i].w2c, K)
+            got = pixel(p_norm[:3], item[g]["w2c"][j].double().numpy(), item[g]["K"][j].double().numpy())
+            np.testing.assert_allclose(got, want, atol=1e-3)
+    # metres of a normalised unit: the stored depth (360 units of 0.5 m) over the batch's depth (float16 in shards)
+    d_norm = item["context"]["depth"][item["context"]["mask"]].double()
+    assert float(item["scale"]) == pytest.approx(360 * mpu / float(d_norm.mean()), rel=1e-3)

@@ -124,6 +124,33 @@ def test_normalise_frame_and_scale():
     assert abs(camera_centers(new2[1:3]).norm(dim=-1).mean().item() - 1) < 1e-6
 
 
+
+def test_normalise_subsampled_scale_unprojects_full_resolution_pixel_centres():
+    """With stride 2 the scale is the mean distance of the points under full-resolution pixels (2i, 2j), whose
+    centres are (2j + 0.5, 2i + 0.5); a half-pixel shift the wrong way biases every sample's scale on a tilted plane."""
+    H, W, f, cx, cy = 16, 20, 12.0, 9.0, 7.0
+    K = torch.tensor([[f, 0, cx], [0, f, cy], [0, 0, 1]], dtype=torch.float64)[None]
+    v, u = np.mgrid[0:H, 0:W]
+    z = 4.0 + 0.6 * u + 0.3 * v  # a tilted plane, indexed by full-resolution pixel
+    _, s, _ = normalise(torch.eye(4, dtype=torch.float64)[None], K, 1, torch.tensor(z)[None, None], stride=2)
+    zs, us, vs = z[::2, ::2], u[::2, ::2] + 0.5, v[::2, ::2] + 0.5  # full-resolution centres of the subsample
+    X = np.stack([(us - cx) / f * zs, (vs - cy) / f * zs, zs], -1)
+    assert s == pytest.approx(np.linalg.norm(X, axis=-1).mean(), rel=1e-12)
+
+
+@pytest.mark.parametrize("src,size,want", [
+    ((40, 60), (40, 40), [[50.0, 0, 21.0], [0, 52.0, 19.0]]),  # 10 px cut from each side: cx - 10
+    ((60, 40), (40, 40), [[50.0, 0, 31.0], [0, 52.0, 9.0]]),  # 10 px cut from top and bottom: cy - 10
+    ((40, 60), (20, 16), [[25.0, 0, 8.5], [0, 26.0, 9.5]]),  # halved to 20x30, then 7 px cut on the left
+])
+def test_a_centre_crop_moves_the_principal_point_by_its_corner(src, size, want):
+    """Cropping at corner (x0, y0) moves cx by x0 and cy by y0; swapped, every non-square photo's rays tilt."""
+    K = np.array([[50.0, 0, 31.0], [0, 52.0, 19.0], [0, 0, 1]])
+    img, K2, *_ = resize_view(np.zeros((*src, 3), np.uint8), K, size, "crop", 14)
+    assert img.shape[:2] == size
+    np.testing.assert_allclose(K2, np.array([*want, [0, 0, 1]]), atol=1e-12)
+
+
 @pytest.mark.parametrize("src,size,mode", [((24, 32), (9, 12), "crop"), ((24, 32), (40, 40), "crop"),
                                            ((30, 20), (16, 16), "crop"), ((24, 32), (28, 28), "keep")])
 def test_resized_depth_normal_and_mask_land_where_the_rescaled_K_says(src, size, mode):

@@ -71,3 +71,18 @@ def test_windowed_shards_train_and_eval(tmp_path):
         for i in tgt:
             scored.setdefault(i, set()).add(item["scene"] + str(item["context"]["index"].tolist()))
     assert sorted(scored) == [0, 8, 16, 24] and all(len(v) == 1 for v in scored.values())
+
+
+def test_a_held_out_view_on_the_end_of_an_own_range_is_scored_once(tmp_path):
+    """Windows of 12 every 4 over 24 views own [0, 8), [8, 12), [12, 16), [16, 24): held-out views 8 and 16 sit on
+    an own range's end, which is exclusive; scoring them in two windows would count them twice in the metrics."""
+    with ShardSetWriter(tmp_path, window=12, stride=4, window_splits=("test",)) as w:
+        w.write(_scene("b", 24), "test")
+    assert [s["first"] for s in read_index(tmp_path)["samples"]] == [0, 4, 8, 12]
+    scored = {}  # held-out view -> how many evaluation items score it (a short chunk repeats its own views)
+    for item in make_pipeline(shard_urls(tmp_path, "test"), SampleBuilder(2, 2, 2, (16, 16), train=False),
+                              train=False):
+        for i in set(item["target"]["index"].tolist()):
+            assert i % 8 == 0
+            scored[i] = scored.get(i, 0) + 1
+    assert scored == {0: 1, 8: 1, 16: 1}
