@@ -6,7 +6,8 @@ import math
 
 import torch
 
-from anycity.structures import Gaussians
+from anycity.geometry import make_intrinsics
+from anycity.structures import Gaussians, Views
 
 F64 = torch.float64
 
@@ -39,3 +40,17 @@ def make_cameras(B=1, V=1, width=40, height=32, dtype=F64, seed=1):
     f = 1.1 * width
     K = torch.tensor([[f, 0, width / 2 + 1.3], [0, 1.05 * f, height / 2 - 0.7], [0, 0, 1]], dtype=dtype)
     return w2c, K.repeat(B, V, 1, 1)
+
+
+def make_views(n, seed, index=None, plane=None, size=32):
+    """``n`` random ``size`` x ``size`` views of one batch stepping 0.1 along x (fx = fy = 30, centred principal
+    point), depth in [1, 2) or ``plane`` everywhere, all pixels valid; ``index``: their positions in the scene."""
+    g = torch.Generator().manual_seed(seed)
+    w2c = torch.eye(4).repeat(1, n, 1, 1)
+    w2c[..., 0, 3] = torch.linspace(0, 0.3, n)
+    K = make_intrinsics(30.0, 30.0, size / 2, size / 2).expand(1, n, 3, 3).clone()
+    images = torch.rand(1, n, 3, size, size, generator=g)
+    depth = torch.rand(1, n, 1, size, size, generator=g) + 1 if plane is None else torch.full((1, n, 1, size, size),
+                                                                                               float(plane))
+    return Views(images=images, w2c=w2c, K=K, depth=depth, mask=torch.ones(1, n, 1, size, size, dtype=torch.bool),
+                 index=None if index is None else torch.tensor([index]))

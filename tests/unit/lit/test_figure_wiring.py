@@ -5,6 +5,7 @@ from types import SimpleNamespace
 
 import pytest
 import torch
+from helpers.scenes import make_views
 from torchmetrics.image import PeakSignalNoiseRatio
 
 from anycity.geometry import make_intrinsics, quat_to_rotmat
@@ -14,21 +15,9 @@ from anycity.lit.base import AnyCityModule
 from anycity.lit.distributed import log_eval_metrics
 from anycity.lit.evaluation import EvalMetrics, cameras_in_pred_frame, fit_gt_to_pred
 from anycity.metrics.pose import pose_auc
-from anycity.structures import Gaussians, RenderOutput, ViewBatch, Views
+from anycity.structures import Gaussians, RenderOutput, ViewBatch
 
 H = W = 32
-
-
-def _views(n, seed, index=None, plane=None):
-    """As test_modules._views; ``plane``: every pixel's depth set to that value."""
-    g = torch.Generator().manual_seed(seed)
-    w2c = torch.eye(4).repeat(1, n, 1, 1)
-    w2c[..., 0, 3] = torch.linspace(0, 0.3, n)
-    K = make_intrinsics(30.0, 30.0, 16.0, 16.0).expand(1, n, 3, 3).clone()
-    depth = torch.rand(1, n, 1, H, W, generator=g) + 1 if plane is None else torch.full((1, n, 1, H, W), plane)
-    return Views(images=torch.rand(1, n, 3, H, W, generator=g), w2c=w2c, K=K, depth=depth,
-                 mask=torch.ones(1, n, 1, H, W, dtype=torch.bool),
-                 index=None if index is None else torch.tensor([index]))
 
 
 def _gaussians(n, seed=0):
@@ -82,7 +71,7 @@ def test_joint_renders_the_context_views_gaussians_at_the_networks_target_camera
     module = SimpleNamespace(predict_variants=lambda images: (out, {"scaffold": g}),
                              variant_cameras=lambda o, name: (o["w2c"], o["K"]),
                              render=lambda gs, c, k, hw, ctx: calls.append((gs, c, k, hw)))
-    P.joint(module, _views(v, 0), _views(t, 1))
+    P.joint(module, make_views(v, 0), make_views(t, 1))
     (gs, c, k, hw), = calls
     assert torch.equal(gs.means, g.means[:, :v * per_view]) and torch.equal(gs.sh, g.sh[:, :v * per_view])
     assert torch.equal(c, w2c[:, v:]) and torch.equal(k, K[:, v:]) and hw == (H, W)
@@ -90,7 +79,7 @@ def test_joint_renders_the_context_views_gaussians_at_the_networks_target_camera
 
 def test_targetalign_renders_at_the_aligned_target_cameras():
     """targetalign scored the placed (unaligned) cameras while its name says the target was aligned."""
-    ctx, tgt = _views(2, 0), _views(1, 1)
+    ctx, tgt = make_views(2, 0), make_views(1, 1)
     placed = tgt.w2c.clone()
     aligned = placed.clone()
     aligned[..., 1, 3] += 0.25
@@ -105,7 +94,7 @@ def test_targetalign_renders_at_the_aligned_target_cameras():
 
 def test_place_anchors_the_first_ground_truth_camera_at_the_networks_first_camera():
     """With eval_align='none' the targets were placed relative to the origin, not the first camera as predicted."""
-    ctx, tgt = _views(3, 0), _views(2, 1)
+    ctx, tgt = make_views(3, 0), make_views(2, 1)
     tgt.w2c[0, 1, 1, 3] = 0.2
     pred = ctx.w2c.clone()
     pred[0] = torch.stack([_rot_w2c(4.0, t=(0.05, -0.02, 0.1)), _rot_w2c(-3.0, axis=(1.0, 0, 0)), _rot_w2c(2.0)])
@@ -125,7 +114,7 @@ def test_place_anchors_the_first_ground_truth_camera_at_the_networks_first_camer
 
 def test_camrefine_figures_score_the_camrefine_render(module, monkeypatch):
     """psnr_*_camrefine scored the feed-forward render, so camrefine looked exactly as good as feed-forward."""
-    batch = ViewBatch(context=_views(2, 0), target=_views(1, 1))
+    batch = ViewBatch(context=make_views(2, 0), target=make_views(1, 1))
     known = torch.full((1, 1, 3, H, W), 0.25)
 
     def camrefine(mod, scene, ctx, cams, steps):
@@ -142,7 +131,7 @@ def test_camrefine_figures_score_the_camrefine_render(module, monkeypatch):
 
 def test_depth_figures_divide_the_render_by_the_depth_scale(module, monkeypatch):
     """A render whose depth is exactly s x ground truth (pred = s * gt) must score AbsRel 0 and delta1 1."""
-    batch = ViewBatch(context=_views(2, 0), target=_views(1, 1))
+    batch = ViewBatch(context=make_views(2, 0), target=make_views(1, 1))
 
     def feedforward(mod, scene, ctx, cams):
         d = 2.0 * batch.target.depth
@@ -159,7 +148,7 @@ def test_region_shares_use_the_default_region_masks_and_the_targets_validity(mod
     """region_obs / region_weak counted other thresholds than documented, or the targets' sky as a region."""
     from anycity.metrics.regions import region_masks
 
-    ctx, tgt = _views(2, 0, plane=2.0), _views(2, 1, plane=2.0)
+    ctx, tgt = make_views(2, 0, plane=2.0), make_views(2, 1, plane=2.0)
     metrics = EvalMetrics(("scaffold",))
     module.evaluate(ViewBatch(context=ctx, target=tgt), metrics, want_preview=False)
     obs, weak = region_masks(tgt.depth, tgt.w2c, tgt.K, ctx.depth, ctx.w2c, ctx.K)
@@ -227,7 +216,7 @@ def test_psnr_scores_the_prediction_clamped_to_the_image_range():
 
 
 def _train_batch():
-    return ViewBatch(context=_views(2, 0, [1, 3]), target=_views(1, 1, [2]), dense=_views(3, 2))
+    return ViewBatch(context=make_views(2, 0, [1, 3]), target=make_views(1, 1, [2]), dense=make_views(3, 2))
 
 
 def _recording(m, monkeypatch):

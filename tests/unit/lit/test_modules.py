@@ -4,27 +4,17 @@ import warnings
 
 import pytest
 import torch
+from helpers.scenes import make_views
 
-from anycity.geometry import make_intrinsics
 from anycity.lit import RefinementModule, ScaffoldModule
 from anycity.structures import Gaussians, ViewBatch, Views
 
 H = W = 32
 
 
-def _views(n, seed, index=None):
-    g = torch.Generator().manual_seed(seed)
-    w2c = torch.eye(4).repeat(1, n, 1, 1)
-    w2c[..., 0, 3] = torch.linspace(0, 0.3, n)
-    K = make_intrinsics(30.0, 30.0, 16.0, 16.0).expand(1, n, 3, 3).clone()
-    return Views(images=torch.rand(1, n, 3, H, W, generator=g), w2c=w2c, K=K,
-                 depth=torch.rand(1, n, 1, H, W, generator=g) + 1, mask=torch.ones(1, n, 1, H, W, dtype=torch.bool),
-                 index=None if index is None else torch.tensor([index]))
-
-
 @pytest.fixture(scope="module")
 def batch():
-    return ViewBatch(context=_views(2, 0, [1, 3]), target=_views(1, 1, [2]), dense=_views(3, 2))
+    return ViewBatch(context=make_views(2, 0, [1, 3]), target=make_views(1, 1, [2]), dense=make_views(3, 2))
 
 
 def _no_log(module):
@@ -241,7 +231,7 @@ def test_test_step_aligns_target_poses_when_asked(batch):
     m.validation_step(batch, 1)
     assert not m.val_metrics.metrics["psnr_scaffold_targetalign"].update_called  # validation never aligns
     with torch.inference_mode():  # as in Lightning's test loop: the batch itself holds inference tensors
-        m.test_step(ViewBatch(context=_views(2, 0, [1, 3]), target=_views(1, 1, [2])), 1)
+        m.test_step(ViewBatch(context=make_views(2, 0, [1, 3]), target=make_views(1, 1, [2])), 1)
     res = {k: v.compute().item() for k, v in m.test_metrics.items() if v.update_called}
     assert {"psnr_scaffold", "psnr_scaffold_targetalign", "ssim_scaffold", "rre", "rte", "pose_auc30"} <= set(res)
     assert "psnr_scaffold_camrefine" not in res  # no camera refinement asked
@@ -257,7 +247,7 @@ def test_test_and_predict_refine_the_context_cameras_when_asked(batch):
     m.validation_step(batch, 1)
     assert not m.val_metrics.metrics["rre_scaffold_camrefine"].update_called  # validation scores feed-forward only
     with torch.inference_mode():
-        m.test_step(ViewBatch(context=_views(2, 0, [1, 3]), target=_views(1, 1, [2])), 1)
+        m.test_step(ViewBatch(context=make_views(2, 0, [1, 3]), target=make_views(1, 1, [2])), 1)
         pred = m.predict_step(batch.context.images, 0)
     res = {k: v.compute().item() for k, v in m.test_metrics.items() if v.update_called}
     assert {"psnr_scaffold", "psnr_scaffold_camrefine", "rre", "rre_scaffold_camrefine",
@@ -328,7 +318,7 @@ def test_joint_protocol_scores_and_region_metrics_are_logged(batch):
     torch.manual_seed(0)
     m = _no_log(RefinementModule(eval_joint=True, eval_align="none", render_backend="torch")).eval()
     with torch.inference_mode():
-        m.test_step(ViewBatch(context=_views(2, 0, [1, 3]), target=_views(1, 1, [2])), 1)
+        m.test_step(ViewBatch(context=make_views(2, 0, [1, 3]), target=make_views(1, 1, [2])), 1)
     res = {k: v.compute().item() for k, v in m.test_metrics.items() if v.update_called}
     assert {"psnr_scaffold_joint", "psnr_refined_joint", "region_obs", "region_weak"} <= set(res)
     assert res["region_obs"] + res["region_weak"] == pytest.approx(1.0, abs=1e-6)  # no sky in these targets
@@ -350,10 +340,10 @@ def test_joint_renders_of_a_padded_chunk_do_not_depend_on_the_padding():
 
     torch.manual_seed(0)
     m = RefinementModule(eval_align="none", render_backend="torch").eval()
-    two = [_views(2, 0, [1, 3]), _views(2, 5, [1, 3])]
+    two = [make_views(2, 0, [1, 3]), make_views(2, 5, [1, 3])]
     ctx = Views(*(torch.cat([getattr(v, f) for v in two]) for f in ("images", "w2c", "K", "depth", "mask")),
                 index=torch.tensor([[1, 3], [1, 3]]))
-    tgt = _views(3, 1, [2, 4, 5])
+    tgt = make_views(3, 1, [2, 4, 5])
     tgt = Views(*(torch.cat([x[:, [0, 1, 0]], x]) for x in (tgt.images, tgt.w2c, tgt.K, tgt.depth, tgt.mask)),
                 index=torch.tensor([[2, 4, 2], [2, 4, 5]]))  # sample 0 padded with its first target
     with torch.no_grad():
@@ -374,7 +364,7 @@ def test_joint_depth_scale_is_the_ratio_of_camera_spreads_wherever_the_predicted
 
     from anycity.lit import protocols as P
 
-    ctx, tgt = _views(3, 0, [1, 3, 5]), _views(1, 1, [2])
+    ctx, tgt = make_views(3, 0, [1, 3, 5]), make_views(1, 1, [2])
     ctx.w2c[0, :, 1, 3] = torch.tensor([0.0, 0.2, -0.1])
     w2c = torch.cat([ctx.w2c, tgt.w2c], 1).clone()  # the network's cameras: the truth, 2x larger, moved by 5 units
     w2c[..., :3, 3] = 2 * w2c[..., :3, 3] - (w2c[..., :3, :3] @ torch.tensor([5.0, -1.0, 2.0]))
@@ -403,7 +393,7 @@ def test_hparams_hold_the_subclass_and_base_arguments():
 def test_far_views_keeps_the_dense_cameras_farthest_from_the_context():
     from anycity.lit.refinement import far_views
 
-    ctx, dense = _views(2, 0, [0, 1]), _views(5, 2, [0, 1, 2, 3, 4])
+    ctx, dense = make_views(2, 0, [0, 1]), make_views(5, 2, [0, 1, 2, 3, 4])
     dense.w2c[..., 0, 3] = torch.tensor([0.0, 0.9, 0.1, 0.5, 0.3])  # camera centres at x = -t
     ctx.w2c[..., 0, 3] = torch.tensor([0.0, 0.1])
     far = far_views(dense, ctx, 2)
@@ -553,7 +543,7 @@ def test_a_padded_chunk_scores_each_held_out_view_once(batch):
 
     assert scored_targets(torch.tensor([[32, 40, 32, 40], [8, 16, 24, 0]])).tolist() == [
         True, True, False, False, True, True, True, True]
-    two = _views(2, 5, [2, 5])
+    two = make_views(2, 5, [2, 5])
     two.images[:, 1] = two.images[:, 1] * 0.2  # two targets that score differently
     padded = dataclasses.replace(two, **{f: getattr(two, f)[:, [0, 1, 0]] for f in
                                          ("images", "w2c", "K", "depth", "mask", "index")})
