@@ -152,6 +152,23 @@ def check_run_folder(trainer: dict | None) -> None:
                          f"--trainer.default_root_dir {root} --trainer.logger.init_args.save_dir {root}")
 
 
+def hpc_resume_path(trainer: dict | None, ckpt_path: str | None) -> str | None:
+    """The checkpoint Lightning resumes a ``fit`` from when none is named, or ``hpc`` is: under SLURM (a requeued
+    job's plain ``srun anycity fit``) with no ``--ckpt_path``, or with ``--ckpt_path hpc``, the newest
+    ``hpc_ckpt_N.ckpt`` (the largest N) in the parsed ``trainer`` section's ``default_root_dir`` (the working folder
+    when unset), found by Lightning's own look-up; None where there is none, or another ``ckpt_path`` is given."""
+    import os
+    from types import SimpleNamespace
+
+    from lightning.fabric.plugins.environments import SLURMEnvironment
+    from lightning.pytorch.trainer.connectors.checkpoint_connector import _CheckpointConnector
+
+    if not (ckpt_path == "hpc" or (ckpt_path is None and SLURMEnvironment.detect())):
+        return None
+    root = (_as_dict(trainer) or {}).get("default_root_dir") or os.getcwd()
+    return _CheckpointConnector(SimpleNamespace(default_root_dir=str(root)))._hpc_resume_path
+
+
 def require_weights(subcommand: str, config) -> None:
     """Refuse ``validate|test|predict`` with neither ``--ckpt_path`` nor ``model.pretrained``: it would score or
     export a randomly initialised network. ``model.init_from`` does not count: ``fit`` alone reads it, and it holds
@@ -225,7 +242,9 @@ def _cli_class():
         or another progress bar is listed. ``predict`` keeps no predictions in memory (the export wrote them;
         ``--return_predictions true`` keeps them). ``--ckpt_path`` reads with the checkpoint allow-list of
         :mod:`anycity.safe_load`; ``--ckpt_path last`` is the file it names from the start (no last checkpoint:
-        refused). Refused before anything is built or written: ``validate|test|predict`` with no weights (no
+        refused), and so is the ``hpc_ckpt_N.ckpt`` a ``fit`` resumes from under SLURM with no ``--ckpt_path`` (a
+        requeued job; :func:`hpc_resume_path`), so that the run is kept and built as a resumed one. Refused before
+        anything is built or written: ``validate|test|predict`` with no weights (no
         ``--ckpt_path``, no ``model.pretrained``), and a ``trainer.default_root_dir`` that the logger's
         ``save_dir`` contradicts (:func:`check_run_folder`)."""
 
@@ -327,6 +346,13 @@ def _cli_class():
             sub = self.config.get("subcommand")
             if sub and self.config[sub].get("ckpt_path") == "last":  # the file, before the network is built
                 self.config[f"{sub}.ckpt_path"] = self._find_last(sub, configured_trainer(self.config[sub].trainer))
+            hpc = hpc_resume_path(self.config[sub].get("trainer"), self.config[sub].get("ckpt_path")) \
+                if sub == "fit" else None
+            if hpc:  # named, so that the run resumes as with --ckpt_path: its checkpoints/ kept, the network built
+                from lightning.pytorch.utilities import rank_zero_info  # from the file's settings, pretrained unread
+
+                rank_zero_info(f"anycity: resuming from {hpc} (this run folder's newest SLURM time-limit checkpoint)")
+                self.config[f"{sub}.ckpt_path"] = hpc
             if sub and self.config[sub].get("ckpt_path") and Path(self.config[sub].ckpt_path).is_file():
                 check_checkpoint(self.config[sub].ckpt_path)
             init = self.config.get(f"{sub}.model.init_args") if sub else None

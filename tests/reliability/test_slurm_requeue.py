@@ -167,3 +167,53 @@ def test_a_sigusr1_handler_lightning_did_not_install_is_left_alone():
         assert cb._active and signal.getsignal(signal.SIGUSR1) == cb._on_signal
     finally:
         signal.signal(signal.SIGUSR1, before)
+
+
+def test_a_requeued_fit_without_ckpt_path_resumes_from_its_hpc_checkpoint(tiny_shards, tmp_path, monkeypatch):
+    """A plain ``srun anycity fit`` requeued by Lightning's auto-requeue (no ``--ckpt_path``): Lightning resumes it
+    from RUN/hpc_ckpt_N.ckpt by itself, so anycity must treat it as a resume too. It took it for a fresh fit: the
+    run's own checkpoints/ went aside as checkpoints.1 after the first batch, and the network was built outside
+    ``resuming()`` (``pretrained``/``init_from`` read again)."""
+    import functools
+    import shutil
+
+    from anycity.lit import base
+
+    run = tmp_path / "run"
+    _fit(tiny_shards, run, 2)
+    shutil.copy(run / "checkpoints" / "last.ckpt", run / "hpc_ckpt_1.ckpt")  # what the time-limit signal saved
+    shutil.copy(run / "checkpoints" / "last.ckpt", run / "hpc_ckpt_0.ckpt")  # an older one: the largest N is read
+    for k, v in SLURM.items():
+        monkeypatch.setenv(k, v)
+    built_resuming, init = [], ScaffoldModule.__init__
+
+    @functools.wraps(init)  # its signature stays the one the CLI parses
+    def record(self, *a, **k):
+        built_resuming.append(base._RESUMING.get())
+        init(self, *a, **k)
+
+    monkeypatch.setattr(ScaffoldModule, "__init__", record)
+    cli = build_cli(tiny_fit_args(tiny_shards, run, 4))  # the requeued job: the same command
+    assert sorted(p.name for p in run.iterdir() if p.name.startswith("checkpoints")) == ["checkpoints"]
+    assert safe_torch_load(run / "checkpoints" / "last.ckpt")["global_step"] == 4
+    assert built_resuming == [True]
+    assert cli.config["fit"]["ckpt_path"] == str(run / "hpc_ckpt_1.ckpt")
+
+
+def test_the_hpc_checkpoint_resumed_from_is_the_largest_n_and_only_under_slurm_or_when_asked(tmp_path, monkeypatch):
+    """What Lightning's ``_parse_ckpt_path`` would resume a fit from by itself, found before the network is built."""
+    from anycity.cli import hpc_resume_path
+
+    for n in (2, 10):
+        (tmp_path / f"hpc_ckpt_{n}.ckpt").write_bytes(b"x")
+    trainer = {"default_root_dir": str(tmp_path)}
+    assert hpc_resume_path(trainer, "hpc") == str(tmp_path / "hpc_ckpt_10.ckpt")  # by N, not by name
+    for k in SLURM:
+        monkeypatch.delenv(k, raising=False)
+    assert hpc_resume_path(trainer, None) is None  # not under SLURM: a fresh fit
+    for k, v in SLURM.items():
+        monkeypatch.setenv(k, v)
+    assert hpc_resume_path(trainer, None) == str(tmp_path / "hpc_ckpt_10.ckpt")
+    assert hpc_resume_path(trainer, str(tmp_path / "other.ckpt")) is None  # a named checkpoint is what is resumed
+    monkeypatch.chdir(tmp_path)
+    assert hpc_resume_path({"default_root_dir": None}, None) == str(tmp_path / "hpc_ckpt_10.ckpt")  # cwd, as Lightning
