@@ -10,6 +10,7 @@ problems are tiny: a few hundred points per edge, 7 unknowns per chunk).
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, field
 
 import torch
@@ -171,32 +172,60 @@ def correspondences(ca: ChunkGeometry, cb: ChunkGeometry, shared: list[int]) -> 
 
 
 def pairwise_edges(chunks: list[ChunkGeometry], names: list[str] | None = None, min_shared: int = MIN_SHARED,
-                   **fit_kw) -> list[Edge]:
+                   skipped: list[list[int]] | None = None, **fit_kw) -> list[Edge]:
     """A robust Sim(3) for every pair of chunks sharing at least one view.
 
+    A failed fit of an extra (non-consecutive) pair is skipped: the chain still holds. So is a failed fit of the
+    loop-closure chunk to chunk 0 (:func:`_is_loop`), with a warning: the loop chunk owns no photo, so the scene is
+    aligned without its cycle (its edge to the last chunk keeps it placed); its other extra pairs go too. The
+    loop chunk's skipped pairs ``[a, b]`` are appended to ``skipped``.
+
     Raises:
-        ValueError: a pair of consecutive chunks sharing fewer than ``min_shared`` views, or a failed fit, naming
+        ValueError: a pair of consecutive chunks sharing fewer than ``min_shared`` views, or its failed fit, naming
         the chunks, their photos and the fix.
     """
-    edges = []
+    loop = len(chunks) - 1 if _is_loop(chunks) else None
+    edges, loop_dropped = [], False
     for a in range(len(chunks)):
         for b in range(a + 1, len(chunks)):
             shared = sorted(set(chunks[a].views) & set(chunks[b].views))
-            consecutive = b == a + 1 or (a == 0 and b == len(chunks) - 1 and _is_loop(chunks))
+            consecutive = b == a + 1 or (a == 0 and b == loop)
             if len(shared) < min_shared:
                 if consecutive:
                     raise ValueError(_chunk_error(a, b, shared, names, f"share {len(shared)} views, need "
                                                   f"{min_shared}"))
                 continue
+            if loop_dropped and b == loop and a != loop - 1:  # the rest of the dropped loop chunk's cycle
+                if skipped is not None:
+                    skipped.append([a, b])
+                continue
             src, dst = correspondences(chunks[a], chunks[b], shared)
             try:
                 fit = robust_sim3(src, dst, **fit_kw)
             except ValueError as e:
+                why = str(e).removeprefix("robust_sim3: ")
                 if not consecutive:  # an extra edge; the chain still holds
                     continue
-                raise ValueError(_chunk_error(a, b, shared, names, str(e).removeprefix("robust_sim3: "))) from None
+                if b != loop or a != 0:
+                    raise ValueError(_chunk_error(a, b, shared, names, why)) from None
+                warnings.warn(_loop_fit_warning(chunks, names, shared, why), stacklevel=3)
+                loop_dropped = True
+                if skipped is not None:
+                    skipped.append([a, b])
+                continue
             edges.append(Edge(a, b, shared, fit, src[fit.inliers], dst[fit.inliers]))
     return edges
+
+
+def _loop_fit_warning(chunks: list[ChunkGeometry], names: list[str] | None, shared: list[int], why: str) -> str:
+    """The warning for a loop-closure chunk that cannot be fitted to chunk 0 on their ``shared`` photos."""
+    loop, views = len(chunks) - 1, chunks[-1].views
+    ends = ", ".join(names[v] if names else str(v) for v in (views[0], views[-1]))
+    shown = ", ".join(names[v] if names else str(v) for v in shared[:4])
+    return (f"city alignment: the loop-closure chunk {loop} (photos {ends}, both ends of the flight) cannot be "
+            f"aligned with chunk 0 (shared photos: {shown}): {why}; so the scene is aligned without its cycle, as "
+            "without --data.predict_loop. Drop --data.predict_loop if the flight's last photos do not see its first "
+            "ones, or raise --data.predict_chunk_size so that the loop chunk holds more of both ends")
 
 
 def _is_loop(chunks: list[ChunkGeometry]) -> bool:

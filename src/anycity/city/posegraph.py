@@ -202,15 +202,17 @@ def align_chunks(chunks: list[ChunkGeometry], names: list[str] | None = None, gl
     make them are dropped with a warning: the graph is solved without the loop-closure chunk's cycle
     (:func:`anycity.city.plan.plan_chunks`; it owns no photo, so the scene is then the one without it), else on the
     chain of consecutive chunks alone, which always passes (a tree keeps the pairwise fits). The report holds the
-    pose graph's ``initial_rms``/``final_rms``, ``dropped_pairs`` and, with a loop chunk in use, how far it moved
-    the chain (``loop_rotation_deg``, ``loop_scale``).
+    pose graph's ``initial_rms``/``final_rms``, ``dropped_pairs`` (the loop chunk's pairs first when its fit to
+    chunk 0 failed: :func:`~anycity.city.align.pairwise_edges`) and, with a loop chunk in use, how far it moved the
+    chain (``loop_rotation_deg``, ``loop_scale``).
 
     Raises:
         ValueError: a failed pairwise fit (:func:`anycity.city.align.pairwise_edges`), naming the chunks.
     """
-    edges = pairwise_edges(chunks, names, **fit_kw)
+    skipped: list[list[int]] = []
+    edges = pairwise_edges(chunks, names, skipped=skipped, **fit_kw)
     C = len(chunks)
-    loop = C - 1 if _is_loop(chunks) else None
+    loop = C - 1 if _is_loop(chunks) and not skipped else None
     if not global_pass:
         S, rep = chain_init(C, edges), {}
     else:
@@ -224,7 +226,7 @@ def align_chunks(chunks: list[ChunkGeometry], names: list[str] | None = None, gl
                 warnings.warn(why(_describe(S, edges[bad[0]])), stacklevel=2)
                 S, rep, used = S_k, rep_k, keep
                 break
-        rep["dropped_pairs"] = [[edges[i].a, edges[i].b] for i in range(len(edges)) if i not in used]
+        rep["dropped_pairs"] = skipped + [[edges[i].a, edges[i].b] for i in range(len(edges)) if i not in used]
         if loop is not None and not rep["dropped_pairs"]:
             rep.update(_loop_correction(C, edges, loop, S))
     for e, r in zip(edges, edge_rms(S, edges).tolist()):

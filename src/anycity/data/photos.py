@@ -48,8 +48,8 @@ def list_photos(folder: str | Path) -> list[Path]:
 
     Hidden files are not photos: a card copied from a Mac holds a ``._DJI_0001.JPG`` metadata file beside each
     photo. Any other file (camera raw, HEIF, TIFF, BMP, a video, ...) but the sidecars of :data:`SIDECAR_SUFFIXES` is
-    named in a warning, as it is not read. A photo's name on anything but a regular file (a FIFO, a device, a
-    folder) is refused in one line.
+    named in a warning, as it is not read (in the error, when that leaves under 2 photos). A photo's name on
+    anything but a regular file (a FIFO, a device, a folder) is refused in one line.
     """
     folder = check_photo_folder(folder)
     visible = sorted(p for p in folder.iterdir() if not p.name.startswith("."))
@@ -58,18 +58,22 @@ def list_photos(folder: str | Path) -> list[Path]:
         _check_regular(p)
     unread = [p.name for p in visible
               if p.suffix.lower() not in (*PHOTO_SUFFIXES, *SIDECAR_SUFFIXES) and not p.is_dir()]
-    if unread:
-        shown = ", ".join(unread[:5]) + (" ..." if len(unread) > 5 else "")
-        warnings.warn(f"predict_images: {len(unread)} file(s) in {folder} are not read ({shown}): only "
+    unread_shown = ", ".join(unread[:5]) + (" ..." if len(unread) > 5 else "")
+    scenes = [d.name for d in visible if d.is_dir() and any(map(_is_photo, d.iterdir()))] if len(files) < 2 else []
+    if unread and (len(files) >= 2 or scenes):  # else the error below names them
+        warnings.warn(f"predict_images: {len(unread)} file(s) in {folder} are not read ({unread_shown}): only "
                       f"{'/'.join(PHOTO_SUFFIXES)} photos are; export them as JPEG to use them", stacklevel=2)
     if len(files) < 2:
         only = f" (only {files[0].name})" if files else ""
         photos = "1 photo" if files else "no photos"
-        scenes = [d.name for d in visible if d.is_dir() and any(map(_is_photo, d.iterdir()))]
         if scenes:  # the parent of several scenes' folders
             shown = ", ".join(scenes[:5]) + (" ..." if len(scenes) > 5 else "")
             raise ValueError(f"predict_images: {folder} holds {photos}{only} but sub-folders of photos "
                              f"({shown}); pass one of them: a predict reconstructs one scene")
+        if unread:  # a phone's HEIC photos, a camera's raw files: the views are there, in a format not read
+            raise ValueError(f"predict_images: {folder} holds {photos}{only} ({'/'.join(PHOTO_SUFFIXES)}) and "
+                             f"{len(unread)} file(s) that are not read ({unread_shown}); export them as JPEG or PNG "
+                             "to use them: a scene needs at least 2 overlapping photos")
         raise ValueError(f"predict_images: {folder} holds {photos}{only} ({'/'.join(PHOTO_SUFFIXES)}); "
                          "a scene needs at least 2 overlapping photos, so add more views of it")
     return files
@@ -91,7 +95,10 @@ def _check_regular(path: Path) -> None:
 def photo_size(path: Path) -> tuple[int, int]:
     """``(h, w)`` as displayed (EXIF orientation applied), from the header only; decompression bombs and truncated
     JPEGs are refused here, before anything is decoded (:func:`anycity.data.imagecheck.check_image_file`)."""
-    check_image_file(path)
+    try:
+        check_image_file(path)
+    except ValueError as e:  # its messages name the file and the fix; this names the argument, as the rest here
+        raise ValueError(f"predict_images: {e}") from None
     try:
         return image_size(path, as_shown=True)
     except Exception as e:  # noqa: BLE001 - any decoder error means the same thing to the user

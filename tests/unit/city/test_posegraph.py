@@ -85,6 +85,40 @@ def test_an_extra_edge_that_disagrees_leaves_the_chain_with_a_warning():
     torch.testing.assert_close(S, pose_graph(len(plan), [e for e in edges if e.b == e.a + 1])[0])
 
 
+def test_a_loop_chunk_that_cannot_be_fitted_to_chunk_0_is_dropped_not_the_city():
+    """docs/city.md: a loop chunk that disagrees with the chain is dropped with a warning. One whose fit to chunk 0
+    failed outright (here its pass collapsed the first photos to one point) used to abort the whole city."""
+    w2c, pts = orbit_scene(40, points_per_view=32, arc=1.0)
+    chunks, _ = oracle_chunks(w2c, pts, plan_chunks(40, 10, 3, loop=True), seed=2)
+    L = chunks[-1]
+    k = L.views.index(0)
+    p, w = L.points.clone(), L.w2c.clone()
+    p[k:], w[k:, :3, 3] = 0.0, 0.0  # views 0..4
+    chunks[-1] = ChunkGeometry(L.views, w, p)
+    with pytest.warns(UserWarning, match=r"the loop-closure chunk 6 \(photos 35, 4, both ends of the flight\) cannot "
+                                         r"be aligned with chunk 0 \(shared photos: 0, 1, 2, 3\): degenerate point "
+                                         r"set .* aligned without its cycle"):
+        S, edges, rep = align_chunks(chunks)
+    assert [(e.a, e.b) for e in edges] == [(a, a + 1) for a in range(6)]
+    S_open, _, _ = align_chunks(chunks[:-1])
+    torch.testing.assert_close(S[:-1], S_open)  # the chain as without the loop chunk
+    assert rep["dropped_pairs"] == [[0, 6], [4, 6]] and "loop_rotation_deg" not in rep  # chunks.json says so
+    skipped = []
+    with pytest.warns(UserWarning, match="loop-closure chunk 6"):
+        pairwise_edges(chunks, skipped=skipped)
+    assert skipped == [[0, 6], [4, 6]]  # and its other extra pair: its cycle goes whole, as in _without_loop_cycle
+
+
+def test_a_failed_extra_pair_is_skipped_and_the_chain_kept():
+    w2c, pts = orbit_scene(8, points_per_view=32)
+    chunks, _ = oracle_chunks(w2c, pts, [[0, 1, 2, 3, 4], [2, 3, 4, 5, 6], [3, 4, 5, 6, 7]], seed=3)
+    C = chunks[2]
+    p = C.points.clone()
+    p[:2] = torch.randn(p[:2].shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * 50
+    chunks[2] = ChunkGeometry(C.views, C.w2c, p)  # views 3, 4: shared with chunk 0 only through garbage
+    assert [(e.a, e.b) for e in pairwise_edges(chunks)] == [(0, 1), (1, 2)]
+
+
 def test_pose_graph_jacobian_has_14_columns_whatever_the_chunk_count(monkeypatch):
     """Each edge's residuals depend on its two chunks: a Jacobian over every chunk's 7 unknowns (the old dense one,
     [3M, 7(C-1)]) made memory and time quadratic in the chunk count (2000 photos: 2.9 GB, 21 s)."""

@@ -252,16 +252,17 @@ def test_a_fifo_or_folder_with_a_photos_name_is_refused_in_one_line_not_waited_o
         load_photo_folder(d, (32, 32))
 
 
-def test_keep_aspect_no_crop_and_mixed_sizes_go_to_the_most_common(tmp_path):
+@pytest.mark.parametrize("odd_name", ["odd.png", "a_odd.png"])  # last or first in name order: the majority wins
+def test_keep_aspect_no_crop_and_mixed_sizes_go_to_the_most_common(tmp_path, odd_name):
     d = tmp_path / "flight"
     for i in range(3):
         _write(d, f"img{i}.png", 60, 80, i)  # 4:3
-    _write(d, "odd.png", 32, 96, 9)  # 3:1
-    with pytest.warns(UserWarning, match=r"1 of 4 photos .*odd.png.*most common"):
+    _write(d, odd_name, 32, 96, 9)  # 3:1
+    with pytest.warns(UserWarning, match=rf"1 of 4 photos .*\({odd_name}\).*most common"):
         out = load_photo_folder(d, (32, 32), mode="keep", patch=8)
     h, w = out["images"].shape[-2:]
     assert (h, w) == (24, 40) and out["images"].shape[0] == 4  # ~32*32 px at 4:3, sides multiples of 8
-    assert out["names"] == ["img0.png", "img1.png", "img2.png", "odd.png"]
+    assert sorted(out["names"]) == sorted(["img0.png", "img1.png", "img2.png", odd_name]) == out["names"]
 
 
 def test_natural_order_and_capture_time(tmp_path):
@@ -283,8 +284,113 @@ def test_natural_order_and_capture_time(tmp_path):
     assert [files[i].name for i in order] == ["img1.jpg", "img2.jpg", "img10.jpg"]
 
 
+def _exif_jpg(folder, name, original=None, changed=None, subsec=None):
+    """A JPEG with EXIF DateTimeOriginal (36867), DateTime (306) and SubSecTimeOriginal (37521) as given."""
+    from PIL import Image
+
+    folder.mkdir(exist_ok=True)
+    exif = Image.Exif()
+    if changed:
+        exif[306] = changed
+    ifd = exif.get_ifd(0x8769)  # the Exif sub-IFD
+    if original:
+        ifd[36867] = original
+    if subsec:
+        ifd[37521] = subsec
+    Image.new("RGB", (8, 8)).save(folder / name, exif=exif)
+    return folder / name
+
+
+def test_capture_order_is_date_time_original_not_the_edit_time(tmp_path):
+    """An editor rewrites DateTime (306) on export; DateTimeOriginal (36867) is when the photo was taken."""
+    from anycity.city.plan import order_photos
+
+    d = tmp_path / "edited"
+    files = [_exif_jpg(d, "c.jpg", "2024:05:01 10:00:00", "2024:06:01 09:00:09"),
+             _exif_jpg(d, "b.jpg", "2024:05:01 10:00:02", "2024:06:01 09:00:05"),
+             _exif_jpg(d, "a.jpg", "2024:05:01 10:00:04", "2024:06:01 09:00:01")]
+    assert order_photos(files) == ([0, 1, 2], "time")  # c, b, a
+
+
+def test_capture_order_within_one_second_uses_sub_seconds(tmp_path):
+    """A burst: the same DateTimeOriginal, told apart by SubSecTimeOriginal (37521)."""
+    from anycity.city.plan import order_photos
+
+    d = tmp_path / "burst"
+    files = [_exif_jpg(d, f"x{i}.jpg", "2024:05:01 10:00:00", subsec=sub) for i, sub in ((1, "70"), (2, "30"),
+                                                                                       (3, "50"))]
+    assert order_photos(files) == ([1, 2, 0], "time")  # x2, x3, x1
+
+
+def test_name_order_ignores_case(tmp_path):
+    from pathlib import Path
+
+    from anycity.city.plan import order_photos
+
+    files = [Path("a1.jpg"), Path("B2.jpg"), Path("c3.jpg")]
+    assert order_photos(files, "name") == ([0, 1, 2], "name")
+
+
 def test_scene_name_skips_generic_folder_names(tmp_path):
     from anycity.data.photos import scene_name
 
     assert scene_name(tmp_path / "boruszyn_kap" / "images") == "boruszyn_kap"  # COLMAP / nerfstudio layout
     assert scene_name(tmp_path / "my_flight") == "my_flight"
+    assert scene_name(tmp_path / "roof" / "Images") == "roof"  # any case
+
+
+def test_scene_name_of_the_current_folder_is_its_own_name(tmp_path, monkeypatch):
+    """``--data.predict_images .`` names the scene after the folder it stands for, not ``""``."""
+    from pathlib import Path
+
+    from anycity.data.photos import scene_name
+
+    (tmp_path / "my_flight").mkdir()
+    monkeypatch.chdir(tmp_path / "my_flight")
+    assert scene_name(Path(".")) == "my_flight"
+
+
+def test_reorder_renames_the_photos_with_them(tmp_path):
+    """``predict_order tokens`` loads by name, then reorders: the names (the outputs' labels) follow the files."""
+    from anycity.data.photos import PhotoFolder
+
+    d = tmp_path / "flight"
+    for i in range(4):
+        _write(d, f"p{i}.png", 32, 32, i)
+    photos = PhotoFolder(d, (32, 32), "keep", 8, "name")
+    photos.reorder([3, 0, 1, 2], "tokens")
+    assert photos.names == [f.name for f in photos.files] == ["p3.png", "p0.png", "p1.png", "p2.png"]
+    assert photos.ordered_by == "tokens"
+
+
+def test_an_unreadable_photo_is_refused_naming_the_argument_and_the_fix(tmp_path):
+    d = tmp_path / "bad"
+    _write(d, "a.png", 32, 32)
+    (d / "b.jpg").write_bytes(b"not a jpeg")
+    with pytest.raises(ValueError) as e:
+        load_photo_folder(d, (32, 32))
+    assert str(e.value) == (f"predict_images: cannot decode {d / 'b.jpg'}: not a readable image "
+                            "(UnidentifiedImageError); re-save it as JPEG or PNG, or remove it")
+
+
+def test_a_folder_of_only_unread_files_says_so_in_the_error_not_add_more_views(tmp_path):
+    """A phone's folder of 40 HEIC photos failed with "holds no photos ... add more views of it"; only a separate
+    warning said that they were not read. The error says how many were not read and to export them."""
+    import warnings
+
+    d = tmp_path / "iphone"
+    d.mkdir()
+    for i in range(40):
+        (d / f"IMG_{i:04d}.HEIC").write_bytes(b"\x00\x00\x00\x18ftypheic")
+    with warnings.catch_warnings(record=True) as w, pytest.raises(ValueError) as e:
+        warnings.simplefilter("always")
+        load_photo_folder(d, (32, 32))
+    assert str(e.value) == (
+        f"predict_images: {d} holds no photos (.jpg/.jpeg/.jfif/.jpe/.png/.webp) and 40 file(s) that are not read "
+        "(IMG_0000.HEIC, IMG_0001.HEIC, IMG_0002.HEIC, IMG_0003.HEIC, IMG_0004.HEIC ...); export them as JPEG or "
+        "PNG to use them: a scene needs at least 2 overlapping photos")
+    assert not w  # said once, in the error
+    _write(d, "a.jpg", 32, 32)
+    with pytest.raises(ValueError, match=r"holds 1 photo \(only a\.jpg\) .* and 40 file\(s\) that are not read .*"
+                                         "export them as JPEG or PNG"):
+        load_photo_folder(d, (32, 32))
