@@ -25,6 +25,47 @@ def test_render_video_frames(tmp_path):
     assert min(diffs) > 0.1, diffs
 
 
+def test_render_video_writes_at_the_fps_asked(tmp_path):
+    imageio_ffmpeg = pytest.importorskip("imageio_ffmpeg")
+    (tmp_path / "s").mkdir()
+    out = tmp_path / "fly.mp4"
+    folder = tiny_predict_folder(tmp_path / "s", n=20, with_prov=False)
+    assert main(["render-video", str(folder), "--out", str(out), "--per-segment", "1", "--width", "16",
+                 "--fps", "10"]) == 0
+    assert next(imageio_ffmpeg.read_frames(str(out)))["fps"] == 10
+
+
+def test_a_nadir_flights_orbit_circles_above_the_ground(tmp_path, monkeypatch):
+    """Straight-down cameras: render-video must orbit about the ground's normal (scene_up), not the cameras' mean
+    "up", which lies on the ground and swings the orbit through it."""
+    import torch
+    from helpers.raycast_scenes import look_at
+
+    from anycity.export import save_cameras, save_ply
+    from anycity.structures import Gaussians
+    from anycity.viewer import video
+
+    pytest.importorskip("imageio_ffmpeg")
+    g, n = torch.Generator().manual_seed(0), 2000
+    means = torch.cat([torch.rand(n, 2, generator=g) * 20 - 10, torch.rand(n, 1, generator=g)], -1)[None]
+    save_ply(Gaussians(means, torch.tensor([1.0, 0, 0, 0]).expand(1, n, 4).clone(), torch.full((1, n, 3), 0.05),
+                       torch.full((1, n), 0.9), torch.zeros(1, n, 1, 3)), tmp_path / "scene.ply")
+    w2c = torch.stack([look_at((x, y, 20.0), (x, y, 0.0), up=(0.0, 1.0, 0.0))
+                       for x in (-6.0, 6.0) for y in (-6.0, 6.0)])
+    save_cameras(tmp_path / "cameras.json", w2c, torch.tensor([[40.0, 0, 24], [0, 40, 16], [0, 0, 1]]).repeat(4, 1, 1),
+                 48, 32)
+    seen = []
+
+    def frames(scene, w2c, K, width, height, progress=True):
+        seen.append(w2c)
+        return iter([np.zeros((height, width, 3), np.uint8)] * len(w2c))
+
+    monkeypatch.setattr(video, "render_frames", frames)
+    assert video.render_video(tmp_path, tmp_path / "v.mp4", per_segment=1, orbit=6, width=16, progress=False) == 10
+    eyes = torch.linalg.inv(seen[0][-6:])[:, :3, 3]
+    assert (eyes[:, 2] > 15).all(), eyes  # at the flight's height, not through the ground
+
+
 def _scene_and_an_earlier_video(tmp_path):
     pytest.importorskip("imageio_ffmpeg")
     (tmp_path / "s").mkdir()

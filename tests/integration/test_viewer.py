@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
 import shutil
+import socket
 import subprocess
 
 import numpy as np
@@ -60,6 +62,99 @@ def test_save_render_button_writes_our_render_of_the_current_camera(tmp_path):
     w2c, K = camera_w2c(wxyz, pos, fov, 96, 64)
     torch.testing.assert_close(w2c[0, 0], scene.w2c[1].float(), atol=1e-5, rtol=0)  # the viewer's camera round trip
     np.testing.assert_array_equal(img, render_view(scene, w2c, K, 96, 64))
+
+
+def test_save_render_clicks_in_one_second_each_get_their_own_file(tmp_path, monkeypatch):
+    import time
+
+    from anycity.viewer.scene import load_view_scene
+    from anycity.viewer.server import save_render
+
+    scene = load_view_scene(tiny_predict_folder(tmp_path, n=50))
+    monkeypatch.setattr(time, "strftime", lambda fmt, *a: "20250101_000000")
+    files = [save_render(scene, [1.0, 0, 0, 0], [0.0, 0, -4], 1.0, 1.0, height=8) for _ in range(3)]
+    assert [f.name for f in files] == ["render_20250101_000000.png", "render_20250101_000000_1.png",
+                                       "render_20250101_000000_2.png"]
+    assert len(list((tmp_path / "view_renders").iterdir())) == 3
+
+
+def _server_with_spies(folder, monkeypatch, cameras=True):
+    """build_server with its frustums, splat uploads and GUI callbacks recorded: ``(server, scene, spies)``; spies
+    holds the frustums' keyword arguments, the splats' colours, the button's and the dropdown's callbacks and the
+    panel."""
+    import viser
+    from viser._gui_handles import GuiButtonHandle, GuiDropdownHandle
+
+    from anycity.viewer.server import build_server
+
+    spies = {"frustums": [], "rgbs": [], "clicks": [], "dropdowns": [], "panels": []}
+    frustum, splats = viser.SceneApi.add_camera_frustum, viser.SceneApi.add_gaussian_splats
+    markdown = viser.GuiApi.add_markdown
+    monkeypatch.setattr(viser.SceneApi, "add_camera_frustum",
+                        lambda self, *a, **k: spies["frustums"].append(k) or frustum(self, *a, **k))
+    monkeypatch.setattr(viser.SceneApi, "add_gaussian_splats",
+                        lambda self, name, c, cov, rgbs, *a, **k: spies["rgbs"].append(rgbs)
+                        or splats(self, name, c, cov, rgbs, *a, **k))
+    monkeypatch.setattr(viser.GuiApi, "add_markdown",
+                        lambda self, *a, **k: spies["panels"].append(markdown(self, *a, **k)) or spies["panels"][-1])
+    monkeypatch.setattr(GuiButtonHandle, "on_click", lambda self, f: spies["clicks"].append(f) or f)
+    monkeypatch.setattr(GuiDropdownHandle, "on_update", lambda self, f: spies["dropdowns"].append((self, f)) or f)
+    server, scene = build_server(folder, port=0, cameras=cameras)
+    return server, scene, spies
+
+
+def test_frustums_sit_at_the_cameras_and_no_cameras_hides_them(tmp_path, monkeypatch):
+    pytest.importorskip("viser")
+    from helpers.raycast_scenes import look_at
+
+    from anycity.export import save_cameras
+    from anycity.geometry import quat_to_rotmat
+
+    folder = tiny_predict_folder(tmp_path, n=20)
+    w2c = torch.stack([look_at((5.0 * math.cos(t), 5.0 * math.sin(t), 3.0), (0.0, 0, 0)) for t in (0.0, 0.5, 1.0)])
+    save_cameras(folder / "cameras.json", w2c, torch.tensor([[40.0, 0, 24], [0, 40, 16], [0, 0, 1]]).repeat(3, 1, 1),
+                 48, 32)
+    server, _, spies = _server_with_spies(folder, monkeypatch)
+    server.stop()
+    assert len(spies["frustums"]) == 3
+    for v, k in enumerate(spies["frustums"]):
+        c2w = torch.linalg.inv(w2c[v]).double()
+        torch.testing.assert_close(quat_to_rotmat(torch.as_tensor(k["wxyz"])), c2w[:3, :3], atol=1e-5, rtol=0)
+        np.testing.assert_allclose(k["position"], c2w[:3, 3].numpy(), atol=1e-5)
+    server, _, spies = _server_with_spies(folder, monkeypatch, cameras=False)  # --no-cameras
+    server.stop()
+    assert spies["frustums"] == []
+
+
+def test_colour_by_obs_views_ramps_to_red_at_4_views(tmp_path, monkeypatch):
+    pytest.importorskip("viser")
+    from anycity.viewer.scene import ramp
+
+    server, scene, spies = _server_with_spies(tiny_predict_folder(tmp_path, n=20), monkeypatch)
+    try:
+        (dropdown, update), = spies["dropdowns"]
+        dropdown.value = "obs_views (blue 0 -> red 4+ views)"
+        update(None)
+    finally:
+        server.stop()
+    np.testing.assert_allclose(spies["rgbs"][-1], ramp(scene.extras["obs_views"] / 4.0), atol=1e-6)
+
+
+def test_save_render_into_an_unusable_folder_says_so_in_the_panel(tmp_path, monkeypatch):
+    """view_renders is a file: the OSError (not a FileNotFoundError) was a server-side traceback, nothing shown."""
+    from types import SimpleNamespace
+
+    pytest.importorskip("viser")
+    folder = tiny_predict_folder(tmp_path, n=20)
+    (folder / "view_renders").write_text("a file where the folder goes")
+    server, _, spies = _server_with_spies(folder, monkeypatch)
+    try:
+        (click,), (info,) = spies["clicks"], spies["panels"]
+        cam = SimpleNamespace(wxyz=np.array([1.0, 0, 0, 0]), position=np.array([0.0, 0, -4]), fov=1.0, aspect=1.0)
+        click(SimpleNamespace(client=SimpleNamespace(camera=cam)))
+    finally:
+        server.stop()
+    assert "no render saved: " in info.content and "view_renders" in info.content
 
 
 def test_build_server_loads_scene_and_provenance(tmp_path):
@@ -135,8 +230,6 @@ def test_a_host_the_viewer_cannot_listen_on_is_one_line_not_a_hang(tmp_path, hos
 
 def test_a_taken_port_moves_up_and_a_taken_65535_is_one_line(tmp_path):
     """--port 65535 taken: viser moved to 65536, its thread died on the OverflowError and view hung."""
-    import socket
-
     pytest.importorskip("viser")
     from anycity.viewer.server import build_server, listen_port
 
@@ -146,13 +239,28 @@ def test_a_taken_port_moves_up_and_a_taken_65535_is_one_line(tmp_path):
         port = taken.getsockname()[1]
         assert listen_port("127.0.0.1", port) > port
         assert listen_port("127.0.0.1", 0) == 0
-    with socket.socket() as top:
-        top.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        try:
-            top.bind(("127.0.0.1", 65535))
-        except OSError:
-            pytest.skip("port 65535 is in use here")
+    with _port_65535_or_skip() as top:
         top.listen()
         with pytest.raises(ValueError, match=r"--port 65535: it is taken on 127\.0\.0\.1; pass --port 0") as e:
             build_server(tiny_predict_folder(tmp_path, n=10), port=65535)
         assert "\n" not in str(e.value)
+
+
+@contextlib.contextmanager
+def _port_65535_or_skip():
+    """A socket bound to 127.0.0.1:65535, closed on exit; the test is skipped where that port is in use."""
+    with socket.socket() as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind(("127.0.0.1", 65535))
+        except OSError:
+            pytest.skip("port 65535 is in use here")
+        yield s
+
+
+def test_a_free_port_65535_is_listened_on():
+    from anycity.viewer.server import listen_port
+
+    with _port_65535_or_skip():
+        pass  # free a moment ago
+    assert listen_port("127.0.0.1", 65535) == 65535

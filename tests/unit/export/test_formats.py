@@ -183,11 +183,52 @@ def test_ply_export_and_errors(tmp_path, capsys):
                         "--overwrite"]) == 0
     assert (tmp_path / "o" / "scene.splat").is_file() and (tmp_path / "o" / "scene.ply").is_file()
     (d / "cameras.json").unlink()
-    with pytest.raises(ValueError, match="cameras.json"):
-        export(d, "colmap", tmp_path / "o2")
-    assert not (tmp_path / "o2").exists()  # refused before writing anything
+    for fmt in ("colmap", "nerfstudio"):
+        with pytest.raises(ValueError, match=f"no cameras.json beside the scene; --format {fmt} needs") as e:
+            export(d, fmt, tmp_path / "o2")
+        assert "\n" not in str(e.value)
+        assert not (tmp_path / "o2").exists()  # refused before writing anything
     with pytest.raises(FileNotFoundError, match="scene.ply"):
         export(tmp_path, "splat", tmp_path / "o3")
+
+
+def test_an_out_folder_holding_one_file_is_not_written_into(tmp_path):
+    d, _, _, _ = _predict_dir(tmp_path)
+    out = tmp_path / "o"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    with pytest.raises(FileExistsError, match="o exists and is not empty; pass --overwrite"):
+        export(d, "splat", out)
+    assert [p.name for p in out.iterdir()] == ["notes.txt"]
+
+
+def test_a_missing_input_image_is_warned_about_and_the_colmap_model_still_written(tmp_path):
+    from PIL import Image
+
+    d, _, _, _ = _predict_dir(tmp_path)
+    (d / "inputs").mkdir()
+    for v in (0, 1):  # view 2's image is missing
+        Image.new("RGB", (48, 32)).save(d / "inputs" / f"{v:03d}.png")
+    with pytest.warns(UserWarning, match="no inputs/ images for all 3 cameras"):
+        out = export(d, "colmap", tmp_path / "o")
+    assert out == tmp_path / "o" / "sparse" / "0" and (out / "images.txt").is_file()
+    assert not (tmp_path / "o" / "images").exists()  # all or none: no model with some images missing
+
+
+def test_flags_may_be_given_as_flag_equals_value(tmp_path):
+    d, _, _, _ = _predict_dir(tmp_path)
+    assert export_main([f"--from={d}", "--format=splat", f"--out={tmp_path / 'o'}"]) == 0
+    assert (tmp_path / "o" / "scene.splat").is_file()
+
+
+def test_the_default_out_is_export_format_inside_the_scene_folder(tmp_path, capsys):
+    d, _, _, _ = _predict_dir(tmp_path)
+    assert export_main(["--from", str(d), "--format", "splat"]) == 0
+    assert (d / "export_splat" / "scene.splat").is_file()
+    assert export_main(["--from", str(d / "scene.ply"), "--format", "ply"]) == 0  # beside a scene.ply given
+    assert (d / "export_ply" / "scene.ply").is_file()
+    assert sorted(p.name for p in d.parent.iterdir()) == ["sceneA"]  # nothing beside the scene folder
+    assert f"wrote {d / 'export_splat' / 'scene.splat'}" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize("pad_degree", [None, 3])
@@ -220,7 +261,10 @@ def test_a_malformed_cameras_json_is_one_line_naming_it(tmp_path):
                           "view 1 is 47x32, view 0 48x32"),
                          (json.dumps({"views": [{**cams["views"][0], "K": [[10 ** 400, 0, 8], [0, 1, 8], [0, 0, 1]]}]}),
                           "view 0: camera holds a number too large for a float"),  # was an OverflowError
+                         (json.dumps({"views": [{**cams["views"][0], "width": 70000}]}),
+                          r"positive integer 'width' \(at most 65536\)"),
                          (json.dumps({**cams, "metres_per_unit": "2"}), "'metres_per_unit' is '2', not a positive"),
+                         (json.dumps({**cams, "metres_per_unit": 0}), "'metres_per_unit' is '0', not a positive"),
                          (json.dumps({**cams, "convention": "opengl_c2w"}), "'convention' is 'opengl_c2w', not"),
                          (json.dumps({**cams, "schema_version": 99}), "'schema_version' is '99'; this anycity reads "
                                                                       "up to 1"),

@@ -58,6 +58,7 @@ def test_the_file_is_byte_for_byte_plyfiles(tmp_path, degree, extra, max_degree,
     import anycity.export.ply as ply
 
     monkeypatch.setattr(ply, "ROWS", 64, raising=False)  # several row blocks, the last one short
+    monkeypatch.setattr(ply, "WRITE_STEP", 1000)  # several write slices, not a multiple of the record length
     g, prov = _scene(300, degree)
     g.means[0, 0, 1] = float("nan")
     g.quats[0, 1] = 0
@@ -72,6 +73,15 @@ def test_the_file_is_byte_for_byte_plyfiles(tmp_path, degree, extra, max_degree,
     back = load_ply(path)  # and our reader (plyfile underneath) reads it
     assert back.num_gaussians == 300 - dropped and back.sh_degree == max(min(degree, max_degree), pad_degree or 0)
     assert set(load_ply_extras(path)) == ({"obs_views", "completion"} if extra else set())
+
+
+def test_opacity_one_or_zero_is_written_as_a_finite_logit(tmp_path):
+    g = Gaussians(means=torch.zeros(1, 2, 3), quats=torch.tensor([[[1.0, 0, 0, 0]] * 2]),
+                  scales=torch.full((1, 2, 3), 0.1), opacities=torch.tensor([[1.0, 0.0]]), sh=torch.zeros(1, 2, 1, 3))
+    save_ply(g, tmp_path / "s.ply")
+    raw = np.asarray(PlyData.read(str(tmp_path / "s.ply"))["vertex"]["opacity"])
+    assert np.isfinite(raw).all() and np.abs(raw).max() < 14  # logit(1 - 1e-6) = 13.8, not +-inf
+    assert raw[0] > 13 and raw[1] < -13
 
 
 def test_an_empty_scene_and_a_coloured_point_cloud_are_plyfiles_too(tmp_path):

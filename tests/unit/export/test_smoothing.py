@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from anycity.export.smoothing import sampling_rate, smooth_3d
+from anycity.export.smoothing import best_camera, sampling_rate, smooth_3d
 from anycity.render import render
 from anycity.render.projection import EPS2D
 from anycity.structures import Gaussians
@@ -105,3 +105,31 @@ def test_the_per_camera_tensors_are_built_a_chunk_at_a_time(monkeypatch):
     assert sampling_rate(means, w2c, K, 48, 48).shape == (1, 50) and seen == [16, 16, 16, 2]  # provenance's too
     empty = smooth_3d(_gaussians(means[:, :0], torch.zeros(1, 0, 3)), w2c, K, 48, 48)
     assert empty.scales.shape == (1, 0, 3) and empty.opacities.shape == (1, 0)
+
+
+def test_a_centre_no_camera_frames_takes_a_camera_it_is_in_front_of():
+    w2c = torch.eye(4)[None, None].repeat(1, 2, 1, 1)
+    w2c[0, 1, :3, :3] = torch.diag(torch.tensor([-1.0, 1, -1]))  # camera 1 looks down -z from z = 10
+    w2c[0, 1, 2, 3] = 10.0
+    K = torch.tensor([[40.0, 0, 24], [0, 40, 16], [0, 0, 1]]).expand(1, 2, 3, 3)
+    means = torch.tensor([[[50.0, 0, -2]]])  # behind camera 0; z = 12 in camera 1, far out of its frame
+    nu, cam = best_camera(means, w2c, K, 48, 32)
+    assert cam.item() == 1
+    torch.testing.assert_close(nu, torch.tensor([[40.0 / 12]]))
+
+
+def test_the_frame_test_uses_width_for_u_and_height_for_v():
+    # 96x32 images: camera 0 (z = 5, nu = 8) sees the centre at u = 80, inside the width but beyond the height;
+    # camera 1 (z = 10, nu = 4) sees it at u = 32
+    K = torch.tensor([[40.0, 0, 48], [0, 40, 16], [0, 0, 1]]).expand(1, 2, 3, 3)
+    w2c = torch.eye(4)[None, None].repeat(1, 2, 1, 1)
+    w2c[0, 1, 2, 3] = 5.0
+    w2c[0, 1, 0, 3] = -8.0
+    nu = sampling_rate(torch.tensor([[[4.0, 0.0, 5.0]]]), w2c, K, 96, 32)
+    torch.testing.assert_close(nu, torch.tensor([[8.0]]))
+
+
+def test_the_sampling_rate_takes_the_larger_focal_length():
+    K = torch.tensor([[40.0, 0, 24], [0, 20, 16], [0, 0, 1]])[None, None]
+    nu = sampling_rate(torch.tensor([[[0.0, 0, 5]]]), torch.eye(4)[None, None], K, 48, 32)
+    torch.testing.assert_close(nu, torch.tensor([[8.0]]))  # max(fx, fy) / z = 40 / 5

@@ -44,3 +44,11 @@ def test_a_frustum_has_its_cameras_field_of_view_on_both_axes():
     fov_y, aspect = frustum_shape(K, 56, 40)
     assert math.tan(fov_y / 2) == pytest.approx(20 / 34.4)
     assert aspect * math.tan(fov_y / 2) == pytest.approx(28 / 48.3)  # horizontal: W / 2 / fx, not from fy
+
+
+def test_the_viewer_cameras_focal_comes_from_its_vertical_field_of_view():
+    from anycity.viewer.server import camera_w2c
+
+    _, K = camera_w2c([1.0, 0, 0, 0], [0.0, 0, 0], 1.0, 96, 64)
+    f = 32 / math.tan(0.5)  # half the height over tan(fov_y / 2), on both axes
+    torch.testing.assert_close(K[0, 0], torch.tensor([[f, 0, 48], [0, f, 32], [0, 0, 1]]))

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import math
 import sys
 
 import numpy as np
@@ -12,7 +13,7 @@ from helpers.viewer_scenes import tiny_predict_folder
 
 from anycity.export import save_ply
 from anycity.structures import Gaussians
-from anycity.viewer.scene import load_view_scene, ramp
+from anycity.viewer.scene import load_view_scene, ramp, splat_arrays
 from anycity.viewer.server import COLOURINGS, _share_text, build_server
 from anycity.viewer.video import render_video
 
@@ -21,6 +22,22 @@ def test_nan_completion_is_grey_not_the_colour_of_kept():
     col = ramp(np.array([0.0, np.nan, 1.0]))
     np.testing.assert_allclose(col[1], [0.5, 0.5, 0.5])
     assert not np.allclose(col[0], 0.5) and not np.allclose(col[2], 0.5)
+
+
+def test_the_ramp_runs_from_blue_at_0_to_red_at_1():
+    col = ramp(np.array([0.0, 1.0]))
+    assert col[0, 2] > col[0, 0] and col[1, 0] > col[1, 2]
+
+
+def test_a_splats_covariance_is_r_diag_s2_r_transposed():
+    """One Gaussian stretched along its x axis (scales 1, .1, .1), turned 30 degrees about z: its long axis points at
+    30 degrees in the world, covariance R diag(s^2) R^T (R^T diag(s^2) R turns it to -30 degrees)."""
+    a = math.radians(30)
+    q = torch.tensor([[[math.cos(a / 2), 0, 0, math.sin(a / 2)]]])
+    g = Gaussians(torch.zeros(1, 1, 3), q, torch.tensor([[[1.0, 0.1, 0.1]]]), torch.ones(1, 1), torch.zeros(1, 1, 1, 3))
+    c, s = math.cos(a), math.sin(a)
+    R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+    np.testing.assert_allclose(splat_arrays(g)[1][0], R @ np.diag([1.0, 0.01, 0.01]) @ R.T, atol=1e-6)
 
 
 def _with_completion(tmp_path, completion: torch.Tensor):
@@ -46,6 +63,13 @@ def test_a_partly_unknown_completion_is_shared_over_all_and_named(tmp_path):
     from anycity.viewer.server import colourings
 
     assert colourings(scene.extras) == COLOURINGS
+
+
+def test_the_share_seen_by_two_views_counts_two(tmp_path):
+    folder = tiny_predict_folder(tmp_path, n=4)
+    save_ply(load_view_scene(folder).gaussians, folder / "scene.ply",
+             extra={"obs_views": torch.tensor([[2.0, 2, 1, 0]]), "completion": torch.zeros(1, 4)})
+    assert "seen by >= 2 input views: 50%" in _share_text(load_view_scene(folder))
 
 
 def test_a_scene_with_no_gaussians_is_one_line(tmp_path):

@@ -29,6 +29,12 @@ def test_a_cut_thumbnail_warns_once_and_the_scene_shows_none(tmp_path, keep):
     assert len(rec) == 1 and scene.thumbs == [] and scene.gaussians.num_gaussians == 50 and scene.w2c is not None
 
 
+def test_a_missing_first_thumbnail_shows_none_not_the_others_on_the_wrong_cameras(tmp_path):
+    folder = tiny_predict_folder(tmp_path, n=50)
+    view_png(folder, "inputs", 0).unlink()
+    assert load_view_scene(folder).thumbs == []
+
+
 def test_render_video_loads_no_thumbnails(tmp_path):
     folder = tiny_predict_folder(tmp_path, n=50)
     view_png(folder, "inputs", 0).write_bytes(b"not a png")

@@ -1,11 +1,15 @@
-"""``anycity render-video``'s camera paths: the orbit's radius, height and start, and its argument checks."""
+"""``anycity render-video``'s camera paths: the interpolated flight, the orbit's radius, height, start and up,
+the frames' intrinsics, and its argument checks."""
 
 import math
+from types import SimpleNamespace
 
 import pytest
 import torch
+from helpers.viewer_scenes import tiny_predict_folder
 
-from anycity.viewer.video import orbit_path, render_video_main, scene_up
+from anycity.viewer.scene import load_view_scene
+from anycity.viewer.video import interpolate_path, orbit_path, render_frames, render_video_main, scene_up
 
 
 def _look_at(eye, target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0)):
@@ -39,6 +43,7 @@ def test_an_orbit_flight_gives_an_orbit_at_its_radius_and_height():
     optical = torch.linalg.inv(ow)[:, :3, 2]
     toward = -eyes / eyes.norm(dim=-1, keepdim=True)
     assert torch.allclose(optical, toward, atol=1e-6)  # each frame looks at the centre
+    assert (-torch.linalg.inv(ow)[:, 2, 1] > 0.1).all()  # the image's up (-y) points up: no frame upside down
     assert oK.shape == (8, 3, 3) and torch.equal(oK[3], K.double())
 
 
@@ -69,6 +74,57 @@ def test_a_nadir_grid_orbits_above_the_ground():
     # a tall, narrow scene is not flat: the cameras' own "up" is kept
     tower = torch.cat([torch.rand(2000, 2, generator=g), torch.rand(2000, 1, generator=g) * 30], -1)
     assert torch.allclose(scene_up(tower, c2w[:, :3, 3], camera_up), camera_up / camera_up.norm())
+
+
+def test_the_ground_normal_is_turned_towards_the_cameras():
+    g = torch.Generator().manual_seed(0)
+    ground = torch.cat([torch.rand(2000, 2, generator=g) * 20 - 10, torch.rand(2000, 1, generator=g)], -1)
+    side = torch.tensor([1.0, 0, 0])
+    assert scene_up(ground, torch.tensor([[0.0, 0, 20]]), side)[2] > 0.95
+    assert scene_up(ground, torch.tensor([[0.0, 0, -20]]), side)[2] < -0.95  # a flight below the scene: down
+
+
+def _yaw(deg):
+    """w2c [4, 4] of a camera at the origin turned ``deg`` degrees about z."""
+    a = math.radians(deg)
+    w2c = torch.eye(4, dtype=torch.float64)
+    w2c[:2, :2] = torch.tensor([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+    return w2c
+
+
+def test_the_flight_turns_the_short_way():
+    """Yaw +170 -> -170 is a 20 degree turn through 180, not 340 through 0."""
+    w2c, _ = interpolate_path(torch.stack([_yaw(170), _yaw(-170)]), K.expand(2, 3, 3), 2)
+    mid = torch.linalg.inv(w2c[1])
+    assert abs(abs(math.degrees(math.atan2(mid[1, 0], mid[0, 0]))) - 180) < 1e-6
+
+
+def test_the_flight_moves_the_centre_and_intrinsics_linearly_and_ends_at_the_last_camera():
+    w2c = torch.eye(4, dtype=torch.float64).repeat(2, 1, 1)
+    w2c[1, 0, 3] = -1.0  # centre x = 1
+    Ks = torch.stack([K, 2 * K])
+    Ks[1, 2, 2] = 1
+    path, pK = interpolate_path(w2c, Ks, 4)
+    xs = torch.linalg.inv(path)[:, 0, 3]
+    torch.testing.assert_close(xs, torch.tensor([0, 0.25, 0.5, 0.75, 1], dtype=torch.float64))
+    torch.testing.assert_close(pK[:, 0, 0], torch.tensor([50.0, 62.5, 75, 87.5, 100], dtype=torch.float64))
+
+
+def test_frames_wider_than_the_inputs_scale_the_intrinsics(tmp_path, monkeypatch):
+    """--width 96 for 48x32 inputs: K's focal lengths and principal point double with the frame."""
+    import anycity.render
+
+    scene = load_view_scene(tiny_predict_folder(tmp_path, n=20), thumbs=False)
+    seen = []
+
+    def render(g, w2c, K, width, height, **kwargs):
+        seen.append(K)
+        return SimpleNamespace(rgb=torch.zeros(1, 1, 3, height, width))
+
+    monkeypatch.setattr(anycity.render, "render", render)
+    frames = list(render_frames(scene, scene.w2c[:1], scene.K[:1], 96, 64, progress=False))
+    assert frames[0].shape == (64, 96, 3)
+    torch.testing.assert_close(seen[0][0, 0], torch.tensor([[80.0, 0, 48], [0, 80, 32], [0, 0, 1]]))
 
 
 @pytest.mark.parametrize("args, name", [(["--per-segment", "0"], "--per_segment/--per-segment"),
