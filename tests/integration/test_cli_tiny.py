@@ -1,6 +1,7 @@
 """The training CLI end to end, in-process: fit -> test --ckpt_path -> predict, resume, config errors."""
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -282,6 +283,22 @@ def test_ckpt_path_last_without_a_last_checkpoint_is_refused(tiny_shards, fitted
     assert not (run / "checkpoints").exists() and not (run / "metrics.csv").exists()  # nothing ran
     assert main(["test", *_tiny_args(tiny_shards, tmp_path / "empty"), "--ckpt_path", "last"]) == 2
     assert "--ckpt_path last: no last*.ckpt in " in capsys.readouterr().err
+
+
+def test_ckpt_path_last_is_the_newest_last_checkpoint(tmp_path):
+    """``--ckpt_path last`` names, as Lightning's own look-up, the newest ``last*.ckpt`` by modification time (a run
+    that wrote ``last-v1.ckpt`` beside an earlier ``last.ckpt`` resumes from the newer), not the oldest or the
+    first by name."""
+    from lightning.pytorch.callbacks import ModelCheckpoint
+
+    from anycity.cli import _cli_class, configured_trainer
+
+    for name, mtime in (("last.ckpt", 1000), ("last-v1.ckpt", 1001), ("last-v2.ckpt", 900)):
+        (tmp_path / name).write_bytes(b"x")
+        os.utime(tmp_path / name, (mtime, mtime))
+    trainer = configured_trainer({"default_root_dir": str(tmp_path), "logger": False,
+                                  "callbacks": [ModelCheckpoint(dirpath=tmp_path, save_last=True)]})
+    assert _cli_class()._find_last("fit", trainer) == str(tmp_path / "last-v1.ckpt")
 
 
 @pytest.mark.parametrize("bar", ["off", "rich"])

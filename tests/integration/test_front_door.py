@@ -415,3 +415,38 @@ def test_naming_trainer_plugins_keeps_safe_checkpoint_io(tiny_shards, tmp_path, 
                         (["lightning.pytorch.plugins.TorchCheckpointIO"], TorchCheckpointIO)):
         trainer = cli.build_cli([*base, *(["--trainer.plugins", *plugins] if plugins else [])], run=False).trainer
         assert type(trainer.strategy.checkpoint_io) is io, plugins
+
+
+def test_pretrained_weights_are_enough_to_evaluate_or_predict():
+    """``model.pretrained`` (a VGGT/AnySplat file) gives the network its weights: ``predict`` with it and no
+    ``--ckpt_path`` runs (what the README's zero-shot export does); with neither it is refused."""
+    cli.require_weights("predict", {"ckpt_path": None, "model.init_args.pretrained": "vggt/model.pt"})
+    with pytest.raises(ValueError, match="no --ckpt_path"):
+        cli.require_weights("predict", {"ckpt_path": None, "model.init_args.pretrained": None})
+
+
+def test_a_run_folder_written_with_a_trailing_slash_is_the_loggers_folder():
+    """``--trainer.default_root_dir runs/x/`` with the logger's ``save_dir runs/x`` name one folder: not refused.
+    Another folder is."""
+    logger = {"class_path": "lightning.pytorch.loggers.CSVLogger", "init_args": {"save_dir": "runs/x"}}
+    cli.check_run_folder({"default_root_dir": "runs/x/", "logger": logger})
+    cli.check_run_folder({"default_root_dir": "runs/./x", "logger": [logger]})
+    with pytest.raises(ValueError, match="disagree"):
+        cli.check_run_folder({"default_root_dir": "runs/y", "logger": logger})
+
+
+def test_the_sigterm_line_names_the_newest_checkpoint_of_every_checkpoint_folder(tmp_path):
+    """The "stopped by SIGTERM" line tells the user which file to resume from: the newest by modification time, over
+    every checkpoint callback's folder (not the first file found)."""
+    from types import SimpleNamespace
+
+    a, b = tmp_path / "a", tmp_path / "b"
+    for folder, name, mtime in ((a, "step2.ckpt", 900), (b, "last.ckpt", 1000), (b, "step4.ckpt", 1001)):
+        folder.mkdir(exist_ok=True)
+        (folder / name).write_bytes(b"x")
+        os.utime(folder / name, (mtime, mtime))
+    trainer = SimpleNamespace(global_rank=0, global_step=4,
+                              checkpoint_callbacks=[SimpleNamespace(dirpath=str(a)), SimpleNamespace(dirpath=str(b))])
+    line = cli._cli_class()._stopped(SimpleNamespace(trainer=trainer), "fit")
+    assert line == (f"stopped by SIGTERM at step 4; the newest checkpoint is {b / 'step4.ckpt'}; resume with the same "
+                    f"command and --ckpt_path {b / 'step4.ckpt'}")

@@ -174,18 +174,12 @@ def test_a_resumed_fit_with_max_epochs_set_skips_the_samples_it_trained_on(tiny_
     assert diff == 0.0, f"the resumed run differs from the uninterrupted one by {diff}"
 
 
-@pytest.mark.parametrize("stop", [None, "exception", "sigterm"])
-def test_last_ckpt_is_the_final_step_of_a_finished_fit_and_untouched_by_an_interrupted_one(tmp_path, stop):
-    """FinalLastCheckpoint: a fit that ends by itself (max_steps 3, a checkpoint every 2 steps) leaves last.ckpt at
-    step 3 (Lightning's own end-of-training save writes it only when nothing was saved during the run: step 2). A
-    fit stopped in its third step, by an exception or by SIGTERM (which Lightning raises once the step is done),
-    goes through on_exception, not on_train_end, and keeps step 2's: the CLI's SIGTERM line names that file."""
-    import contextlib
-
+def _toy_trainer(tmp_path, max_steps: int, stop: str | None = None):
+    """A one-weight module and a Trainer with a ModelCheckpoint every 2 steps (save_last) and FinalLastCheckpoint;
+    ``stop``: ``"exception"`` or ``"sigterm"`` in the third step."""
     import lightning.pytorch as pl
     import torch
     from lightning.pytorch.callbacks import ModelCheckpoint
-    from lightning.pytorch.utilities.exceptions import SIGTERMException
 
     from anycity.callbacks.last_checkpoint import FinalLastCheckpoint
 
@@ -206,10 +200,36 @@ def test_last_ckpt_is_the_final_step_of_a_finished_fit_and_untouched_by_an_inter
 
     data = torch.utils.data.DataLoader(torch.utils.data.TensorDataset(torch.ones(100, 1)), batch_size=1)
     cb = ModelCheckpoint(dirpath=tmp_path, save_last=True, save_top_k=0, every_n_train_steps=2)
-    trainer = pl.Trainer(max_steps=3, callbacks=[cb, FinalLastCheckpoint()], logger=False, accelerator="cpu",
-                         enable_progress_bar=False, enable_model_summary=False)
+    trainer = pl.Trainer(max_steps=max_steps, callbacks=[cb, FinalLastCheckpoint()], logger=False,
+                         accelerator="cpu", enable_progress_bar=False, enable_model_summary=False)
+    return Toy(), data, trainer
+
+
+@pytest.mark.parametrize("stop", [None, "exception", "sigterm"])
+def test_last_ckpt_is_the_final_step_of_a_finished_fit_and_untouched_by_an_interrupted_one(tmp_path, stop):
+    """FinalLastCheckpoint: a fit that ends by itself (max_steps 3, a checkpoint every 2 steps) leaves last.ckpt at
+    step 3 (Lightning's own end-of-training save writes it only when nothing was saved during the run: step 2). A
+    fit stopped in its third step, by an exception or by SIGTERM (which Lightning raises once the step is done),
+    goes through on_exception, not on_train_end, and keeps step 2's: the CLI's SIGTERM line names that file."""
+    import contextlib
+
+    from lightning.pytorch.utilities.exceptions import SIGTERMException
+
+    model, data, trainer = _toy_trainer(tmp_path, 3, stop)
     raises = {"exception": _Crash, "sigterm": SIGTERMException}.get(stop)
     with pytest.raises(raises) if raises else contextlib.nullcontext():
-        trainer.fit(Toy(), data)
+        trainer.fit(model, data)
     assert H.safe_torch_load(tmp_path / "last.ckpt")["global_step"] == (2 if stop else 3)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["last.ckpt"]
+
+
+def test_a_fit_whose_last_step_was_checkpointed_is_not_saved_again_at_its_end(tmp_path):
+    """FinalLastCheckpoint saves only where the ModelCheckpoint did not save the final step itself: max_steps 4 with
+    a checkpoint every 2 steps writes at steps 2 and 4, not a second, identical save of step 4 (at the paper's size
+    each is 14 GB with the optimiser state)."""
+    model, data, trainer = _toy_trainer(tmp_path, 4)
+    saved, save = [], trainer.save_checkpoint
+    trainer.save_checkpoint = lambda *a, **k: saved.append(trainer.global_step) or save(*a, **k)
+    trainer.fit(model, data)
+    assert saved == [2, 4]
+    assert H.safe_torch_load(tmp_path / "last.ckpt")["global_step"] == 4

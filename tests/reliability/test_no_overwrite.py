@@ -370,3 +370,53 @@ def test_a_run_lock_taken_on_a_file_removed_meanwhile_is_taken_again_on_the_file
         assert lock.read_text().startswith(f"fit (pid {os.getpid()} on ")
     finally:
         locks.release()
+
+
+def test_a_fresh_fits_checkpoints_go_aside_once_not_at_every_batch(tmp_path):
+    """:class:`KeepPreviousRun` moves the earlier run's checkpoints at the first batch's end only: at a later batch
+    the folder holds this run's own checkpoints, which must stay."""
+    from types import SimpleNamespace
+
+    from anycity.lit.keep import KeepPreviousRun
+
+    ckpts = tmp_path / "checkpoints"
+    ckpts.mkdir()
+    (ckpts / "a.ckpt").write_bytes(b"earlier run")
+    keep, trainer = KeepPreviousRun([ckpts], checkpoints=True), SimpleNamespace(global_rank=0, world_size=1)
+    keep.on_train_batch_end(trainer)
+    ckpts.mkdir()
+    (ckpts / "b.ckpt").write_bytes(b"this run")  # what this run's ModelCheckpoint wrote meanwhile
+    keep.on_train_batch_end(trainer)
+    assert (tmp_path / "checkpoints.1" / "a.ckpt").read_bytes() == b"earlier run"
+    assert not (tmp_path / "checkpoints.2").exists()
+    assert (ckpts / "b.ckpt").read_bytes() == b"this run" and keep.moved == [tmp_path / "checkpoints.1"]
+
+
+def test_a_fit_resumed_with_ckpt_path_keeps_its_checkpoints_folder(tmp_path):
+    """``keep_previous_run`` attaches no :class:`KeepPreviousRun` to a fit given ``--ckpt_path``: the resumed run
+    extends its own checkpoints/ (a fresh fit, ``ckpt_path`` None, gets one)."""
+    from types import SimpleNamespace
+
+    from lightning.pytorch.callbacks import ModelCheckpoint
+
+    from anycity.lit.keep import KeepPreviousRun, keep_previous_run
+
+    def trainer():
+        return SimpleNamespace(fast_dev_run=False, callbacks=[], global_rank=0, log_dir=str(tmp_path),
+                               default_root_dir=str(tmp_path), loggers=[],
+                               checkpoint_callbacks=[ModelCheckpoint(dirpath=tmp_path / "checkpoints")])
+
+    resumed, fresh = trainer(), trainer()
+    keep_previous_run(resumed, "fit", ckpt_path=str(tmp_path / "checkpoints" / "last.ckpt"))
+    keep_previous_run(fresh, "fit", ckpt_path=None)
+    assert not any(isinstance(c, KeepPreviousRun) for c in resumed.callbacks)
+    assert [type(c) for c in fresh.callbacks] == [KeepPreviousRun]
+
+
+def test_an_empty_folder_is_not_moved_aside(tmp_path):
+    """``move_aside`` leaves an empty folder where it is (nothing to keep) and says so by returning None."""
+    from anycity.lit.keep import move_aside
+
+    (tmp_path / "checkpoints").mkdir()
+    assert move_aside(tmp_path / "checkpoints") is None
+    assert (tmp_path / "checkpoints").is_dir() and not (tmp_path / "checkpoints.1").exists()

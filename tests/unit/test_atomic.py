@@ -135,6 +135,21 @@ def test_a_stage_removed_while_written_is_one_line_not_silently_recreated(tmp_pa
     assert not out.exists()
 
 
+def test_a_write_straight_into_a_removed_stage_names_the_stage_not_a_raw_errno(tmp_path):
+    """The stage's own folder, not a sub-folder: no mkdir runs that would notice, so the stage mark is checked."""
+    import shutil
+
+    from anycity.atomic import staged_folder
+
+    out = tmp_path / "scene"
+    with pytest.raises(FileNotFoundError, match=r"this run's unfinished copy of .*scene was removed while it was "
+                                                r"written"):
+        with staged_folder(out) as stage:
+            shutil.rmtree(stage)
+            atomic_write_bytes(stage / "scene.ply", b"ply")
+    assert not out.exists() and not stage.exists()
+
+
 def test_only_the_stages_of_runs_that_no_longer_run_are_dropped(tmp_path):
     import socket
     import subprocess

@@ -139,3 +139,18 @@ def test_the_default_folder_is_resolved_once_in_setup_not_per_sample(tmp_path):
     assert sorted(p.name for p in (tmp_path / "logs" / "predictions").iterdir()) == ["s", "s-2", "s-3"]
     cb.teardown(trainer, None, "predict")
     assert cb.root(trainer) == tmp_path / "logs" / "predictions"
+
+
+def test_a_killed_runs_renders_are_not_published_with_the_next_city(tmp_path):
+    """The hidden views folder a killed run left (its renders of other photos) is emptied at chunk 0, with a
+    warning, so its PNGs do not end up in the new scene's renders/."""
+    stale = tmp_path / "out" / ".flight.anycity_city_views" / "renders"
+    stale.mkdir(parents=True)
+    (stale / "099.png").write_bytes(b"stale")
+    _, _, run = _predict(tmp_path, _Oracle(), _Chunks())
+    with pytest.warns(UserWarning, match="removing the renders an interrupted run left"):
+        run()
+    left = _left(tmp_path)
+    assert "flight/renders/099.png" not in left
+    assert len([p for p in left if p.startswith("flight/renders/")]) == 12
+    assert not [p for p in left if not p.startswith("flight")]  # the views folder went too

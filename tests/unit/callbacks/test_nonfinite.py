@@ -151,3 +151,45 @@ def test_a_nan_loss_on_an_earlier_micro_batch_is_skipped_under_16_mixed_with_acc
     assert guard.skipped == 1
     guard, _ = _fit_16_mixed(_Fp16(), steps=3, accumulate=2)  # the flag is reset at every step
     assert guard.skipped == 0
+
+
+def _fit_linear(model, guard, steps=3):
+    trainer = pl.Trainer(max_steps=steps, accelerator="cpu", logger=False, enable_checkpointing=False,
+                         enable_progress_bar=False, enable_model_summary=False, callbacks=[guard])
+    trainer.fit(model)
+    return trainer
+
+
+def test_a_skipped_step_leaves_adamw_weights_and_step_count_untouched():
+    """The gradients are dropped (set to None), not zeroed: AdamW would still move a zero-gradient parameter
+    (momentum, weight decay) and count the step."""
+
+    class _AdamW(_Linear):
+        def configure_optimizers(self):
+            return torch.optim.AdamW(self.parameters(), lr=0.1, weight_decay=0.01)
+
+    torch.manual_seed(0)
+    guard, model = NonFiniteGuard(), _AdamW(poison_step=1)
+    trainer = _fit_linear(model, guard)
+    assert guard.skipped == 1
+    w0, w1, w2 = model.seen
+    assert not torch.equal(w0, w1)  # step 0 updated the weights
+    assert torch.equal(w1, w2)  # the poisoned step moved nothing, not even by momentum or weight decay
+    assert {int(s["step"]) for s in trainer.optimizers[0].state.values()} == {2}  # 3 steps, one skipped
+
+
+def test_a_disabled_guard_skips_nothing():
+    torch.manual_seed(0)
+    guard, model = NonFiniteGuard(enabled=False), _Linear(poison_step=1)
+    _fit_linear(model, guard)
+    assert guard.skipped == 0
+    assert not torch.isfinite(model.layer.bias).all()  # the inf gradient reached the weights
+
+
+def test_the_skip_count_is_restored_from_a_checkpoint():
+    guard = NonFiniteGuard()
+    guard.load_state_dict({"skipped": 5})
+    assert guard.skipped == 5
+    assert guard.state_dict() == {"skipped": 5}
+    guard.load_state_dict({})  # a checkpoint from before the count was saved
+    assert guard.skipped == 0

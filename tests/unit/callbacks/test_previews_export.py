@@ -119,3 +119,26 @@ def test_samples_of_one_scene_do_not_overwrite_each_other(tmp_path):
     assert sorted(p.name for p in out.iterdir()) == ["a", "a-2", "a-3", "a-rank1", "a-rank1-2", "a-rank1-3", "b",
                                                      "b-rank1"]
     assert all((p / "scene.ply").is_file() and (p / "cameras.json").is_file() for p in out.iterdir())
+
+
+def test_each_sample_of_a_batch_writes_its_own_gaussians(tmp_path):
+    """A predict batch of 2 scenes: scene b's folder holds sample 1's Gaussians, not sample 0's."""
+    from types import SimpleNamespace
+
+    from anycity.callbacks import PredictionExport
+
+    n, v, h, w = 5, 2, 8, 8
+    means = torch.stack([torch.rand(n, 3) + torch.tensor([0, 0, 3.0]), torch.rand(n, 3) + torch.tensor([0, 0, 6.0])])
+    g = Gaussians(means, torch.tensor([1.0, 0, 0, 0]).expand(2, n, 4), torch.full((2, n, 3), 0.05),
+                  torch.full((2, n), 0.5), torch.zeros(2, n, 1, 3))
+    K = torch.tensor([[8.0, 0, 4], [0, 8, 4], [0, 0, 1]]).expand(2, v, 3, 3)
+    pred = {"gaussians": g, "w2c": torch.eye(4).expand(2, v, 4, 4), "K": K, "images": torch.rand(2, v, 3, h, w),
+            "scene": ["a", "b"], "renders": None}
+    out = tmp_path / "out"
+    cb = PredictionExport(out_dir=str(out), save_renders=False, smooth_3d=0)
+    trainer = SimpleNamespace(log_dir=None, default_root_dir=str(tmp_path), global_rank=0)
+    cb.on_predict_start(trainer, None)
+    cb.write_on_batch_end(trainer, None, pred, None, {"scene": ["a", "b"]}, 0)
+    for scene, (lo, hi) in (("a", (3, 4)), ("b", (6, 7))):
+        z = load_ply(out / scene / "scene.ply").means[..., 2]
+        assert z.numel() == n and bool(((z >= lo) & (z <= hi)).all()), (scene, z)

@@ -66,3 +66,12 @@ def test_the_last_step_line_is_not_repeated_and_only_on_rank_zero(capsys):
         trainer = SimpleNamespace(global_step=7, is_global_zero=rank == 0, max_steps=-1, current_epoch=1)
         bar.on_train_end(trainer, _Tiny())
     assert capsys.readouterr().out.count("] step 7/? ") == 1
+
+
+def test_print_every_zero_prints_every_step(capsys):
+    x = torch.randn(4, 3, generator=torch.Generator().manual_seed(0))
+    loader = torch.utils.data.DataLoader(torch.utils.data.TensorDataset(x, x.sum(1, keepdim=True)), batch_size=2)
+    trainer = pl.Trainer(accelerator="cpu", devices=1, max_steps=2, logger=False, enable_checkpointing=False,
+                         enable_model_summary=False, callbacks=[LossProgressBar(print_every=0, force_plain=True)])
+    trainer.fit(_Tiny(), loader)  # print_every=0 is read as 1, not a ZeroDivisionError (step % 0)
+    assert re.findall(r"\] step (\d+)/2 ", capsys.readouterr().out) == ["1", "2"]
