@@ -256,3 +256,22 @@ def test_a_killed_runs_folder_as_data_root_says_rerun_not_point_elsewhere(tmp_pa
     _foreign_tar(tmp_path / "other" / "train-000000.tar", 0)  # not an anycity set: the old hint
     with pytest.raises(FileNotFoundError, match=r"no index\.json; point to a directory written by"):
         read_index(tmp_path / "other")
+
+
+def test_another_hosts_lock_is_refused_even_when_its_pid_does_not_run_here(tmp_path):
+    """A pid of another host says nothing about this one: its lock is not taken over however that pid fares here."""
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()  # no process of this pid runs here
+    lock = tmp_path / LOCK_NAME
+    text = json.dumps({"pid": dead.pid, "host": "other-host"})
+    lock.write_text(text)
+    with pytest.raises(FileExistsError, match=rf"another run \(pid {dead.pid} on other-host\)"):
+        ShardSetWriter(tmp_path)
+    assert lock.read_text() == text
+
+
+def test_a_stale_partial_of_a_split_the_new_run_does_not_reach_is_removed(tmp_path):
+    """``val-000007.tar.partial`` is not a name the new run writes over: only the clean-up at the start drops it."""
+    (tmp_path / "val-000007.tar.partial").write_bytes(b"half a tar")
+    _write(tmp_path, ["a"])
+    assert not list(tmp_path.glob("*.partial"))

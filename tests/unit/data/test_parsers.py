@@ -500,17 +500,19 @@ def test_converted_depth_is_resampled_under_the_pixel_centres_of_the_stored_imag
     assert np.abs(err_u).max() <= 0.5 + 1e-6 and np.abs(err_v).max() <= 0.5 + 1e-6
 
 
-def _colmap_scene(src, names):
-    """A COLMAP text scene at ``src`` whose images ``names`` (N of them, ``_gt()`` poses) are written here."""
+def _colmap_scene(src, names, ids=None):
+    """A COLMAP text scene at ``src`` whose images ``names`` (N of them, ``_gt()`` poses) are written here; ``ids``:
+    their COLMAP image ids (default 1..N), listed in images.txt in id order."""
     (src / "images").mkdir(parents=True)
     for i, n in enumerate(names):
         cv2.imwrite(str(src / "images" / n), np.full((H, W, 3), 40 * i + 20, np.uint8))
     (src / "sparse").mkdir()
     (src / "sparse" / "cameras.txt").write_text(f"1 PINHOLE {W} {H} 30 31 16 12\n")
     lines = []
-    for i, (g, n) in enumerate(zip(_gt(), names)):
+    ids = ids or list(range(1, len(names) + 1))
+    for i, g, n in sorted(zip(ids, _gt(), names)):
         q = rotmat_to_quat(torch.tensor(g[:3, :3])).tolist()
-        lines += [" ".join(map(str, [i + 1, *q, *g[:3, 3], 1, n])), ""]
+        lines += [" ".join(map(str, [i, *q, *g[:3, 3], 1, n])), ""]
     (src / "sparse" / "images.txt").write_text("\n".join(lines) + "\n")
 
 
@@ -850,3 +852,106 @@ def test_undistort_keeps_a_real_lens_and_names_where_it_refuses(tmp_path):
         with pytest.raises(ValueError, match=r"^a\.png: lens terms \[.*\] are not a lens \(not finite\); check the "
                                              r"camera file's distortion parameters, or re-export it$"):
             undistort(img, None, K, np.array(dist), "a.png")
+
+
+def test_colmap_views_come_in_image_name_order_not_image_id_order(tmp_path):
+    _colmap_scene(tmp_path / "scene", [f"v{i}.png" for i in range(N)], ids=[3, 1, 2])  # listed v1, v2, v0
+    convert("colmap", tmp_path / "scene", tmp_path / "out")
+    meta = _check(tmp_path / "out", _gt())  # each name keeps its own w2c
+    assert [v["name"] for v in meta["views"]] == [f"v{i}.png" for i in range(N)]
+
+
+def test_llff_with_an_image_more_than_poses_is_refused(tmp_path):
+    src = tmp_path / "llff"
+    _images(src / "images", [f"{i:03d}.png" for i in range(N + 1)])
+    np.save(src / "poses_bounds.npy", _llff_rows(_gt(), ((1, 1), (0, 1), (2, -1))))
+    with pytest.raises(ValueError, match=rf"{N} poses but {N + 1} images .*they must match 1:1"):
+        convert("llff", src, tmp_path / "out")
+
+
+def test_llff_bounds_keep_near_and_far(tmp_path):
+    from anycity.data.parsers.llff import parse_llff
+
+    _images(tmp_path / "images", [f"{i:03d}.png" for i in range(N)])
+    np.save(tmp_path / "poses_bounds.npy", _llff_rows(_gt(), ((1, 1), (0, 1), (2, -1))))  # near 1, far 100
+    assert parse_llff(tmp_path)[0].extra["bounds"] == [[1.0, 100.0]] * N
+
+
+def test_write_scenes_splits_by_its_seed(tmp_path):
+    from anycity.data.parsers.base import ParsedScene, ParsedView, write_scenes
+    from anycity.data.writer import split_scenes
+
+    assert split_scenes(10, 1) != split_scenes(10, 0)  # else the seed could not show
+    cv2.imwrite(str(tmp_path / "a.png"), np.zeros((H, W, 3), np.uint8))
+    scenes = [ParsedScene(name=f"s{i}", views=[ParsedView("a.png", tmp_path / "a.png", np.eye(4), K, W, H)],
+                          source="colmap", units="sfm") for i in range(10)]
+    index = write_scenes(scenes, tmp_path / "out", seed=1)
+    assert [s["split"] for s in sorted(index["scenes"], key=lambda s: int(s["key"].removeprefix("colmap_s")))] \
+        == split_scenes(10, 1)
+
+
+def test_nerfstudio_without_images_reads_the_largest_downscaled_copy(tmp_path):
+    gt = _gt()
+    src = tmp_path / "ns"
+    for n in (2, 8):  # images_2 at 16x12, images_8 at 4x3
+        (src / f"images_{n}").mkdir(parents=True)
+        for i in range(N):
+            cv2.imwrite(str(src / f"images_{n}" / f"f{i}.png"), np.zeros((H // n, W // n, 3), np.uint8))
+    frames = [{"file_path": f"images/f{i}.png", "transform_matrix": (np.linalg.inv(g) @ GL_TO_CV).tolist()}
+              for i, g in enumerate(gt)]
+    (src / "transforms.json").write_text(json.dumps({"fl_x": 30, "fl_y": 31, "cx": 16, "cy": 12, "w": W, "h": H,
+                                                     "frames": frames}))
+    convert("nerfstudio", src, tmp_path / "out")
+    for v in _read(tmp_path / "out")[0]["views"]:
+        assert (v["width"], v["height"]) == (W // 2, H // 2)
+        np.testing.assert_allclose(v["K"], np.diag([0.5, 0.5, 1.0]) @ K)
+
+
+def _pfm(path, d, header, dtype):
+    """A one-channel PFM of ``d [H, W]`` (bottom row first) after ``header`` bytes, its floats as ``dtype``."""
+    path.write_bytes(header + np.flipud(d).astype(dtype).tobytes())
+
+
+def test_a_big_endian_pfm_and_one_with_a_blank_header_line_read(tmp_path):
+    from anycity.data.parsers.blendedmvs import read_pfm
+
+    d = np.array([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]], np.float32)
+    _pfm(tmp_path / "be.pfm", d, b"Pf\n3 2\n1.0\n", ">f4")  # a positive scale: big-endian
+    np.testing.assert_array_equal(read_pfm(tmp_path / "be.pfm"), d)
+    _pfm(tmp_path / "blank.pfm", d, b"Pf\n\n3 2\n-1.0\n", "<f4")
+    np.testing.assert_array_equal(read_pfm(tmp_path / "blank.pfm"), d)
+
+
+def test_negative_depth_is_masked_out_and_stored_as_zero(tmp_path):
+    from anycity.data.parsers.base import ParsedView, _load_view
+
+    cv2.imwrite(str(tmp_path / "a.png"), np.zeros((H, W, 3), np.uint8))
+    depth = np.full((H, W), 5.0, np.float32)
+    depth[0, :4] = -1.0  # the invalid marker
+    rec = _load_view(ParsedView("a", tmp_path / "a.png", np.eye(4), K, W, H, depth=lambda: depth), None)
+    assert not rec.mask[0, :4].any() and rec.mask[1:].all() and rec.mask[0, 4:].all()
+    assert (rec.depth[0, :4] == 0).all() and (rec.depth[rec.mask] == 5.0).all()
+
+
+def test_max_side_scales_the_rows_of_k_by_the_height_ratio(tmp_path):
+    from anycity.data.parsers.base import ParsedView, _load_view
+
+    cv2.imwrite(str(tmp_path / "a.png"), np.zeros((24, 33, 3), np.uint8))
+    Ka = np.array([[30.0, 0, 16.5], [0, 30.0, 12.0], [0, 0, 1]])
+    rec = _load_view(ParsedView("a", tmp_path / "a.png", np.eye(4), Ka, 33, 24), 16)
+    assert (rec.width, rec.height) == (16, 12)  # 16/33 across, 12/24 down
+    np.testing.assert_allclose(rec.K[1], [0, 15.0, 6.0])
+    np.testing.assert_allclose(rec.K[0], [30.0 * 16 / 33, 0, 8.0])
+
+
+def test_three_scenes_of_one_name_get_three_keys():
+    from anycity.data.parsers.base import ParsedScene, scene_keys
+
+    scenes = [ParsedScene(name="a", views=[], source="colmap", units="sfm") for _ in range(3)]
+    assert scene_keys(scenes) == ["colmap_a", "colmap_a-2", "colmap_a-3"]
+
+
+def test_a_matrixcity_name_saying_train_and_test_is_test():
+    from anycity.data.parsers.matrixcity import _split_of
+
+    assert _split_of("block_train_test") == "test"

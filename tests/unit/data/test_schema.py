@@ -63,6 +63,12 @@ def test_keys_and_splits():
     assert split_scenes(20, seed=1) == s and split_scenes(2) == ["train", "train"]
 
 
+@pytest.mark.parametrize("n", [3, 4])
+def test_a_few_scenes_still_give_one_val_and_one_test_scene(n):
+    s = split_scenes(n)  # n * 0.1 rounds to 0: the one val and test scene are the floor
+    assert s.count("val") == 1 and s.count("test") == 1 and s.count("train") == n - 2
+
+
 def test_corrupt_tar_bytes(tmp_path):
     p = tmp_path / "train-000000.tar"
     with tarfile.open(p, "w") as t:

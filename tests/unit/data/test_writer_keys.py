@@ -36,3 +36,9 @@ def test_distinct_keys_are_all_written(tmp_path):
         for k in ("a", "b", "c"):
             w.write(_record(k), "train")
     assert [s["key"] for s in w.close()["samples"]] == ["a", "b", "c"]
+
+
+def test_only_the_window_splits_are_cut_into_windows(tmp_path):
+    with ShardSetWriter(tmp_path, window=2) as w:
+        w.write(_record("a", n=4), "test")  # an evaluation split stays one whole-scene sample
+    assert [(s["key"], s["num_views"]) for s in w.close()["samples"]] == [("a", 4)]
