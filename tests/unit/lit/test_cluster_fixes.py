@@ -95,6 +95,31 @@ def test_checkpoint_references_frozen_prior_by_hash_and_keeps_lora(wan_dir, tmp_
         moved.on_load_checkpoint({"state_dict": {}, "video_prior": dict(ckpt["video_prior"])})
 
 
+@needs_diffusers
+def test_a_checkpoint_trained_on_another_wan_block_is_refused_in_one_line(wan_dir):
+    """The same Wan folder cut at another block: its LoRA and completion branch were trained on other features."""
+    recut = RefinementModule(preset="tiny", net={"video_prior": "wan", "wan_dir": str(wan_dir), "wan_block": 1})
+    ref = {"dir": str(wan_dir), "sha256": recut.net.video_prior.content_hash(), "block": 2}  # as saved at block 2
+    with pytest.raises(ValueError, match=r"^checkpoint: trained on Wan block 2, this module cuts at block 1; set "
+                                         r"net.wan_block=2$"):
+        recut.on_load_checkpoint({"state_dict": {}, "video_prior": ref})
+
+
+@needs_diffusers
+def test_an_old_checkpoint_with_the_dropped_vae_decoder_still_loads_strictly(wan_dir):
+    """Checkpoints saved before the Wan VAE decoder was dropped carry its keys; loading forgets them."""
+    net = {"video_prior": "wan", "wan_dir": str(wan_dir), "wan_lora_rank": 2}
+    m = RefinementModule(preset="tiny", net=net)
+    ckpt = {"state_dict": m.state_dict()}
+    m.on_save_checkpoint(ckpt)
+    old = ("net.video_prior.vae.decoder.conv_in.weight", "net.video_prior.vae.post_quant_conv.bias")
+    ckpt["state_dict"].update({k: torch.zeros(2) for k in old})
+    fresh = RefinementModule(preset="tiny", net=net)
+    fresh.on_load_checkpoint(ckpt)
+    assert not set(old) & set(ckpt["state_dict"])
+    fresh.load_state_dict(ckpt["state_dict"], strict=True)
+
+
 def test_init_from_is_checked_when_fitting_starts_not_at_construction(tmp_path):
     m = RefinementModule(preset="tiny", init_from=str(tmp_path / "missing.ckpt"))  # test/predict: fine
     m._trainer = SimpleNamespace(ckpt_path=None, strategy=SimpleNamespace(restore_checkpoint_after_setup=False))

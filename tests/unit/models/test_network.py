@@ -113,6 +113,24 @@ def test_unknown_preset_and_option():
     with pytest.raises(ValueError, match=r"got \[0, 1, 9, 3\]"):
         build_network("tiny", head_layers=(0, 1, 9, 3))
 
+    # the last layer is depth - 1: the depth itself is one past the aggregator's outputs
+    with pytest.raises(ValueError, match=r"^head_layers: the DPT heads read 4 aggregator layers of 0\.\.3, got "
+                                         r"\[0, 1, 2, 4\] \(depth 4\)"):
+        preset_config("tiny", head_layers=(0, 1, 2, 4))
+    assert preset_config("tiny", head_layers=(0, 1, 2, 3)).resolved_head_layers() == (0, 1, 2, 3)
+
+
+def test_preset_sizes_are_pinned():
+    """VGGT-1B's camera head refines 4 times on a 4-block trunk; small and base are their documented sizes."""
+    vggt = preset_config("vggt-1b")
+    assert (vggt.camera_iterations, vggt.camera_trunk_depth) == (4, 4)
+    for preset, size in [("small", (8, 256, 14)), ("base", (12, 768, 14))]:
+        cfg = preset_config(preset)
+        assert (cfg.depth, cfg.embed_dim, cfg.patch_size) == size, preset
+    with torch.device("meta"):
+        base = build_network("base")
+    assert round(sum(p.numel() for p in base.aggregator.patch_embed.parameters()) / 1e6, 1) == 86.6  # DINOv2-B/14
+
 
 @pytest.mark.parametrize("preset, depth", [("tiny", 4), ("base", 12)])
 def test_inject_layers_beyond_the_depth_are_refused_when_configured(preset, depth):
@@ -382,6 +400,7 @@ def test_a_network_cast_to_half_precision_names_autocast():
     ("sh_degree", 5, r"^net.sh_degree: expected an integer 0\.\.4 .*got 5$"),
     ("sh_degree", -1, r"^net.sh_degree: expected an integer 0\.\.4"),
     ("sh_degree", 1.5, r"^net.sh_degree: .*got 1.5$"),
+    ("sh_degree", True, r"^net.sh_degree: expected an integer 0\.\.4 .*got True$"),  # a bool is no degree
     ("camera_iterations", 0, r"^net.camera_iterations: expected an integer >= 1 .*got 0$"),
     ("num_heads", 0, r"^net.num_heads: expected an integer >= 1"),
     ("completion_tokens", 0, r"^net.completion_tokens: expected an integer >= 1"),

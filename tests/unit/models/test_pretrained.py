@@ -77,6 +77,7 @@ def test_load_vggt_state_dict_reports_and_copies(tmp_path):
     rep = load_pretrained(dst, path, kind="vggt")
     assert rep.unexpected == ["point_head.norm.weight"]
     assert rep.mismatched == [("depth_head.norm.bias", (7,), tuple(dst.depth_head.norm.bias.shape))]
+    assert rep.loaded == sorted(set(sd) - {"point_head.norm.weight", "depth_head.norm.bias"})  # what was copied
     assert {k.split(".")[0] for k in rep.missing} == {"gaussian_head", "completion", "video_prior"}
     assert torch.equal(dst.aggregator.frame_blocks[0].attn.qkv.weight, src.aggregator.frame_blocks[0].attn.qkv.weight)
     assert "unexpected: point_head.* x1" in rep.summary()
@@ -396,3 +397,85 @@ def test_load_pretrained_refuses_a_file_of_which_nothing_loads(tmp_path):
         assert all(torch.equal(before[k], v) for k, v in net.state_dict().items())
     with pytest.raises(ValueError, match=r"^pretrained weights: the state dict holds no tensors"):
         load_pretrained(build_network("tiny"), {})
+
+
+def test_an_anysplat_file_with_extra_top_level_keys_still_switches_the_focal_decode():
+    """One key outside AnySplat's encoder (its decoder's background) must not hide that the file is AnySplat's."""
+    net = build_network("tiny")
+    sd = _anysplat_layout(build_network("tiny").state_dict())
+    sd["decoder.background"] = torch.zeros(3)
+    rep = load_pretrained(net, sd, kind="anysplat")
+    assert net.cfg.focal_decode == "anysplat"
+    assert "decoder.background" in rep.unexpected
+
+
+def test_load_checkpoint_of_a_resized_stage1_weight_names_the_shape_in_one_line(tmp_path):
+    """A weight of another shape in a Stage I checkpoint is one line naming it, not load_state_dict's traceback."""
+    from anycity.lit import ScaffoldModule
+    from anycity.models import load_checkpoint
+
+    torch.manual_seed(0)
+    ckpt = _lightning_ckpt(path := tmp_path / "last.ckpt", ScaffoldModule(), "anycity.lit.ScaffoldModule", None)
+    ckpt["state_dict"]["net.aggregator.camera_token"] = torch.zeros(1, 2, 1, 32)  # the net's: [1, 2, 1, 64]
+    torch.save(ckpt, path)
+    with pytest.raises(ValueError, match=r"^checkpoint .*last.ckpt does not fit the network its hyper_parameters "
+                                         r"describe: 1 shapes differ \(e.g. aggregator.camera_token\); pass a") as e:
+        load_checkpoint(path)
+    assert "\n" not in str(e.value)
+
+
+@pytest.mark.parametrize("wrap", ["ddp", "model"])
+def test_a_ddp_or_model_nested_state_dict_loads(tmp_path, wrap):
+    """A DDP-saved state dict (``module.`` prefix) and one nested under ``{"model": ...}`` load like the plain one."""
+    torch.manual_seed(0)
+    src = build_network("tiny", completion=False).state_dict()
+    obj = {f"module.{k}": v for k, v in src.items()} if wrap == "ddp" else {"model": src, "epoch": 3}
+    torch.save(obj, path := tmp_path / "model.pt")
+    net = build_network("tiny", completion=False)
+    rep = load_pretrained(net, path)
+    rep.require_backbone(path)
+    assert rep.loaded == sorted(src) and not rep.unexpected and not rep.mismatched
+    assert torch.equal(net.aggregator.camera_token, src["aggregator.camera_token"])
+
+
+def test_a_folder_holding_only_pytorch_model_bin_reads_it(tmp_path):
+    """Hugging Face snapshots may ship ``pytorch_model.bin``, a torch file under a ``.bin`` name."""
+    src = build_network("tiny", completion=False).state_dict()
+    torch.save(src, tmp_path / "pytorch_model.bin")
+    (tmp_path / "config.json").write_text("{}")
+    net = build_network("tiny", completion=False)
+    rep = load_pretrained(net, tmp_path)
+    assert rep.picked == str(tmp_path / "pytorch_model.bin") and rep.loaded == sorted(src)
+
+
+def test_read_state_dict_memory_maps_a_torch_file(tmp_path, monkeypatch):
+    """VGGT-1B's model.pt is 5 GB: read memory-mapped, tensors only."""
+    from anycity.models.pretrained import read_state_dict
+
+    torch.save({"aggregator.camera_token": torch.ones(1, 2, 1, 4)}, path := tmp_path / "model.pt")
+    calls, real = [], torch.load
+    monkeypatch.setattr(torch, "load", lambda *a, **k: calls.append(k) or real(*a, **k))
+    assert torch.equal(read_state_dict(path)["aggregator.camera_token"], torch.ones(1, 2, 1, 4))
+    assert calls and calls[0].get("mmap") is True and calls[0].get("weights_only") is True
+
+
+def test_a_tensor_of_the_same_size_but_another_shape_is_skipped_and_listed_not_a_crash():
+    """Only the shape decides: [1, 2, 64, 1] has the numel of the camera token's [1, 2, 1, 64] but cannot load."""
+    sd = build_network("tiny", completion=False).state_dict()
+    sd["aggregator.camera_token"] = torch.zeros(1, 2, 64, 1)
+    net = build_network("tiny", completion=False)
+    before = net.aggregator.camera_token.detach().clone()
+    rep = load_pretrained(net, sd)
+    assert rep.mismatched == [("aggregator.camera_token", (1, 2, 64, 1), (1, 2, 1, 64))]
+    assert "aggregator.camera_token" not in rep.loaded and torch.equal(net.aggregator.camera_token, before)
+
+
+def test_the_layout_hint_needs_more_than_half_of_the_unused_keys():
+    """Two of four unused keys under ``encoder.`` are no majority: the generic preset fix, no AnySplat hint."""
+    from anycity.models.pretrained import LoadReport
+
+    rep = LoadReport(loaded=["camera_head.x"], missing=["aggregator.camera_token"],
+                     unexpected=["encoder.a", "encoder.b", "point_head.a", "track_head.b"])
+    with pytest.raises(ValueError, match=r"build the preset the weights were made for") as e:
+        rep.require_backbone("model.pt")
+    assert "encoder." not in str(e.value) and "AnySplat checkpoint" not in str(e.value)
