@@ -451,3 +451,82 @@ def test_a_network_cast_to_float64_names_float64():
         net(torch.rand(1, 2, 3, 32, 32))
     with pytest.raises(ValueError, match=r"^network: weights are float16 \(net.half\(\)\); keep float32"):
         build_network("tiny", completion=False).half()(torch.rand(1, 2, 3, 32, 32))
+
+
+def test_a_depth_8_network_keeps_the_injection_layers_the_heads_do_not_read():
+    """Mutation cp11: the aggregator must keep the completion's injection layers too, not only the head layers."""
+    torch.manual_seed(0)
+    net = build_network("tiny", depth=8)
+    assert net.completion.inject_layers == (1, 2, 3, 7) and net.head_layers == (1, 3, 5, 7)
+    with torch.no_grad():
+        out = net(torch.rand(1, 2, 3, 32, 32), refine=True)
+    assert len(out["gates"]) == 4
+
+
+def test_refined_centres_and_scales_come_from_the_refined_depth_and_cameras():
+    """Mutations cp09/cp10: the refined Gaussians are placed from the refined depth (not the scaffold's)."""
+    from anycity.models.gaussians import pixel_centres
+
+    torch.manual_seed(0)
+    net = build_network("tiny")
+    with torch.no_grad():
+        for lin in net.completion.delta_proj:
+            lin.bias.normal_(0, 0.5)
+        net.gaussian_head.offset_conv.weight.normal_(0, 0.1)
+    x = torch.rand(1, 2, 3, 32, 32)
+    with torch.no_grad():
+        out = net(x)
+        ref = net.place_gaussians(out["raw_gaussians"], out["depth"], out["offset"], out["w2c"], out["K"], x)
+    assert (out["depth"] - out["scaffold_depth"]).abs().max() > 1e-4
+    assert torch.equal(out["gaussians"].means, ref.means) and torch.equal(out["gaussians"].scales, ref.scales)
+    assert torch.equal(out["pixel_means"], pixel_centres(out["depth"], out["K"], out["w2c"], out["offset"]))
+
+
+def _completion_reference(br, toks, vid):
+    """The branch's forward written out: per injection layer its own geometry layer, gated video, FFN residual;
+    per head layer its own patch tokens query; camera tokens (index 0) of the last layer."""
+    z = br.tokens.expand(toks[0].shape[0], -1, -1)
+    v = br.p_vid(vid)
+    for i, layer in enumerate(br.inject_layers):
+        z = z + br.geo_attn[i](z, toks[layer].flatten(1, 2))
+        z = z + torch.sigmoid(br.gate[i](z)) * br.vid_attn[i](z, v)
+        z = z + br.ffn[i](br.ffn_norm[i](z))
+    delta = [br.delta_proj[j](br.delta_attn[j](toks[layer][:, :, 1:].flatten(1, 2), z)).view_as(toks[layer][:, :, 1:])
+             for j, layer in enumerate(br.head_layers)]
+    return delta, br.camera_proj(br.camera_attn(toks[-1][:, :, 0], z))
+
+
+def test_completion_branch_matches_a_written_out_reference_and_a_closed_gate_ignores_the_video():
+    """Mutations cp02-cp05, cp07: gate, own inject layer, FFN residual, own head layer, camera token 0."""
+    from anycity.models.completion import CompletionBranch
+
+    torch.manual_seed(0)
+    br = CompletionBranch(16, 8, 4, 2, (0, 1), (1, 2), video_dim=6, camera=True)
+    with torch.no_grad():
+        for p in [*br.delta_proj, br.camera_proj]:
+            p.weight.normal_(0, 0.5)
+        toks = [torch.randn(1, 2, 5, 16) for _ in range(3)]
+        vid = torch.randn(1, 7, 6)
+        delta, gates, cam, _ = br(toks, 1, vid)
+        ref_delta, ref_cam = _completion_reference(br, toks, vid)
+        assert len(gates) == 2
+        for a, b in zip(delta, ref_delta, strict=True):
+            assert a.shape == (1, 2, 4, 16) and torch.allclose(a, b, atol=1e-6)
+        assert torch.allclose(cam, ref_cam, atol=1e-6)
+        for gl in br.gate:
+            gl.weight.zero_()
+            gl.bias.fill_(-50.0)
+        d1, d2 = br(toks, 1, vid)[0], br(toks, 1, vid * 3 + 1)[0]
+    assert all(torch.allclose(a, b, atol=1e-6) for a, b in zip(d1, d2, strict=True))
+
+
+def test_the_gaussian_head_reads_the_images_as_well_as_the_tokens(tiny):
+    """Mutation cp22: the image merger adds the views' pixels to the decoded features."""
+    torch.manual_seed(0)
+    x = torch.rand(1, 2, 3, 32, 32)
+    with torch.no_grad():
+        tokens = tiny.aggregator(x, keep=set(tiny.head_layers))
+        psi = tiny.aggregator.patch_start_idx
+        raw_a, _ = tiny.gaussian_head(tokens, x, psi)
+        raw_b, _ = tiny.gaussian_head(tokens, torch.rand_like(x), psi)
+    assert (raw_a - raw_b).abs().max() > 1e-4

@@ -144,3 +144,69 @@ def test_wan_feature_noise_repeats_in_eval_and_is_fresh_in_training():
     assert not torch.allclose(prior(x), b)
     torch.manual_seed(1)
     assert torch.equal(prior(x), b)  # training noise still comes from the global RNG, as before
+
+
+@needs_diffusers
+def test_lora_rank_0_builds_a_fully_frozen_prior_outside_the_refinement_parameters():
+    """Mutations cp14/cp15/cp12: rank 0 means no LoRA (not a peft error), the transformer stays frozen, and
+    refinement_parameters() holds no frozen prior parameter."""
+    torch.manual_seed(0)
+    net = build_network("tiny", video_prior="wan-tiny", wan_block=1, wan_lora_rank=0)
+    prior = [(n, p) for n, p in net.named_parameters() if n.startswith("video_prior.")]
+    assert prior and not any(p.requires_grad for _, p in prior)
+    trainable = {id(p) for p in net.refinement_parameters()}
+    assert not any(id(p) in trainable for _, p in prior)
+    torch.manual_seed(0)
+    net = build_network("tiny", video_prior="wan-tiny", wan_block=1, wan_lora_rank=2)
+    frozen = [p for n, p in net.named_parameters() if n.startswith("video_prior.") and not p.requires_grad]
+    assert frozen and not any(id(p) in {id(q) for q in net.refinement_parameters()} for p in frozen)
+
+
+@needs_diffusers
+def test_lora_sits_on_the_four_self_attention_projections_of_every_kept_block(wan):
+    """Mutation cp16: to_q, to_k, to_v and to_out.0 of attn1, in each of the kept blocks."""
+    got = {n.split(".lora_A")[0] for n, _ in wan.transformer.named_parameters() if ".lora_A." in n}
+    want = {f"blocks.{b}.attn1.{t}" for b in range(len(wan.transformer.blocks))
+            for t in ("to_q", "to_k", "to_v", "to_out.0")}
+    assert got == want
+
+
+@needs_diffusers
+def test_lora_scaling_is_one_by_default(wan):
+    """Mutation cp17: alpha defaults to the rank (2 here), so every adapter's scaling alpha / r is 1."""
+    scalings = [m.scaling for _, m in wan.transformer.named_modules() if isinstance(getattr(m, "scaling", None), dict)]
+    assert len(scalings) == 4 * len(wan.transformer.blocks)
+    assert all(s == {"default": 1.0} for s in scalings)
+
+
+@needs_diffusers
+def test_the_vae_encoder_sees_images_mapped_to_minus_one_one():
+    """Mutation cp20: images in [0, 1] reach the VAE as 2x - 1."""
+    torch.manual_seed(0)
+    prior = WanVideoPrior.tiny_random(block=1)
+    seen = []
+    hook = prior.vae.encoder.register_forward_pre_hook(lambda m, args: seen.append(args[0].detach().clone()))
+    prior(torch.cat([torch.zeros(1, 1, 3, 32, 32), torch.ones(1, 1, 3, 32, 32)], dim=1))
+    hook.remove()
+    assert len(seen) == 2
+    assert torch.equal(seen[0], torch.full_like(seen[0], -1.0)) and torch.equal(seen[1], torch.ones_like(seen[1]))
+
+
+@needs_diffusers
+def test_the_transformer_gets_timestep_1000_s_and_normalised_latents():
+    """Mutations cp18/cp19: the timestep is 1000 t_feat, the latents (z - mean) / std."""
+    torch.manual_seed(0)
+    vae, tr = WanVideoPrior.tiny_parts()
+    vae.register_to_config(latents_mean=[0.5] * 16, latents_std=[2.0] * 16)
+    prior = WanVideoPrior(vae, tr, block=1, t_feat=0.25).eval()
+    seen = {}
+    hook = prior.transformer.register_forward_pre_hook(lambda m, a, kw: seen.update(kw), with_kwargs=True)
+    x = torch.rand(1, 2, 3, 32, 32)
+    prior(x)
+    hook.remove()
+    assert torch.equal(seen["timestep"], torch.full((1,), 250.0))
+    with torch.no_grad():
+        z = prior.vae.encode((x.flatten(0, 1) * 2 - 1)[:, :, None]).latent_dist.mode()
+    z = ((z - 0.5) / 2.0)[:, :, 0].unflatten(0, (1, 2)).transpose(1, 2)
+    z = 0.75 * z + 0.25 * prior._noise(z)
+    assert torch.allclose(seen["hidden_states"], z, atol=1e-5)
