@@ -454,7 +454,7 @@ def test_a_network_cast_to_float64_names_float64():
 
 
 def test_a_depth_8_network_keeps_the_injection_layers_the_heads_do_not_read():
-    """Mutation cp11: the aggregator must keep the completion's injection layers too, not only the head layers."""
+    """The aggregator must keep the completion's injection layers too, not only the head layers."""
     torch.manual_seed(0)
     net = build_network("tiny", depth=8)
     assert net.completion.inject_layers == (1, 2, 3, 7) and net.head_layers == (1, 3, 5, 7)
@@ -464,7 +464,7 @@ def test_a_depth_8_network_keeps_the_injection_layers_the_heads_do_not_read():
 
 
 def test_refined_centres_and_scales_come_from_the_refined_depth_and_cameras():
-    """Mutations cp09/cp10: the refined Gaussians are placed from the refined depth (not the scaffold's)."""
+    """The refined Gaussians are placed from the refined depth (not the scaffold's)."""
     from anycity.models.gaussians import pixel_centres
 
     torch.manual_seed(0)
@@ -497,7 +497,8 @@ def _completion_reference(br, toks, vid):
 
 
 def test_completion_branch_matches_a_written_out_reference_and_a_closed_gate_ignores_the_video():
-    """Mutations cp02-cp05, cp07: gate, own inject layer, FFN residual, own head layer, camera token 0."""
+    """The sigmoid gate, each stage's own injection layer, the FFN residual, each head layer's own patch tokens and
+    camera token 0, as written out; a closed gate ignores the video."""
     from anycity.models.completion import CompletionBranch
 
     torch.manual_seed(0)
@@ -521,7 +522,7 @@ def test_completion_branch_matches_a_written_out_reference_and_a_closed_gate_ign
 
 
 def test_the_gaussian_head_reads_the_images_as_well_as_the_tokens(tiny):
-    """Mutation cp22: the image merger adds the views' pixels to the decoded features."""
+    """The image merger adds the views' pixels to the decoded features."""
     torch.manual_seed(0)
     x = torch.rand(1, 2, 3, 32, 32)
     with torch.no_grad():

@@ -148,7 +148,7 @@ def test_wan_feature_noise_repeats_in_eval_and_is_fresh_in_training():
 
 @needs_diffusers
 def test_lora_rank_0_builds_a_fully_frozen_prior_outside_the_refinement_parameters():
-    """Mutations cp14/cp15/cp12: rank 0 means no LoRA (not a peft error), the transformer stays frozen, and
+    """Rank 0 means no LoRA (not a peft error), the transformer stays frozen, and
     refinement_parameters() holds no frozen prior parameter."""
     torch.manual_seed(0)
     net = build_network("tiny", video_prior="wan-tiny", wan_block=1, wan_lora_rank=0)
@@ -164,7 +164,7 @@ def test_lora_rank_0_builds_a_fully_frozen_prior_outside_the_refinement_paramete
 
 @needs_diffusers
 def test_lora_sits_on_the_four_self_attention_projections_of_every_kept_block(wan):
-    """Mutation cp16: to_q, to_k, to_v and to_out.0 of attn1, in each of the kept blocks."""
+    """LoRA on to_q, to_k, to_v and to_out.0 of attn1, in each of the kept blocks."""
     got = {n.split(".lora_A")[0] for n, _ in wan.transformer.named_parameters() if ".lora_A." in n}
     want = {f"blocks.{b}.attn1.{t}" for b in range(len(wan.transformer.blocks))
             for t in ("to_q", "to_k", "to_v", "to_out.0")}
@@ -173,7 +173,7 @@ def test_lora_sits_on_the_four_self_attention_projections_of_every_kept_block(wa
 
 @needs_diffusers
 def test_lora_scaling_is_one_by_default(wan):
-    """Mutation cp17: alpha defaults to the rank (2 here), so every adapter's scaling alpha / r is 1."""
+    """Alpha defaults to the rank (2 here), so every adapter's scaling alpha / r is 1."""
     scalings = [m.scaling for _, m in wan.transformer.named_modules() if isinstance(getattr(m, "scaling", None), dict)]
     assert len(scalings) == 4 * len(wan.transformer.blocks)
     assert all(s == {"default": 1.0} for s in scalings)
@@ -181,7 +181,7 @@ def test_lora_scaling_is_one_by_default(wan):
 
 @needs_diffusers
 def test_the_vae_encoder_sees_images_mapped_to_minus_one_one():
-    """Mutation cp20: images in [0, 1] reach the VAE as 2x - 1."""
+    """Images in [0, 1] reach the VAE as 2x - 1."""
     torch.manual_seed(0)
     prior = WanVideoPrior.tiny_random(block=1)
     seen = []
@@ -194,7 +194,7 @@ def test_the_vae_encoder_sees_images_mapped_to_minus_one_one():
 
 @needs_diffusers
 def test_the_transformer_gets_timestep_1000_s_and_normalised_latents():
-    """Mutations cp18/cp19: the timestep is 1000 t_feat, the latents (z - mean) / std."""
+    """The timestep is 1000 t_feat, the latents (z - mean) / std."""
     torch.manual_seed(0)
     vae, tr = WanVideoPrior.tiny_parts()
     vae.register_to_config(latents_mean=[0.5] * 16, latents_std=[2.0] * 16)
