@@ -408,3 +408,36 @@ def test_overfit_batches_trains_on_the_same_batch_every_epoch(synth_root, worker
         assert len(loader) == 2 and [len(e) for e in epochs] == [2, 2, 2]
         epochs[1][0].context.images.zero_()  # a step that changes its batch leaves the next epoch's alone
         assert torch.equal(next(iter(loader)).context.images, epochs[0][0].context.images)
+
+
+def test_val_and_test_read_their_own_shards(synth_root, tmp_path):
+    val, test = str(tmp_path / "val-000000.tar"), str(tmp_path / "test-000000.tar")
+    dm = _dm(synth_root, val_shards=val, test_shards=test)
+    assert dm._urls("val") == [val] and dm._urls("test") == [test]
+
+
+def test_eval_batch_size_sets_the_val_and_test_batches_only(synth_root):
+    dm = _dm(synth_root, batch_size=1, eval_batch_size=2)
+    assert dm._loader("train").batch_size == 1
+    assert dm._loader("val").batch_size == 2 and dm._loader("test").batch_size == 2
+
+
+def test_train_num_context_leaves_evaluation_at_num_context(synth_root):
+    dm = _dm(synth_root, num_context=4, train_num_context=[2, 3], num_dense=0)
+    counts = [b.context.images.shape[1] for b in dm.val_dataloader()]
+    assert counts and set(counts) == {4}
+
+
+def test_fixed_batches_yield_copies():
+    from anycity.lit.datamodule import _FixedBatches
+
+    fixed = _FixedBatches([{"images": torch.ones(2, 3)}], 1)
+    first = next(iter(fixed))
+    first["images"].zero_()  # a step that changes its batch in place
+    assert torch.equal(next(iter(fixed))["images"], torch.ones(2, 3))
+
+
+def test_batches_per_epoch_counts_every_workers_batches(synth_root):
+    """Each of 2 workers draws ceil(20 / 2) = 10 samples: 5 batches of 2 each, 10 per epoch."""
+    dm = _dm(synth_root, num_workers=2, batch_size=2, epoch_samples=20, resampled=True)
+    assert dm._batches_per_epoch() == 10

@@ -231,3 +231,16 @@ def test_a_missing_photo_folder_is_refused_when_the_datamodule_is_built(tmp_path
     with pytest.raises(FileNotFoundError, match=r"^predict_images: .*nowhere is not a folder; pass a folder"):
         AerialDataModule(predict_images=str(tmp_path / "nowhere"))
     AerialDataModule(predict_images=str(tmp_path))  # a folder: the photos themselves are read by predict
+
+
+def test_the_shortest_train_sample_is_the_one_with_fewest_views(tmp_path):
+    import json
+
+    from anycity.data.writer import SCHEMA_VERSION
+    from anycity.lit.datamodule import _shortest_train_sample
+
+    index = {"schema_version": SCHEMA_VERSION, "splits": {},
+             "samples": [{"split": "train", "num_views": 24}, {"split": "train", "num_views": 6},
+                         {"split": "val", "num_views": 3}]}
+    (tmp_path / "index.json").write_text(json.dumps(index))
+    assert _shortest_train_sample(str(tmp_path)) == (6, str(tmp_path))

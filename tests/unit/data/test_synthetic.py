@@ -371,3 +371,43 @@ def test_render_workers_exit_when_the_main_process_is_killed(tmp_path, sig):
         for k in workers:
             if alive(k):
                 os.kill(k, signal.SIGKILL)
+
+
+def test_seed_and_scene_index_do_not_alias():
+    """Scene 1 of seed 0 and scene 0 of seed 1 are different scenes (a seed + index rng made them the same)."""
+    a = render_scene(0, 1, 2, (16, 16), "orbit")
+    b = render_scene(1, 0, 2, (16, 16), "orbit")
+    assert not np.allclose(a.views[0].w2c, b.views[0].w2c)
+
+
+class _MidRng:
+    """Every draw at its distribution's centre: a trajectory without jitter."""
+
+    def uniform(self, lo, hi, size=None):
+        return (lo + hi) / 2 if size is None else np.full(size, (lo + hi) / 2)
+
+    def normal(self, loc, scale, size=None):
+        return loc if size is None else np.full(size, float(loc))
+
+
+def test_an_orbit_spreads_its_views_evenly_around_the_whole_circle():
+    """n views 360/n deg apart: the last view is one step before the first, not on top of it."""
+    n = 8
+    w2c, _ = trajectory("orbit", n, make_city(np.random.default_rng(2)), _MidRng())
+    centres = -np.einsum("nji,nj->ni", w2c[:, :3, :3], w2c[:, :3, 3])
+    az = np.arctan2(centres[:, 1], centres[:, 0])  # the jitter-free orbit centres on the origin
+    steps = np.degrees(np.angle(np.exp(1j * (np.roll(az, -1) - az))))
+    np.testing.assert_allclose(steps, 360 / n, atol=1e-6)
+
+
+def test_depth_beyond_float16_range_is_invalid(monkeypatch):
+    """A camera 2 m over the ground, away from the city, whose centre row (odd height: the optical axis) dips 1e-5
+    below the horizon: its ground hits at z-depth 2e5 m, beyond float16 range, get depth 0 and mask False."""
+    import anycity.data.synthetic as synthetic
+
+    eye = np.array([0.0, 1e4, 2.0])
+    w2c = look_at(eye, eye + np.array([0.0, 1.0, -1e-5]))
+    monkeypatch.setattr(synthetic, "trajectory", lambda kind, n, city, rng: (np.stack([w2c] * n), "orbit"))
+    v = render_scene(0, 0, 1, (9, 9), "orbit").views[0]
+    assert not v.mask[4].any() and (v.depth[4] == 0).all()
+    assert v.mask[5:].all() and 0 < v.depth[5:].max() <= 6e4  # the nearer ground, one pixel lower, stays valid

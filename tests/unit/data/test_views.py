@@ -55,6 +55,33 @@ def test_select_eval_llffhold():
     assert sels == select_eval(24, 4, 2, 6)
 
 
+
+def test_select_eval_holds_out_by_scene_position_in_an_offset_window():
+    """A window of scene positions 4..27: held out are the views at scene positions 8, 16, 24, not sample
+    positions 0, 8, 16."""
+    idx = list(range(4, 28))
+    sels = select_eval(24, 4, 2, 6, index=idx)
+    for s in sels:
+        assert all(idx[i] % 8 for i in s.context + s.dense)
+        assert all(idx[i] % 8 == 0 for i in s.target)
+    assert {t for s in sels for t in s.target} == {idx.index(8), idx.index(16), idx.index(24)}
+
+
+def test_select_eval_scores_the_last_view_of_the_sample():
+    """Default own range is [min, max + 1): the last position (16 of 17) is held out and scored."""
+    assert sorted({t for s in select_eval(17, 4, 2, 6) for t in s.target}) == [0, 8, 16]
+
+
+def test_select_eval_dense_views_are_distinct_when_more_than_twice_the_context():
+    for s in select_eval(24, 2, 2, 12):
+        assert len(s.dense) == len(set(s.dense)) == 12
+
+
+def test_select_eval_context_surrounds_the_targets_centre():
+    """Targets [0, 8, 16] centre on 8: the 4 nearest kept views are 6, 7, 9, 10; 2 spread over them: [6, 10]."""
+    assert select_eval(24, 2, 3, 0)[0].context == [6, 10]
+
+
 def test_select_eval_refuses_a_context_it_would_have_to_repeat():
     """Fewer non-held-out views than num_context: the context silently repeated views ([1, 1, 2, 2]), and a repeated
     pair scored rte 90 deg and failed pose AUC for a perfect prediction. Refused in one line naming the view count,
