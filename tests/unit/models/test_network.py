@@ -238,13 +238,21 @@ def test_zero_offsets_keep_centres_on_their_rays_and_refinement_starts_at_the_sc
     assert torch.equal(out["gaussians"].sh, out["scaffold_gaussians"].sh)
 
 
-def test_completion_residual_reaches_centres_and_depth():
-    """Z_final goes through the whole decoder: a non-zero residual moves centres (offsets) and depth."""
+def _tiny_with_residual(offsets: bool = False):
+    """The tiny network (seed 0) with a non-zero completion residual, and non-zero centre offsets if asked."""
     torch.manual_seed(0)
     net = build_network("tiny")
     with torch.no_grad():
         for lin in net.completion.delta_proj:
             lin.bias.normal_(0, 0.5)
+        if offsets:
+            net.gaussian_head.offset_conv.weight.normal_(0, 0.1)
+    return net
+
+
+def test_completion_residual_reaches_centres_and_depth():
+    """Z_final goes through the whole decoder: a non-zero residual moves centres (offsets) and depth."""
+    net = _tiny_with_residual()
     out = net(torch.rand(1, 2, 3, 32, 32), refine=True)
     assert not torch.equal(out["depth"], out["scaffold_depth"])
     assert not torch.equal(out["gaussians"].opacities, out["scaffold_gaussians"].opacities)
@@ -467,12 +475,7 @@ def test_refined_centres_and_scales_come_from_the_refined_depth_and_cameras():
     """The refined Gaussians are placed from the refined depth (not the scaffold's)."""
     from anycity.models.gaussians import pixel_centres
 
-    torch.manual_seed(0)
-    net = build_network("tiny")
-    with torch.no_grad():
-        for lin in net.completion.delta_proj:
-            lin.bias.normal_(0, 0.5)
-        net.gaussian_head.offset_conv.weight.normal_(0, 0.1)
+    net = _tiny_with_residual(offsets=True)
     x = torch.rand(1, 2, 3, 32, 32)
     with torch.no_grad():
         out = net(x)
