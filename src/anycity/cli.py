@@ -153,10 +153,11 @@ def check_run_folder(trainer: dict | None) -> None:
 
 
 def hpc_resume_path(trainer: dict | None, ckpt_path: str | None) -> str | None:
-    """The checkpoint Lightning resumes a ``fit`` from when none is named, or ``hpc`` is: under SLURM (a requeued
-    job's plain ``srun anycity fit``) with no ``--ckpt_path``, or with ``--ckpt_path hpc``, the newest
-    ``hpc_ckpt_N.ckpt`` (the largest N) in the parsed ``trainer`` section's ``default_root_dir`` (the working folder
-    when unset), found by Lightning's own look-up; None where there is none, or another ``ckpt_path`` is given."""
+    """The checkpoint Lightning reads when ``hpc`` is named, or resumes a ``fit`` from when none is: with
+    ``--ckpt_path hpc``, or under SLURM (a requeued job's plain ``srun anycity fit``) with no ``--ckpt_path``, the
+    newest ``hpc_ckpt_N.ckpt`` (the largest N) in the parsed ``trainer`` section's ``default_root_dir`` (the working
+    folder when unset), found by Lightning's own look-up; None where there is none, or another ``ckpt_path`` is
+    given."""
     import os
     from types import SimpleNamespace
 
@@ -242,8 +243,9 @@ def _cli_class():
         or another progress bar is listed. ``predict`` keeps no predictions in memory (the export wrote them;
         ``--return_predictions true`` keeps them). ``--ckpt_path`` reads with the checkpoint allow-list of
         :mod:`anycity.safe_load`; ``--ckpt_path last`` is the file it names from the start (no last checkpoint:
-        refused), and so is the ``hpc_ckpt_N.ckpt`` a ``fit`` resumes from under SLURM with no ``--ckpt_path`` (a
-        requeued job; :func:`hpc_resume_path`), so that the run is kept and built as a resumed one. Refused before
+        refused), and so are ``--ckpt_path hpc`` and the ``hpc_ckpt_N.ckpt`` a ``fit`` resumes from under SLURM with
+        no ``--ckpt_path`` (a requeued job; :func:`hpc_resume_path`), so that the run is kept and built as a resumed
+        one. Refused before
         anything is built or written: ``validate|test|predict`` with no weights (no
         ``--ckpt_path``, no ``model.pretrained``), and a ``trainer.default_root_dir`` that the logger's
         ``save_dir`` contradicts (:func:`check_run_folder`)."""
@@ -346,12 +348,12 @@ def _cli_class():
             sub = self.config.get("subcommand")
             if sub and self.config[sub].get("ckpt_path") == "last":  # the file, before the network is built
                 self.config[f"{sub}.ckpt_path"] = self._find_last(sub, configured_trainer(self.config[sub].trainer))
-            hpc = hpc_resume_path(self.config[sub].get("trainer"), self.config[sub].get("ckpt_path")) \
-                if sub == "fit" else None
-            if hpc:  # named, so that the run resumes as with --ckpt_path: its checkpoints/ kept, the network built
-                from lightning.pytorch.utilities import rank_zero_info  # from the file's settings, pretrained unread
+            ckpt = self.config[sub].get("ckpt_path") if sub else None
+            hpc = hpc_resume_path(self.config[sub].get("trainer"), ckpt) if sub == "fit" or ckpt == "hpc" else None
+            if hpc:  # named, so that a fit resumes as with --ckpt_path: its checkpoints/ kept, the network built from
+                from lightning.pytorch.utilities import rank_zero_info  # the file's settings, pretrained unread
 
-                rank_zero_info(f"anycity: resuming from {hpc} (this run folder's newest SLURM time-limit checkpoint)")
+                rank_zero_info(f"anycity: {sub} from {hpc} (this run folder's newest SLURM time-limit checkpoint)")
                 self.config[f"{sub}.ckpt_path"] = hpc
             if sub and self.config[sub].get("ckpt_path") and Path(self.config[sub].ckpt_path).is_file():
                 check_checkpoint(self.config[sub].ckpt_path)
@@ -478,15 +480,13 @@ def _cli_class():
             ``validate|test|predict`` run in a training run's folder (``default_root_dir``, by
             :func:`~anycity.lit.keep.is_training_folder`): its ``config.yaml``, previews and default ``predictions/``
             go to ``<default_root_dir>/<subcommand>/``, not over the training's ``config.yaml``. Returns that folder, or
-            None. A ``--ckpt_path hpc`` is resolved first: Lightning looks for it in ``default_root_dir``."""
+            None. A ``--ckpt_path hpc`` was resolved in the training's folder already (``_parse_ckpt_path``)."""
             from anycity.lit.keep import is_training_folder
 
             t = self.trainer
             root = Path(t.default_root_dir)
             if subcommand == "fit" or t.loggers or not is_training_folder(root):
                 return None
-            if self.config_init[subcommand].get("ckpt_path") == "hpc" and t._checkpoint_connector._hpc_resume_path:
-                self.config_init[subcommand]["ckpt_path"] = t._checkpoint_connector._hpc_resume_path
             t._default_root_dir = str(root / subcommand)  # where Lightning's log_dir and SaveConfigCallback write
             return root / subcommand
 

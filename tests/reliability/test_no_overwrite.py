@@ -186,6 +186,11 @@ def test_evaluation_without_a_logger_leaves_the_training_config_where_it_was(tin
         assert (run / cmd / "config.yaml").is_file(), cmd
     assert list((run / "predict" / "predictions").rglob("scene.ply"))
     assert sorted(p.name for p in run.iterdir()) == sorted([*files, "predict", "test"])
+    # --ckpt_path hpc is the training folder's newest hpc_ckpt_N.ckpt, not one in <run>/test/, where this run writes
+    (run / "hpc_ckpt_1.ckpt").write_bytes((run / "checkpoints" / "last.ckpt").read_bytes())
+    cli = build_cli(["test", *_args(tiny_shards, run), "--ckpt_path", "hpc", "--trainer.logger", "false"])
+    assert cli.config_init["test"]["ckpt_path"] == str(run / "hpc_ckpt_1.ckpt")
+    assert (run / "test" / "config.yaml").is_file()
 
 
 # A run lock taken as anycity takes it (an exclusive flock on the file, which names the holder), by another process.
