@@ -195,7 +195,7 @@ def pairwise_edges(chunks: list[ChunkGeometry], names: list[str] | None = None, 
                     raise ValueError(_chunk_error(a, b, shared, names, f"share {len(shared)} views, need "
                                                   f"{min_shared}"))
                 continue
-            if loop_dropped and b == loop and a != loop - 1:  # the rest of the dropped loop chunk's cycle
+            if loop_dropped and in_loop_cycle(a, b, loop):  # the rest of the dropped loop chunk's cycle
                 if skipped is not None:
                     skipped.append([a, b])
                 continue
@@ -208,7 +208,9 @@ def pairwise_edges(chunks: list[ChunkGeometry], names: list[str] | None = None, 
                     continue
                 if b != loop or a != 0:
                     raise ValueError(_chunk_error(a, b, shared, names, why)) from None
-                warnings.warn(_loop_fit_warning(chunks, names, shared, why), stacklevel=3)
+                shown = ", ".join(names[v] if names else str(v) for v in shared[:4])
+                warnings.warn(loop_dropped_warning(chunks, names, f"cannot be aligned with chunk 0 (shared photos: "
+                                                                  f"{shown}): {why}; "), stacklevel=3)
                 loop_dropped = True
                 if skipped is not None:
                     skipped.append([a, b])
@@ -217,15 +219,21 @@ def pairwise_edges(chunks: list[ChunkGeometry], names: list[str] | None = None, 
     return edges
 
 
-def _loop_fit_warning(chunks: list[ChunkGeometry], names: list[str] | None, shared: list[int], why: str) -> str:
-    """The warning for a loop-closure chunk that cannot be fitted to chunk 0 on their ``shared`` photos."""
+def loop_dropped_warning(chunks: list[ChunkGeometry], names: list[str] | None, problem: str) -> str:
+    """The warning for a loop-closure chunk (the last of ``chunks``) left out of the alignment; ``problem`` says why
+    and ends where "so the scene is aligned without its cycle" goes on."""
     loop, views = len(chunks) - 1, chunks[-1].views
     ends = ", ".join(names[v] if names else str(v) for v in (views[0], views[-1]))
-    shown = ", ".join(names[v] if names else str(v) for v in shared[:4])
-    return (f"city alignment: the loop-closure chunk {loop} (photos {ends}, both ends of the flight) cannot be "
-            f"aligned with chunk 0 (shared photos: {shown}): {why}; so the scene is aligned without its cycle, as "
-            "without --data.predict_loop. Drop --data.predict_loop if the flight's last photos do not see its first "
-            "ones, or raise --data.predict_chunk_size so that the loop chunk holds more of both ends")
+    return (f"city alignment: the loop-closure chunk {loop} (photos {ends}, both ends of the flight) {problem}so the "
+            "scene is aligned without its cycle, as without --data.predict_loop. Drop --data.predict_loop if the "
+            "flight's last photos do not see its first ones, or raise --data.predict_chunk_size so that the loop "
+            "chunk holds more of both ends")
+
+
+def in_loop_cycle(a: int, b: int, loop: int) -> bool:
+    """Pair ``(a, b)`` (a < b) closes the cycle of the loop-closure chunk ``loop``: any of its pairs but its edge to
+    the last chunk, which keeps it placed on a tree."""
+    return b == loop and a != loop - 1
 
 
 def _is_loop(chunks: list[ChunkGeometry]) -> bool:

@@ -19,6 +19,8 @@ from anycity.city.align import (
     _exp_so3,
     _is_loop,
     _spread,
+    in_loop_cycle,
+    loop_dropped_warning,
     pairwise_edges,
     sim3_inverse,
     sim3_parts,
@@ -246,18 +248,14 @@ def _fallbacks(chunks: list[ChunkGeometry], names: list[str] | None, edges: list
         "chunks' shared photos look doubled, try another --data.predict_chunk_size or --data.predict_chunk_overlap"))]
     if loop is None:
         return steps
-    views = chunks[loop].views
-    ends = ", ".join(names[v] if names else str(v) for v in (views[0], views[-1]))
-    return [(_without_loop_cycle(edges, loop), lambda res: (
-        f"city alignment: the loop-closure chunk {loop} (photos {ends}, both ends of the flight) disagrees with the "
-        f"chain: after the pose graph {res} (more than {MAX_RESIDUAL:g}x), so the scene is aligned without its "
-        "cycle, as without --data.predict_loop. Drop --data.predict_loop if the flight's last photos do not see its "
-        "first ones, or raise --data.predict_chunk_size so that the loop chunk holds more of both ends"))] + steps
+    return [(_without_loop_cycle(edges, loop), lambda res: loop_dropped_warning(
+        chunks, names, f"disagrees with the chain: after the pose graph {res} (more than {MAX_RESIDUAL:g}x), "))
+        ] + steps
 
 
 def _without_loop_cycle(edges: list[Edge], loop: int) -> list[int]:
     """Indices of the edges but the loop chunk's, except its edge to the last chunk (it stays placed, on a tree)."""
-    return [i for i, e in enumerate(edges) if e.b != loop or e.a == loop - 1]
+    return [i for i, e in enumerate(edges) if not in_loop_cycle(e.a, e.b, loop)]
 
 
 def _inconsistent(S: Tensor, edges: list[Edge], used: list[int]) -> list[int]:
