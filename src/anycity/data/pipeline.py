@@ -474,8 +474,9 @@ class _PassShare:
     """webdataset stage of a ``resampled=False`` training stream: this stream's share of one pass. Every stream
     reads the same samples in the same order and keeps sample ``slot`` of each run of (world x workers) consecutive
     samples; an incomplete last run is dropped. So every stream gets floor(N / streams) samples, no sample goes to
-    two streams, and ranks get equal batch counts, whatever the number of shards. Refuses a pass that leaves a
-    stream fewer than ``batch_size`` samples (every epoch would have no batch)."""
+    two streams, and ranks get equal batch counts, whatever the number of shards (a sample that then fails to build
+    is replaced by :func:`_pass_refill`). Refuses a pass that leaves a stream fewer than ``batch_size`` samples
+    (every epoch would have no batch)."""
 
     def __init__(self, batch_size: int) -> None:
         self.batch_size = batch_size
@@ -496,9 +497,30 @@ class _PassShare:
                              "batch_size")
 
 
+def _pass_refill(src: Iterator[list[dict]]) -> Iterator[list[dict]]:
+    """webdataset stage of a ``resampled=False`` training stream, after the build: a sample that failed to build
+    (``[]``; already counted as skipped) is replaced by a repeat of the stream's previous built sample (the first
+    built one, for failures before it). :class:`_PassShare` splits the pass before the build, so without this a
+    stream with a failure got fewer batches than the others (DDP ranks then disagree on the batch count and hang in
+    an all-reduce) and than the datamodule's count of batches per epoch. Yields nothing if nothing builds (the
+    stream's ``NoSampleGuard`` then says so)."""
+    last, owed = None, 0
+    for items in src:
+        if not items:
+            if last is None:
+                owed += 1
+            else:
+                yield last
+            continue
+        last = items
+        for _ in range(owed + 1):
+            yield items
+        owed = 0
+
+
 def count_samples(urls: list[str]) -> int:
     """The samples one pass of a ``resampled=False`` training stream reads from ``urls`` (a shard that cannot be
-    read gives none, a truncated one those before the cut)."""
+    read gives none, a truncated one those before the cut, one with a corrupt header those before it)."""
     return sum(1 for _ in tar_samples([{"url": str(u)} for u in urls], handler=lambda e: True))
 
 
@@ -525,7 +547,8 @@ class _Handler:
 
 class _Build:
     """The pipeline's map stage: a raw sample -> ``builder``'s selections; with ``skip_corrupt`` a sample that fails
-    to build gives None (skipped), counted in ``counter`` and told to ``guard``."""
+    to build gives ``[]`` (skipped: no items; :func:`_pass_refill` fills its place in a pass), counted in
+    ``counter`` and told to ``guard``."""
 
     def __init__(self, builder: SampleBuilder, skip_corrupt: bool, counter: SkipCounter | None,
                  guard: NoSampleGuard) -> None:
@@ -543,7 +566,7 @@ class _Build:
                 if self.counter is not None:
                     self.counter.add(sample_where(sample), e, what=f"{url}\t{key}")
                 self.guard.sample_failed(url, key, msg)
-                return None
+                return []
             raise ValueError(msg) from e
         self.guard.sample_built()
         return out
@@ -584,7 +607,10 @@ def make_pipeline(urls: list[str], builder: SampleBuilder, *, train: bool, resam
     stages.append(guard.kept)  # after the stream's share: the guard waits only for this stream's own samples
     if train and shuffle > 1:
         stages.append(wds.shuffle(shuffle, initial=min(shuffle, 4), rng=shuffle_rng))
-    stages += [wds.map(_Build(builder, skip_corrupt, counter, guard), handler=handler), _flatten]
+    stages.append(wds.map(_Build(builder, skip_corrupt, counter, guard), handler=handler))
+    if train and not resampled:
+        stages.append(_pass_refill)
+    stages.append(_flatten)
     if train and not resampled:
         stages.append(guard.ended)
     pipe = wds.DataPipeline(*stages)

@@ -74,10 +74,11 @@ def is_local(url: str) -> bool:
 
 
 def local_members(url: str) -> Iterator[dict]:
-    """``{"fname", "data", "__url__"}`` per regular member of a local tar file, ``data`` a :class:`Member`
+    """``{"fname", "data", "__url__", "url"}`` per regular member of a local tar file, ``data`` a :class:`Member`
     (bytes for small eager members). Raises ``tarfile.ReadError`` / ``ValueError`` on corrupt archives, and
     ``ValueError`` for a member that ends past the end of the file (truncated, or a header claiming an absurd size,
-    which reading would allocate)."""
+    which reading would allocate), and for an invalid header before the end of the file (a flipped bit there: tarfile
+    stops there quietly, which dropped the rest of the shard unnoticed)."""
     file = _File(url)
     end = os.fstat(file.fd).st_size
     with open(url, "rb") as f, tarfile.open(fileobj=f, mode="r:") as tf:
@@ -92,7 +93,10 @@ def local_members(url: str) -> Iterator[dict]:
             data: Member | bytes = Member(file, m.offset_data, m.size, m.name)
             if m.name.endswith(EAGER_SUFFIXES):
                 data = data.read()
-            yield {"fname": m.name, "data": data, "__url__": url}
+            yield {"fname": m.name, "data": data, "__url__": url, "url": url}  # url: webdataset's errors name it
+        # tarfile stops at the end-of-archive block (zeros) and, silently, at an invalid header
+        if tf.offset < end and file.read(tarfile.BLOCKSIZE, tf.offset).strip(b"\0"):
+            raise ValueError(f"shard {url}: invalid tar header at byte {tf.offset} (corrupt); re-create the shard")
 
 
 class NoSampleGuard:
@@ -184,8 +188,9 @@ def tar_samples(src: Iterable[dict], handler: Callable[[BaseException], bool],
             if guard is not None:
                 guard.check()
             if not is_local(url):
-                yield from tariterators.tar_file_expander(tariterators.url_opener([d], handler=handler),
-                                                          handler=handler)
+                for m in tariterators.tar_file_expander(tariterators.url_opener([d], handler=handler),
+                                                        handler=handler):
+                    yield {**m, "url": m.get("__url__", url)}
                 continue
             n, why = 0, None
             before = guard.read.get(url, 0) if guard is not None else 0
@@ -194,7 +199,7 @@ def tar_samples(src: Iterable[dict], handler: Callable[[BaseException], bool],
                     n += 1
                     yield m
             except (tarfile.TarError, OSError, ValueError) as e:
-                why = f"unreadable tar ({e})"
+                why = f"unreadable tar ({str(e).removeprefix(f'shard {url}: ')})"  # named once, below
                 if not handler(ValueError(f"shard {url}: {why}")):
                     return
             yield {}  # end of shard: a sample never spans two shards (a resampled shard may come twice in a row)
@@ -207,10 +212,25 @@ def tar_samples(src: Iterable[dict], handler: Callable[[BaseException], bool],
         if guard is not None:  # the end of a finite stream (evaluation, or a pass of resampled: false)
             guard.check(attempts=1)
 
-    samples = tariterators.group_by_keys(files(), handler=handler)
+    samples = tariterators.group_by_keys(files(), handler=_ShardNamed(handler))
     if guard is None:
         return samples
     return _counted(samples, guard)
+
+
+class _ShardNamed:
+    """``group_by_keys``' exception handler: its errors (a member name twice in a shard) come with webdataset's
+    ``(message, stream, url)`` args, which printed as a tuple naming no shard; they reach ``handler`` as one line
+    ``ValueError`` naming the shard."""
+
+    def __init__(self, handler: Callable[[BaseException], bool]) -> None:
+        self.handler = handler
+
+    def __call__(self, exn: BaseException) -> bool:
+        if len(exn.args) >= 3 and isinstance(exn.args[-1], str):  # webdataset appended (stream, url)
+            *why, _, url = exn.args
+            exn = ValueError(f"shard {url}: {' '.join(map(str, why))}; re-create the shard")
+        return self.handler(exn)
 
 
 def _counted(samples: Iterator[dict], guard: NoSampleGuard) -> Iterator[dict]:

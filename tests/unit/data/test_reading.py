@@ -224,3 +224,91 @@ def test_world_from_source_and_scale_map_source_metres_into_the_batch():
     # metres of a normalised unit: the stored depth (360 units of 0.5 m) over the batch's depth (float16 in shards)
     d_norm = item["context"]["depth"][item["context"]["mask"]].double()
     assert float(item["scale"]) == pytest.approx(360 * mpu / float(d_norm.mean()), rel=1e-3)
+
+
+def _scene(key: str, n: int = 4, hw: int = 16, mask: np.ndarray | None = None) -> SceneRecord:
+    """A tiny scene of ``n`` png views at constant depth 10 (``mask`` for each view, if given)."""
+    rng = np.random.default_rng(0)
+    K = np.array([[16.0, 0, 8.0], [0, 16.0, 8.0], [0, 0, 1]])
+    views = []
+    for i in range(n):
+        w2c = np.eye(4)
+        w2c[0, 3] = 0.1 * i
+        views.append(ViewRecord(name=f"{i}.png", image=rng.integers(0, 255, (hw, hw, 3), dtype=np.uint8), w2c=w2c,
+                                K=K, width=hw, height=hw, depth=np.full((hw, hw), 10.0, np.float32), mask=mask,
+                                ext="png"))
+    return SceneRecord(key=key, views=views, source="test", units="metres", metres_per_unit=1.0)
+
+
+def _shard(folder, keys: list[str]) -> str:
+    with ShardSetWriter(folder, maxcount=64, check_views=False) as w:
+        for k in keys:
+            w.write(_scene(k), "test")
+    return shard_urls(folder, "test")[0]
+
+
+def test_a_corrupt_tar_header_mid_shard_is_an_error_not_the_end_of_the_shard(tmp_path):
+    """One flipped bit in the header of a shard's 4th sample: tarfile stopped there quietly, so the rest of the shard
+    was dropped with no error and no skip counted. Now it is a ``ValueError`` naming the shard; with ``skip_corrupt``
+    the shard's failure is counted once and the samples before it still come out."""
+    import tarfile
+
+    from anycity.data.pipeline import SkipCounter, count_samples
+
+    url = _shard(tmp_path, [f"s{i}" for i in range(6)])
+    with tarfile.open(url) as t:
+        first = next(m for m in t.getmembers() if m.name.startswith("s3."))
+    data = bytearray(open(url, "rb").read())
+    data[first.offset + 100] ^= 0x01  # the mode field: the header checksum no longer matches
+    open(url, "wb").write(bytes(data))
+    builder = SampleBuilder(2, 1, 0, (16, 16), train=False, with_normals=False)
+    with pytest.raises(ValueError, match=r"test-000000\.tar.*invalid tar header at byte \d+ \(corrupt\)") as e:
+        list(make_pipeline([url], builder, train=False))
+    assert "\n" not in str(e.value) and str(e.value).count("test-000000.tar") == 1, str(e.value)
+    counter = SkipCounter(tmp_path / "skips")
+    out = list(make_pipeline([url], builder, train=False, skip_corrupt=True, counter=counter))
+    assert [s["scene"] for s in out] == ["s0", "s1", "s2"] and counter.count == 1
+    assert count_samples([url]) == 3  # those before the corrupt header
+
+
+def test_a_member_twice_in_a_shard_is_an_error_naming_the_shard(tmp_path):
+    """A shard with a member repeated (``tar -r`` twice, two tars concatenated) raised "corrupt or unreadable shard:
+    ('a.000.depth.npy: duplicate file name ...', None, None)", a tuple naming no shard."""
+    import io
+    import tarfile
+
+    url = _shard(tmp_path, ["a", "b"])
+    with tarfile.open(url) as t:
+        members = [(m, t.extractfile(m).read()) for m in t.getmembers()]
+    bad = tmp_path / "dup.tar"
+    with tarfile.open(bad, "w") as out:
+        for i, (m, b) in enumerate(members):
+            for _ in range(2 if i == 0 else 1):
+                out.addfile(m, io.BytesIO(b))
+    with pytest.raises(ValueError, match=r"^shard \S*dup\.tar: a\.\S+: duplicate file name in tar file .*re-create "
+                                         r"the shard$") as e:
+        list(make_pipeline([str(bad)], SampleBuilder(2, 1, 0, (16, 16), train=False), train=False))
+    assert "\n" not in str(e.value) and "None" not in str(e.value)
+
+
+def test_a_stored_mask_is_the_sample_mask():
+    """The stored validity mask (here: the left half invalid, at a depth valid everywhere) is what the sample's mask
+    says, not depth > 0."""
+    mask = np.ones((16, 16), bool)
+    mask[:, :8] = False
+    s = encode_scene(_scene("m", n=3, mask=mask), "test")
+    ctx = SampleBuilder(2, 1, 0, (16, 16), train=False, with_normals=False)(s)[0]["context"]
+    assert not ctx["mask"][..., :8].any() and ctx["mask"][..., 8:].all()
+
+
+def test_each_epoch_draws_its_own_views_reproducibly():
+    """A training builder seeds its view draws per epoch: epoch 1 draws other views than epoch 0, and begun again
+    it draws the same."""
+    b = SampleBuilder(2, 2, 0, (16, 16), seed=0)
+
+    def draws(epoch):
+        b.begin_epoch(epoch)
+        return [(tuple(s.context), tuple(s.target)) for s in (b.selections(16)[0] for _ in range(3))]
+
+    first, second = draws(0), draws(1)
+    assert first != second and draws(1) == second

@@ -183,3 +183,55 @@ def test_without_resampling_every_rank_gets_equal_batches_from_one_shard(synth_r
         resumed.trainer = SimpleNamespace(fit_loop=SimpleNamespace(epoch_loop=SimpleNamespace(
             batch_progress=SimpleNamespace(total=SimpleNamespace(processed=done)))))
         assert [signature(b) for b in resumed.train_dataloader()] == batches[1][1][done - 3:]
+
+
+def _tiny_shard(folder: Path, keys: list[str], nan_camera: tuple[str, ...] = ()) -> list[str]:
+    """One shard of 4-view 16 px scenes named ``keys``; a scene in ``nan_camera`` has a NaN in a camera."""
+    import numpy as np
+
+    from anycity.data.schema import SceneRecord, ViewRecord
+    from anycity.data.writer import ShardSetWriter
+
+    rng = np.random.default_rng(0)
+    K = np.array([[16.0, 0, 8.0], [0, 16.0, 8.0], [0, 0, 1]])
+    with ShardSetWriter(folder, maxcount=64, check_views=False) as w:
+        for key in keys:
+            views = []
+            for i in range(4):
+                w2c = np.eye(4)
+                w2c[0, 3] = float("nan") if key in nan_camera else 0.1 * i
+                views.append(ViewRecord(name=f"{i}.png", image=rng.integers(0, 255, (16, 16, 3), dtype=np.uint8),
+                                        w2c=w2c, K=K, width=16, height=16, ext="png"))
+            w.write(SceneRecord(key=key, views=views, source="test", units="metres", metres_per_unit=1.0), "train")
+    return shard_urls(folder, "train")
+
+
+def _scenes(urls, **kw) -> list[str]:
+    builder = SampleBuilder(2, 1, 0, (16, 16), with_depth=False, with_normals=False, batch_size=1)
+    return [s["scene"] for s in make_pipeline(urls, builder, train=True, resampled=False, **kw)]
+
+
+def test_a_sample_that_fails_to_build_does_not_leave_its_rank_a_batch_short(tmp_path, monkeypatch):
+    """``resampled: false`` splits the pass before the build: with ``skip_corrupt`` a sample with a NaN camera left
+    its rank one sample short (rank 0 two, rank 1 three), so ranks disagreed on the batch count (a DDP hang) and on
+    the datamodule's count. Now the failed sample's place is filled by a repeat of the stream's previous sample; the
+    skip is still counted, once."""
+    urls = _tiny_shard(tmp_path, [f"s{i}" for i in range(6)], nan_camera=("s2",))
+    counter = SkipCounter(tmp_path / "skips")
+    ranks = [_scenes(urls, shuffle=0, skip_corrupt=True, counter=counter) for _ in _streams(monkeypatch, 2, 1)]
+    assert [len(r) for r in ranks] == [3, 3] and "s2" not in ranks[0] + ranks[1]
+    assert set(ranks[0] + ranks[1]) == {"s0", "s1", "s3", "s4", "s5"} and counter.count == 1
+
+
+def test_a_pass_is_shuffled_anew_each_epoch(tmp_path):
+    """Each epoch of ``resampled: false`` reads the pass in an order of its own (the shuffle is seeded per epoch)."""
+    keys = [f"s{i}" for i in range(8)]
+    urls = _tiny_shard(tmp_path, keys)
+    epochs = [_scenes(urls, shuffle=4, seed=5, first_epoch=e) for e in range(3)]
+    assert all(sorted(e) == keys for e in epochs) and not epochs[0] == epochs[1] == epochs[2]
+
+
+def test_epoch_samples_does_not_cut_a_pass(tmp_path):
+    """``epoch_samples`` cuts only resampled epochs: a pass of ``resampled: false`` gives every sample."""
+    keys = [f"s{i}" for i in range(6)]
+    assert _scenes(_tiny_shard(tmp_path, keys), shuffle=0, epoch_samples=2) == keys
