@@ -41,11 +41,11 @@ def save_cameras(path: str | Path, w2c: Tensor, K: Tensor, width: int, height: i
 def load_cameras(path: str | Path) -> dict:
     """Read and check a ``cameras.json``: convention ``opencv_w2c`` and a schema version this code reads (when
     given), a ``views`` list, each with an optional ``name`` (a photo's file name: no ``/``, ``\\``, NUL, ``.`` or
-    ``..``, since the exports write ``images/<name>.png``), a finite rigid ``w2c`` (4x4), a finite
-    ``K`` (3x3) with focal lengths > 0 (:func:`anycity.geometry.camera_problem`) and the same ``width`` / ``height``
-    (1..65536) as the others, and a ``metres_per_unit`` that is positive or null. A file that is not that raises a
-    one-line ``ValueError`` naming it (JSON's ``NaN``, a zeroed rotation or a string scale would otherwise reach
-    the COLMAP and nerfstudio exports, the viewer and the fly-through)."""
+    ``..``, since the exports write ``images/<name>.png``), a finite rigid ``w2c`` (4x4), a finite ``K`` (3x3)
+    with focal lengths > 0, last row 0 0 1 and no skew (:func:`anycity.geometry.camera_problem`) and the same
+    ``width`` / ``height`` (1..65536) as the others, and a ``metres_per_unit`` that is positive or null. A file that
+    is not that raises a one-line ``ValueError`` naming it (JSON's ``NaN``, a zeroed rotation or a string scale
+    would otherwise reach the COLMAP and nerfstudio exports, the viewer and the fly-through)."""
     path = Path(path)
 
     def bad(what: str) -> ValueError:

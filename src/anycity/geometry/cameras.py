@@ -94,13 +94,17 @@ def fov_to_focal(fov: Tensor, size: float | Tensor) -> Tensor:
 
 
 MAX_IMAGE_SIDE = 1 << 16  # image sides above this in a camera file are a corrupt header, not a photo
+# the renderer refuses skew above 1e-3 px at every dtype (render.api._check_intrinsics), so a camera that passes
+# here renders
+MAX_SKEW = 1e-3
 
 
 def camera_problem(w2c, K, tol: float = 1e-3) -> str | None:
     """What makes one pinhole camera unusable, or None when it is sound: a reader's check of cameras from a file.
 
     ``w2c [4, 4]`` must be finite and rigid (``R`` orthonormal with det +1 within ``tol``, last row 0 0 0 1);
-    ``K [3, 3]`` finite with focal lengths > 0 and last row 0 0 1. Array-likes (lists, arrays, CPU tensors).
+    ``K [3, 3]`` finite with focal lengths > 0, last row 0 0 1 and skew ``|K[0, 1]|, |K[1, 0]|`` at most
+    ``MAX_SKEW`` px. Array-likes (lists, arrays, CPU tensors).
     """
     try:
         w2c, K = np.asarray(w2c, dtype=np.float64), np.asarray(K, dtype=np.float64)
@@ -115,6 +119,13 @@ def camera_problem(w2c, K, tol: float = 1e-3) -> str | None:
         ortho, det = np.abs(R @ R.T - np.eye(3)).max(), np.linalg.det(R)
     if not (ortho <= tol and abs(det - 1) <= tol and np.abs(w2c[3] - [0, 0, 0, 1]).max() <= 1e-6):
         return "camera pose is not a rigid rotation + translation"
-    if not (K[0, 0] > 0 and K[1, 1] > 0) or np.abs(K[2] - [0, 0, 1]).max() > 1e-6:
+    if not (K[0, 0] > 0 and K[1, 1] > 0):
         return f"intrinsics need focal lengths > 0 (got fx={K[0, 0]:g}, fy={K[1, 1]:g})"
+    if np.abs(K[2] - [0, 0, 1]).max() > 1e-6:
+        row = ", ".join(f"{x:g}" for x in K[2])
+        return f"K's last row must be [0, 0, 1], got [{row}] (divide a homogeneous K by K[2, 2])"
+    skew = max(abs(K[0, 1]), abs(K[1, 0]))
+    if skew > MAX_SKEW:
+        return (f"intrinsics have skew {skew:.3g} px (K[0, 1] or K[1, 0]) that the renderer cannot draw "
+                f"(at most {MAX_SKEW:g}); resample the image to a pinhole camera with zero skew")
     return None

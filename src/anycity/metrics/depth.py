@@ -22,7 +22,7 @@ def depth_metrics(pred: Tensor, gt: Tensor, mask: Tensor | None = None,
 
     Args:
         pred, gt: ``[..., 1, H, W]`` z-depth in the same units (unless ``align="median"``).
-        mask: ``[..., 1, H, W]`` validity of the ground truth, or None.
+        mask: ``[..., 1, H, W]`` validity of the ground truth (gt's shape), or None.
         align: ``"median"`` rescales each predicted image by ``median(gt) / median(pred)`` over the valid pixels
             it covers (for scale-ambiguous predictions).
     Returns:
@@ -31,6 +31,9 @@ def depth_metrics(pred: Tensor, gt: Tensor, mask: Tensor | None = None,
     """
     if pred.shape != gt.shape:
         raise ValueError(f"depth_metrics: pred {tuple(pred.shape)} and gt {tuple(gt.shape)} differ")
+    if mask is not None and mask.shape != gt.shape:
+        raise ValueError(f"depth_metrics: mask {tuple(mask.shape)} must have gt's shape {tuple(gt.shape)} "
+                         "(one validity flag per ground-truth pixel; expand it first)")
     if align not in ("none", "median"):
         raise ValueError(f"depth_metrics: align must be 'none' or 'median', got {align!r}")
     h, w = pred.shape[-2:]

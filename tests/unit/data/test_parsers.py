@@ -401,6 +401,16 @@ def test_blendedmvs_with_pfm(tmp_path):
     (src / "blended_images" / "00000001.jpg").unlink()  # a missing one: named as missing, not as unreadable
     with pytest.raises(FileNotFoundError, match=r"00000001\.jpg: not found; expected the image of 00000001_cam\.txt"):
         convert("blendedmvs", src, tmp_path / "out3")
+    # a skewed camera (the 3x3 K is read whole) is refused at conversion, not at fit by the renderer; its message
+    # carries its own fix, not "damaged, re-export"
+    _images(src / "blended_images", ["00000001.jpg"])
+    skewed = np.array(K, float)
+    skewed[0, 1] = 2.0
+    krows = "\n".join(" ".join(map(str, r)) for r in skewed)
+    (src / "cams" / "00000000_cam.txt").write_text(f"extrinsic\n{rows}\n\nintrinsic\n{krows}\n\n425 2.5\n")
+    with pytest.raises(ValueError, match=r"00000000.*skew 2 px .*zero skew$") as e:
+        convert("blendedmvs", src, tmp_path / "out4")
+    assert "damaged" not in str(e.value)
 
 
 def test_blendedmvs_image_size_is_the_size_stored(tmp_path):

@@ -11,6 +11,7 @@ import torch
 from anycity.geometry import (
     c2w_to_w2c,
     camera_centers,
+    camera_problem,
     crop_intrinsics,
     depth_to_normals,
     focal_to_fov,
@@ -190,3 +191,51 @@ def test_umeyama_refuses_weights_of_another_shape_or_sign():
         umeyama(src, dst, w)
     s, _, t = umeyama(src, dst, w.clamp_min(0))
     torch.testing.assert_close(s, torch.tensor(2.0, dtype=F64))
+
+
+def _sound_camera():
+    return torch.eye(4, dtype=F64).numpy(), torch.tensor([[30.0, 0, 8], [0, 30, 8], [0, 0, 1]], dtype=F64).numpy()
+
+
+def test_camera_problem_refuses_each_unsound_part_naming_it():
+    """A negative focal, a w2c bottom row other than [0, 0, 0, 1], a K last row other than [0, 0, 1] and a rotation
+    block scaled by 0.2 % (R Rᵀ off by 4e-3, outside the 1e-3 tolerance) are each refused, with their own message."""
+    w2c, K = _sound_camera()
+    assert camera_problem(w2c, K) is None
+    neg = K.copy()
+    neg[0, 0] = -30
+    assert "focal lengths > 0 (got fx=-30, fy=30)" in camera_problem(w2c, neg)
+    row = w2c.copy()
+    row[3] = [0, 0, 0, 2]
+    assert "not a rigid rotation" in camera_problem(row, K)
+    scaled = w2c.copy()
+    scaled[:3, :3] *= 1.002
+    assert "not a rigid rotation" in camera_problem(scaled, K)
+    last = K.copy()
+    last[2] = [0, 0, 2]
+    said = camera_problem(w2c, last)
+    assert said.startswith("K's last row must be [0, 0, 1], got [0, 0, 2]") and "focal" not in said
+
+
+def test_camera_problem_refuses_the_skew_the_renderer_refuses():
+    """A converter's check passes a K exactly when the renderer does: skew up to 1e-3 px is rounding, more (a
+    BlendedMVS-style full 3x3 K with skew 5 px) is refused in one line naming skew, not at fit time."""
+    from anycity.render.api import _check_intrinsics
+
+    w2c, K = _sound_camera()
+    for skew in (0.0, 5e-4, 2e-3, 5.0):
+        for at in ((0, 1), (1, 0)):
+            k = K.copy()
+            k[at] = skew
+            said = camera_problem(w2c, k)
+            for dtype in (torch.float32, torch.float64):
+                kt = torch.tensor(k, dtype=dtype)
+                if said is None:
+                    _check_intrinsics(kt, dtype, 16, 16)
+                else:
+                    with pytest.raises(ValueError, match="skew"):
+                        _check_intrinsics(kt, dtype, 16, 16)
+            assert (said is None) == (skew < 1e-3)
+            if said is not None:
+                assert said.startswith(f"intrinsics have skew {skew:.3g} px") and "zero skew" in said
+                assert "\n" not in said

@@ -95,3 +95,41 @@ def test_bad_shapes_raise():
         visible_views(torch.zeros(1, 3), depth, w2c, K)
     with pytest.raises(ValueError, match="w2c"):
         visible_views(torch.zeros(1, 4, 3), depth, w2c[:, :, :3], K)
+
+
+def _at_pixel(u, v, z):
+    """The camera-frame point ``[3]`` that the identity camera of ``intrinsics()`` sees at pixel (u, v), depth z."""
+    K = intrinsics()
+    return torch.tensor([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z])
+
+
+def _visible(points, depth, **kw):
+    return visible_views(torch.stack(points)[None], depth, torch.eye(4)[None, None], intrinsics()[None, None],
+                         **kw)[0, 0].tolist()
+
+
+def test_sky_next_to_a_ground_pixel_does_not_hide_it():
+    """Depth 0 is no surface: a ground point in the last valid column, 0.2 px from the sky, is visible."""
+    depth = torch.full((1, 1, 1, H, W), 5.0)
+    depth[..., W // 2:] = 0.0
+    assert _visible([_at_pixel(W // 2 - 0.2, H / 2 + 0.5, 5.0)], depth) == [True]
+
+
+@pytest.mark.parametrize("axis", ["column", "row"])
+def test_the_pixel_a_point_falls_in_decides_it_has_depth(axis):
+    """A point inside a pixel with no depth is not seen; one in the next pixel (1 px further) is, along u and v."""
+    depth = torch.full((1, 1, 1, H, W), 5.0)
+    if axis == "column":
+        depth[..., W // 2] = 0.0
+        pts = [_at_pixel(W // 2 + 0.3, H / 2 + 0.5, 5.0), _at_pixel(W // 2 + 1.3, H / 2 + 0.5, 5.0)]
+    else:
+        depth[..., H // 2, :] = 0.0
+        pts = [_at_pixel(W / 2 + 0.5, H // 2 + 0.3, 5.0), _at_pixel(W / 2 + 0.5, H // 2 + 1.3, 5.0)]
+    assert _visible(pts, depth) == [False, True]
+
+
+def test_default_depth_tolerance_is_five_percent():
+    """A point 4 % behind a flat surface is seen, 7 % behind hidden, at the default depth_tol (0.05)."""
+    depth = torch.full((1, 1, 1, H, W), 10.0)
+    pts = [_at_pixel(W / 2 + 0.5, H / 2 + 0.5, z) for z in (10.4, 10.7)]
+    assert _visible(pts, depth) == [True, False]

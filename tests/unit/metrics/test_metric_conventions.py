@@ -1,12 +1,14 @@
 """Metric conventions a plausible one-line bug would break silently: clamped renders scored, the depth test's 2x2 taps
-at pixel centres, masked target pixels making no depth edges."""
+at pixel centres, masked target pixels making no depth edges, AUC@30."""
 
+import pytest
 import torch
 from helpers.raycast_scenes import H, W, intrinsics, look_at, render_depth
 
 from anycity.geometry import visible_views
 from anycity.metrics.image import psnr, ssim
-from anycity.metrics.regions import region_masks
+from anycity.metrics.pose import pose_auc
+from anycity.metrics.regions import masked_psnr, region_masks
 
 
 def test_overshooting_renders_are_scored_clamped():
@@ -40,3 +42,18 @@ def test_invalid_target_pixels_do_not_make_depth_edges():
     a = region_masks(td, tw, tK, cd, cw, cK, target_valid=valid)
     b = region_masks(junk, tw, tK, cd, cw, cK, target_valid=valid)
     assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])  # what a masked pixel holds changes nothing
+
+
+def test_masked_psnr_scores_overshooting_renders_clamped():
+    """masked_psnr over a full mask clamps the render to [0, 1] as psnr does: equal to both on an overshooting one."""
+    g = torch.Generator().manual_seed(0)
+    target = torch.rand(2, 3, 32, 32, generator=g)
+    pred = target + 0.3 * torch.randn(target.shape, generator=g)
+    full = torch.ones(2, 1, 32, 32, dtype=torch.bool)
+    torch.testing.assert_close(masked_psnr(pred, target, full), masked_psnr(pred.clamp(0, 1), target, full))
+    torch.testing.assert_close(masked_psnr(pred, target, full), psnr(pred, target))
+
+
+def test_pose_auc_defaults_to_thirty_degrees():
+    """AUC@30 by default: a pair 25 degrees off stays below 5 of the thresholds 1..30."""
+    assert pose_auc(torch.tensor([25.0]), torch.tensor([0.0])).item() == pytest.approx(5 / 30)

@@ -195,3 +195,40 @@ def test_psnr_and_ssim_accept_targets_at_the_ends_of_the_range_and_small_images(
     assert torch.isfinite(psnr(pred.half(), t.bfloat16())).all()  # any float dtype
     p, t = _pair(size=8)
     assert ssim(p, t).isnan().all()  # no window fits: still NaN, not an error
+
+
+def test_depth_metrics_refuses_a_mask_of_another_shape_than_gt():
+    """A mask with one view where gt has three used to crash deep inside with a broadcast RuntimeError; it is a
+    one-line ValueError naming mask and gt's shape. A mask of gt's shape is taken."""
+    gt = torch.rand(2, 3, 1, 8, 8) + 1
+    with pytest.raises(ValueError, match=r"^depth_metrics: mask \(2, 1, 1, 8, 8\) must have gt's shape \(2, 3, 1, 8, "
+                                         r"8\)"):
+        depth_metrics(gt + 1, gt, mask=torch.ones(2, 1, 1, 8, 8, dtype=torch.bool))
+    out = depth_metrics(gt, gt, mask=torch.ones(2, 3, 1, 8, 8, dtype=torch.bool))
+    assert out["abs_rel"].shape == (6,) and out["delta1"].min().item() == 1.0
+
+
+def test_median_alignment_takes_both_medians_over_the_covered_pixels_only():
+    """With the far pixels left empty the gt median is the covered pixels' (1), not all valid pixels' (4): the two
+    covered pixels align exactly and the three holes score AbsRel 1 each, so AbsRel 3/5 and delta1 2/5."""
+    gt = torch.tensor([1.0, 1.0, 4.0, 4.0, 4.0]).reshape(1, 1, 1, 1, 5)
+    pred = torch.tensor([2.0, 2.0, 0.0, 0.0, 0.0]).reshape(1, 1, 1, 1, 5)
+    out = depth_metrics(pred, gt, align="median")
+    assert out["abs_rel"].item() == pytest.approx(0.6) and out["delta1"].item() == pytest.approx(0.4)
+
+
+def test_a_zero_or_negative_prediction_is_a_hole_not_a_covered_pixel():
+    """Depth 0 (nothing rendered) is left out of the median alignment and fails; a negative depth scores AbsRel 1 as a
+    hole does, not |p - g| / g."""
+    gt = torch.full((1, 1, 1, 1, 3), 2.0)
+    out = depth_metrics(torch.tensor([4.0, 0.0, 0.0]).reshape(1, 1, 1, 1, 3), gt, align="median")
+    assert out["abs_rel"].item() == pytest.approx(2 / 3) and out["delta1"].item() == pytest.approx(1 / 3)
+    neg = depth_metrics(torch.tensor([-1.0]).reshape(1, 1, 1, 1, 1), torch.tensor([2.0]).reshape(1, 1, 1, 1, 1))
+    assert neg["abs_rel"].item() == 1.0 and neg["delta1"].item() == 0.0
+
+
+def test_delta1_threshold_is_strict():
+    """delta1 counts max(d/d*, d*/d) < 1.25: a ratio of exactly 5/4 fails."""
+    gt = torch.tensor([4.0, 4.0]).reshape(1, 1, 1, 1, 2)
+    pred = torch.tensor([5.0, 4.0]).reshape(1, 1, 1, 1, 2)
+    assert depth_metrics(pred, gt)["delta1"].item() == 0.5

@@ -382,3 +382,73 @@ def test_default_split_on_quickstart_cities():
             obs_n, weak_n, valid_n = obs_n + o.sum().item(), weak_n + w.sum().item(), valid_n + (td > 0).sum().item()
     assert obs_n + weak_n == valid_n
     assert 0.1 < weak_n / valid_n < 0.5, weak_n / valid_n
+
+
+def test_depth_steps_between_rows_are_edges():
+    """A horizontal depth step (a roof edge seen from above) marks the rows on both sides of it, and only them."""
+    d = torch.full((1, 1, 1, 12, 16), 10.0)
+    d[..., 6:, :] = 14.0
+    e = depth_edges(d, 0.3)[0, 0, 0]
+    assert e[5].all() and e[6].all() and e.sum() == 32
+
+
+def test_ground_next_to_sky_or_a_masked_pixel_is_no_edge():
+    """A pixel whose neighbour has no depth (sky: 0) or is masked out (valid False) is not a depth edge."""
+    d = torch.full((1, 1, 1, 12, 16), 10.0)
+    sky = d.clone()
+    sky[..., 6:, :] = 0.0
+    assert not depth_edges(sky, 0.3).any()
+    valid = torch.ones_like(d, dtype=torch.bool)
+    valid[..., 8:] = False
+    assert not depth_edges(d, 0.3, valid=valid).any()
+
+
+def test_context_pixels_marked_invalid_observe_nothing():
+    """With context_valid all False no context view sees any target pixel: nothing observed, every pixel with depth
+    weak."""
+    *_, (td, tw, tK, cd, cw, cK) = _masks(TARGET, STEREO)
+    obs, weak = region_masks(td, tw, tK, cd, cw, cK, context_valid=torch.zeros_like(cd, dtype=torch.bool))
+    assert obs.sum() == 0 and torch.equal(weak, td > 0)
+
+
+def test_region_fraction_counts_the_valid_pixels_not_the_images():
+    """fraction is the mask's share of the valid pixels: half of image 0's, image 1 having none, is 0.5."""
+    t = torch.rand(2, 3, 16, 16, generator=torch.Generator().manual_seed(0))
+    valid = torch.zeros(2, 1, 16, 16, dtype=torch.bool)
+    valid[0] = True
+    mask = torch.zeros_like(valid)
+    mask[0, :, :8] = True
+    m = RegionMetric()
+    m.update((t + 0.05).clamp(0, 1), t, mask, valid)
+    torch.testing.assert_close(m.compute()["fraction"], torch.tensor(0.5, dtype=torch.float64))
+
+
+def test_a_perfect_image_counts_with_infinite_psnr():
+    """A region rendered exactly has PSNR inf: it is counted (not dropped as NaN would be), so the mean is inf."""
+    t = torch.rand(2, 3, 16, 16, generator=torch.Generator().manual_seed(0))
+    p = t.clone()
+    p[1] = (t[1] + 0.1).clamp(0, 1)
+    m = RegionMetric()
+    m.update(p, t, torch.ones(2, 1, 16, 16, dtype=torch.bool))
+    assert m.psnr_count.item() == 2 and m.compute()["psnr"].item() == math.inf
+
+
+def test_region_mask_defaults():
+    """The documented defaults: 2 views, 2 degrees of parallax, depth tolerance 10 %, edge threshold 30 %. A target
+    depth 7 % behind its one context view's is seen at the default tolerance, not at 5 %; a 25 % depth step is no
+    edge at the default threshold."""
+    import inspect
+
+    params = inspect.signature(region_masks).parameters
+    names = ("min_views", "min_parallax_deg", "depth_tol", "edge_thresh")
+    assert {k: params[k].default for k in names} == {"min_views": 2, "min_parallax_deg": 2.0, "depth_tol": 0.1,
+                                                      "edge_thresh": 0.3}
+    w, K = _cams([((0.0, 0.0, 5.0), O)])  # straight down at flat ground: constant depth
+    cd = render_depth(w, K)
+    assert region_masks(cd * 1.07, w, K, cd, w, K, min_views=1)[0].all()
+    assert not region_masks(cd * 1.07, w, K, cd, w, K, min_views=1, depth_tol=0.05)[0].any()
+    w, K = torch.eye(4)[None, None], intrinsics().expand(1, 1, 3, 3)
+    d = torch.full((1, 1, 1, H, W), 10.0)
+    d[..., W // 2:] = 12.5
+    assert not region_masks(d, w, K, d, w, K, min_views=1)[1].any()
+    assert region_masks(d, w, K, d, w, K, min_views=1, edge_thresh=0.2)[1].any()

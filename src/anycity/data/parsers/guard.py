@@ -25,14 +25,15 @@ def _one_line(msg: str) -> str:
 
 
 def check_scene_cameras(scenes, src, fmt: str) -> None:
-    """Raise ``ValueError`` naming the view unless every camera is finite (lens terms too), rigid and has a positive
-    focal."""
+    """Raise ``ValueError`` naming the view unless every camera is finite (lens terms too), rigid, has a positive
+    focal, a last row 0 0 1 and no skew (:func:`anycity.geometry.camera_problem`)."""
     for sc in scenes:
         for v in sc.views:
             where = f"{src}: {fmt} view {v.name!r} of scene {sc.name!r}"
             problem = camera_problem(v.w2c, v.K)
             if problem:
-                raise ValueError(f"{where}: {problem}; the camera file is damaged, re-export it")
+                fix = "" if ";" in problem else "; the camera file is damaged, re-export it"  # its own fix
+                raise ValueError(f"{where}: {problem}{fix}")
             if v.dist is not None and not np.all(np.isfinite(np.asarray(v.dist, float))):
                 raise ValueError(f"{where}: lens distortion terms {np.asarray(v.dist).tolist()} are not finite; "
                                  "the camera file is damaged, re-export it")
