@@ -3,6 +3,8 @@ mixed-precision inputs render in float32, and "auto" only picks a backend that s
 
 from __future__ import annotations
 
+import warnings
+
 import pytest
 import torch
 from helpers.scenes import make_cameras, make_gaussians
@@ -92,11 +94,14 @@ def test_gsplat_refuses_an_intrinsics_gradient_it_cannot_give():
 
 
 @pytest.mark.parametrize("backend", ["torch", "auto"] + (["cpu"] if api._cpu_backend_available() else []))
-@pytest.mark.parametrize("field", ["quats", "scales", "opacities", "sh"])
-def test_low_precision_fields_render_in_float32(field, backend):
+@pytest.mark.parametrize("field", ["means", "quats", "scales", "opacities", "sh"])
+@pytest.mark.parametrize("dtype", [torch.bfloat16, torch.float16], ids=["bfloat16", "float16"])
+def test_low_precision_fields_render_in_float32(field, backend, dtype):
+    """A float16 or bfloat16 field (a mixed-precision head) is upcast: the image is float32 and equals the render
+    of the same values cast to float32 beforehand."""
     g, w2c, K = _scene(K=4)
     fields = {k: getattr(g, k).detach() for k in PARAMS}
-    fields[field] = fields[field].bfloat16()
+    fields[field] = fields[field].to(dtype)
     out = render(Gaussians(**fields), w2c, K, 24, 16, backend=backend)
     ref = render(Gaussians(**fields).float(), w2c, K, 24, 16, backend=backend)
     assert out.rgb.dtype == F32
@@ -119,6 +124,40 @@ def test_auto_on_cuda_picks_gsplat_only_for_float32(monkeypatch):
     assert resolve_backend("auto", cuda, F32) == "gsplat"
     for dtype in (torch.float64, torch.float16, torch.bfloat16):
         assert resolve_backend("auto", cuda, dtype) == "torch"
+
+
+def test_auto_on_cuda_without_gsplat_falls_back_to_torch_not_the_cpu_kernels(monkeypatch):
+    """On CUDA without gsplat, "auto" falls back to the torch backend even where numba is installed: the fused
+    kernels run on CPU tensors only."""
+    monkeypatch.setattr(api, "_module_available", lambda name: name != "gsplat")
+    monkeypatch.setattr(api, "_cpu_backend_available", lambda: True)
+    with warnings.catch_warnings():  # the fallback warning is given once per process
+        warnings.simplefilter("ignore")
+        assert resolve_backend("auto", torch.device("cuda"), F32) == "torch"
+
+
+def test_auto_on_cuda_skips_a_gsplat_without_kernels_and_an_explicit_request_is_refused(monkeypatch):
+    """gsplat installed without its CUDA kernels: "auto" falls back to torch, and backend="gsplat" is refused in
+    one line naming the missing kernels rather than failing inside the first CUDA call."""
+    monkeypatch.setattr(api, "_module_available", lambda name: True)
+    monkeypatch.setattr(api, "_gsplat_kernels", lambda: False)
+    with warnings.catch_warnings():  # the fallback warning is given once per process
+        warnings.simplefilter("ignore")
+        assert resolve_backend("auto", torch.device("cuda"), F32) == "torch"
+    with pytest.raises(ValueError, match="gsplat is installed without its CUDA kernels"):
+        api._load("gsplat")
+
+
+@needs_numba
+def test_a_single_background_colour_reaches_every_view_of_the_cpu_backend():
+    """A [3] background with several views is expanded to [B, V, 3] for every backend: the fused kernels composite
+    it under each view as the torch backend does."""
+    g = make_gaussians(N=30, dtype=F32)
+    w2c, K = make_cameras(1, 2, 16, 16, dtype=F32)
+    bg = torch.tensor([0.2, 0.3, 0.4])
+    cpu, ref = (render(g, w2c, K, 16, 16, background=bg, backend=b) for b in ("cpu", "torch"))
+    assert (ref.alpha < 0.5).any()  # some of the background shows
+    torch.testing.assert_close(cpu.rgb, ref.rgb, atol=1e-5, rtol=0)
 
 
 @needs_numba

@@ -169,6 +169,23 @@ def test_a_gaussian_beyond_the_far_plane_is_culled_by_every_backend(backend):
     assert kept.alpha.max() > 0.8
     torch.testing.assert_close(kept.depth[0, 0, 0, 8, 12].cpu(), torch.tensor(5.0))
 
+
+@pytest.mark.parametrize("backend", _BACKENDS)
+def test_a_gaussian_before_the_near_plane_is_culled_by_every_backend(backend):
+    """One small Gaussian on the optical axis at z = 0.5, in front of the camera: near = 1 culls it (alpha and depth
+    0 everywhere), near = 0.1 keeps it. A backend that culled only z <= 0 would draw geometry between the camera and
+    the near plane the caller set (e.g. floaters right in front of the lens)."""
+    device = "cuda" if backend == "gsplat" else "cpu"
+    g = Gaussians(means=torch.tensor([[[0.0, 0.0, 0.5]]]), quats=torch.tensor([[[1.0, 0, 0, 0]]]),
+                  scales=torch.full((1, 1, 3), 0.05), opacities=torch.full((1, 1), 0.9),
+                  sh=torch.ones(1, 1, 1, 3)).to(device=device)
+    w2c = torch.eye(4, device=device)[None, None]
+    K = torch.tensor([[20.0, 0, 12.0], [0, 20.0, 8.0], [0, 0, 1]], device=device)[None, None]  # a 2 px std
+    culled = render(g, w2c, K, 24, 16, near=1.0, far=10.0, backend=backend)
+    assert torch.all(culled.alpha == 0) and torch.all(culled.depth == 0)
+    kept = render(g, w2c, K, 24, 16, near=0.1, far=10.0, backend=backend)
+    assert kept.alpha.max() > 0.5
+
 def test_gradcheck_tiny():
     g = make_gaussians(N=4, K=4, seed=17, scale=(0.15, 0.3), spread=(0.3, 0.3, 0.2))
     params = [p.clone().requires_grad_(True) for p in (g.means, g.quats, g.scales, g.opacities, g.sh)]
@@ -229,6 +246,11 @@ def test_auto_backend_resolution():
         (lambda a: a.update(near=2.0, far=1.0), "near"),
         (lambda a: a.update(near=0.0), r"near/far: expected 1e-06 <= near"),  # 1/z overflows: NaN gradients
         (lambda a: a.update(near=1e-7), "near/far"),
+        (lambda a: a.update(near=4.0, far=4.0), r"near/far: expected .* <= near < far"),  # an empty depth range
+        # cameras for another batch of scenes, or more intrinsics than views, were not refused
+        (lambda a: a.update(gaussians=make_gaussians(B=2, N=10)), r"w2c: expected shape \[B, V, 4, 4\] with B=2"),
+        (lambda a: a.update(K=a["K"].expand(2, -1, -1, -1).clone()), r"K: expected shape \[B, V, 3, 3\] with B=1"),
+        (lambda a: a.update(K=a["K"].repeat(1, 2, 1, 1)), r"K: expected V=1 cameras like w2c"),
         (lambda a: a["w2c"][..., :3, :].mul_(2.0), r"w2c: the rotation block .* not orthonormal"),  # wrong SH centre
         (lambda a: a["w2c"][..., 0, :3].mul_(1.01), "w2c: the rotation block"),
         # gsplat inverts the whole 4x4 for the SH camera centre: a zero row (a 3x4 [R|t] padded with zeros) crashed it,

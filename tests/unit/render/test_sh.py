@@ -85,3 +85,10 @@ def test_basis_values_and_signs_match_inria_and_gsplat():
     d = torch.tensor(dirs, dtype=torch.float64)
     for degree in range(5):
         torch.testing.assert_close(sh_basis(d, degree), expected[:, : (degree + 1) ** 2], rtol=1e-12, atol=1e-14)
+
+
+@pytest.mark.parametrize("degree", [-1, 5])
+def test_degrees_outside_0_to_4_are_refused(degree):
+    """Only degrees 0..4 have a basis; -1 or 5 is refused in one line rather than returning a truncated basis."""
+    with pytest.raises(ValueError, match="sh degree: expected 0..4"):
+        sh_basis(torch.tensor([[0.0, 0.0, 1.0]]), degree)
