@@ -263,3 +263,25 @@ def test_region_psnr_keeps_an_exactly_rendered_image_and_skips_an_empty_region()
     from anycity.metrics.regions import masked_psnr
     assert m.metrics["psnr_weak_scaffold"].compute().item() == pytest.approx(
         masked_psnr(pred[1:2], gt[1:2], weak[1:2]).item())
+
+
+def test_camera_refinement_turns_each_view_about_its_median_depth_point(monkeypatch):
+    """A rotation delta of view i turns about the point at its Gaussians' median depth on its optical axis, so that
+    point stays where it is; a pivot at the camera centre would swing it (an orbit correction would then need a
+    coupled translation)."""
+    import anycity.lit.evaluation as E
+    from anycity.structures import Gaussians
+
+    v, n = 2, 16
+    g = torch.Generator().manual_seed(0)
+    means = torch.cat([torch.rand(1, v * n, 2, generator=g) - 0.5, torch.full((1, v * n, 1), 5.0)], -1)
+    gs = Gaussians(means, torch.tensor([[1.0, 0, 0, 0]]).repeat(1, v * n, 1), torch.full((1, v * n, 3), 0.1),
+                   torch.ones(1, v * n), torch.rand(1, v * n, 1, 3, generator=g))
+    w2c = torch.eye(4).repeat(1, v, 1, 1)
+    w2c[0, 1, :3, 3] = torch.tensor([-1.0, 0.0, 0.0])  # every view's Gaussians at camera z = 5
+    monkeypatch.setattr(E, "_fit_deltas", lambda loss, shape, dev, steps, lr: (
+        torch.tensor([0.0, 0.2, 0.0]).expand(*shape, 3), torch.zeros(*shape, 3)))
+    _, A = E.refine_context_cameras(None, gs, w2c, torch.rand(1, v, 3, 8, 8, generator=g), steps=1)
+    X = torch.linalg.inv(w2c[0, 1]) @ torch.tensor([0.0, 0.0, 5.0, 1.0])  # view 1's median-depth point
+    torch.testing.assert_close(A[0, 1] @ X, X, atol=1e-5, rtol=0)
+    assert not torch.allclose(A[0, 1], torch.eye(4), atol=1e-2)  # the delta did turn the view

@@ -15,7 +15,7 @@ from anycity.lit.base import AnyCityModule
 from anycity.lit.distributed import log_eval_metrics
 from anycity.lit.evaluation import EvalMetrics, cameras_in_pred_frame, fit_gt_to_pred
 from anycity.metrics.pose import pose_auc
-from anycity.structures import Gaussians, RenderOutput, ViewBatch
+from anycity.structures import Gaussians, RenderOutput, ViewBatch, Views
 
 H = W = 32
 
@@ -109,6 +109,51 @@ def test_place_anchors_the_first_ground_truth_camera_at_the_networks_first_camer
     torch.testing.assert_close(here[:, 0], pred[:, 0], atol=1e-6, rtol=0)
 
 
+
+def test_camrefine_renders_the_gaussians_moved_with_the_refined_cameras():
+    """camrefine renders each view's Gaussians moved by its refinement transform (the refined scene), not the
+    network's unrefined Gaussians, which would make the _camrefine figures score the feed-forward picture."""
+    from anycity.lit.evaluation import transform_gaussians
+
+    v = 2
+    g = _gaussians(v * 4)
+    w2c, K = torch.eye(4).repeat(1, v, 1, 1), torch.eye(3).repeat(1, v, 1, 1)
+    A = torch.eye(4).repeat(1, v, 1, 1)
+    A[0, 1, :3, 3] = torch.tensor([0.3, 0.0, 0.0])  # view 1's Gaussians move; view 0 is the reference
+    refined_w2c = w2c.clone()
+    refined_w2c[0, 1, :3, 3] = torch.tensor([-0.3, 0.0, 0.0])
+    seen = []
+    module = SimpleNamespace(refine_cameras=lambda gs, w, k, images, steps: (refined_w2c, A),
+                             target_cameras=lambda pw, ctx, q, anchor_first: (pw[:, :1].clone(), torch.ones(1)),
+                             render=lambda gs, w, *a: seen.append((gs, w)) or "render")
+    ctx = Views(make_views(v, 0).images, w2c, K)
+    cams = P.TargetCameras(torch.eye(4)[None, None], torch.eye(3)[None, None], (H, W))
+    render, _, refined = P.camrefine(module, P.Scene(g, w2c, K), ctx, cams, steps=3)
+    (gs, cam), = seen
+    assert render == "render"
+    torch.testing.assert_close(gs.means, transform_gaussians(g, A).means)
+    assert not torch.allclose(gs.means, g.means)
+    assert torch.equal(cam, refined_w2c[:, :1])  # placed through the refined cameras
+    assert torch.equal(refined.w2c, refined_w2c)
+
+
+def test_feedforward_and_targetalign_render_with_the_targets_own_intrinsics():
+    """A target with other intrinsics than the context (here a zoomed one, focal 45 against 30) is rendered with
+    its own K, not the context's."""
+    K_ctx = make_intrinsics(30.0, 30.0, 16.0, 16.0).expand(1, 2, 3, 3)
+    K_tgt = make_intrinsics(45.0, 45.0, 16.0, 16.0).expand(1, 1, 3, 3)
+    ctx, tgt = make_views(2, 0), make_views(1, 1)
+    ctx, tgt = Views(ctx.images, ctx.w2c, K_ctx), Views(tgt.images, tgt.w2c, K_tgt)
+    seen = []
+    module = SimpleNamespace(target_cameras=lambda pw, c, q, anchor_first: (q.w2c, torch.ones(1)),
+                             align_targets=lambda g, w, target, images, steps: w,
+                             render=lambda g, w, k, hw, images: seen.append(k) or "render")
+    scene = P.Scene(_gaussians(4), ctx.w2c, K_ctx)
+    P.feedforward(module, scene, ctx, P.TargetCameras.of(tgt))
+    P.targetalign(module, scene, ctx, tgt, steps=2)
+    assert len(seen) == 2 and all(torch.equal(k, K_tgt) for k in seen)
+
+
 # ------------------------------------------------------------------------------------------------- evaluate
 
 
@@ -198,6 +243,19 @@ def test_pose_auc30_is_the_auc_at_30_degrees():
     err = max(rre.item(), rte.item())
     assert want == pytest.approx(sum(err < th for th in range(1, 31)) / 30)  # the definition, by hand
     assert m.metrics["pose_auc30"].compute().item() == pytest.approx(want) and want > 0
+
+
+def test_pose_metrics_log_the_translation_error_under_rte():
+    """rte is the translation-direction error: cameras with exact rotations and translations 90 degrees apart
+    score rre 0 and rte 90."""
+    gt = torch.eye(4).repeat(1, 2, 1, 1)
+    gt[0, 1, :3, 3] = torch.tensor([-1.0, 0.0, 0.0])
+    pred = gt.clone()
+    pred[0, 1, :3, 3] = torch.tensor([0.0, -1.0, 0.0])
+    m = EvalMetrics(("scaffold",))
+    m.update_pose(pred, gt)
+    assert m.metrics["rre"].compute().item() == pytest.approx(0.0, abs=1e-3)
+    assert m.metrics["rte"].compute().item() == pytest.approx(90.0, abs=1e-3)
 
 
 def test_psnr_scores_the_prediction_clamped_to_the_image_range():

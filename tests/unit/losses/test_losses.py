@@ -412,3 +412,84 @@ def test_flatness_prior_is_gated_like_the_normal_term():
     valid[6:11, 1:11] = True
     expected = (0.1 * structure_weight(image)[0, 0, 0][valid]).sum() / valid.sum()
     assert weighted.item() == pytest.approx(expected.item(), rel=1e-5)
+
+
+def test_depth_loss_drops_pixels_below_the_confidence_threshold():
+    """With conf_threshold, only pixels whose confidence reaches it are scored: a depth wrong only where the
+    confidence is 0.1 costs nothing at threshold 0.5, and is seen without the threshold."""
+    g = torch.Generator().manual_seed(0)
+    gt = torch.rand(1, 1, 1, 16, 16, generator=g) + 1
+    pred = gt.clone()
+    pred[..., :8, :] = gt[..., :8, :] * torch.exp(torch.randn(1, 1, 1, 8, 16, generator=g))  # wrong in the top half
+    conf = torch.ones_like(gt)
+    conf[..., :8, :] = 0.1  # ... where the confidence is low
+    assert depth_z_loss(pred, gt, confidence=conf, conf_threshold=0.5)["total"].item() < 1e-6
+    assert depth_z_loss(pred, gt, confidence=conf)["total"].item() > 0.05
+
+
+def test_depth_loss_total_weights_the_gradient_term_by_grad_weight():
+    """total = depth_l1 + grad_weight * depth_grad."""
+    g = torch.Generator().manual_seed(0)
+    gt = torch.rand(1, 1, 1, 16, 16, generator=g) + 1
+    pred = gt * torch.exp(0.3 * torch.randn(gt.shape, generator=g))
+    out = depth_z_loss(pred, gt, grad_weight=0.25)
+    assert out["depth_grad"].item() > 0.01
+    assert out["total"].item() == pytest.approx(out["depth_l1"].item() + 0.25 * out["depth_grad"].item(), rel=1e-5)
+
+
+def test_camera_loss_weighs_the_focal_term_half_by_default():
+    """The default weights: translation and rotation 1, field of view 0.5 (VGGT's)."""
+    gt = torch.zeros(1, 2, 9)
+    gt[..., 6] = 1.0  # identity quaternion (xyzw)
+    fov = gt.clone()
+    fov[..., 7:] += 0.2  # only the field of view off
+    out = camera_loss(fov, gt)
+    assert out["cam_fl"].item() > 0 and out["total"].item() == pytest.approx(0.5 * out["cam_fl"].item(), rel=1e-5)
+    moved = gt.clone()
+    moved[..., :3] += 0.1  # only the translation off
+    out = camera_loss(moved, gt)
+    assert out["cam_t"].item() > 0 and out["total"].item() == pytest.approx(out["cam_t"].item(), rel=1e-5)
+
+
+def test_normal_loss_skips_semi_transparent_pixels():
+    """Only pixels with alpha above 0.5 are scored: normals 45 degrees off where alpha is 0.3 cost nothing."""
+    depth, K = _plane_render()
+    n = torch.tensor([0.0, 0.0, -1.0]).view(1, 1, 3, 1, 1).expand(1, 1, 3, 12, 12).clone()
+    alpha = torch.ones(1, 1, 1, 12, 12)
+    n[..., :, :6] = torch.tensor([1.0, 0.0, -1.0]).view(3, 1, 1)  # wrong in the left half
+    alpha[..., :, :6] = 0.3  # ... which is semi-transparent
+    assert normal_loss(depth, n, K, alpha=alpha)["normal"].item() == 0.0
+    assert normal_loss(depth, n, K)["normal"].item() > 0.001
+
+
+def test_normal_loss_skips_pixels_without_a_gaussian_normal():
+    """A zero rendered normal (no Gaussian normal there) is not scored as a disagreement with the surface."""
+    depth, K = _plane_render()
+    n = torch.tensor([0.0, 0.0, -1.0]).view(1, 1, 3, 1, 1).expand(1, 1, 3, 12, 12).clone()
+    n[..., 3:6, 3:6] = 0.0
+    assert normal_loss(depth, n, K)["normal"].item() == 0.0
+
+
+def test_distillation_losses_send_no_gradient_into_their_references():
+    """D2S's teacher, the preservation term's scaffold render and the stability regulariser's scaffold Gaussians
+    are references: the backward pass reaches only the student / final side (depth as well as rgb)."""
+    shape = (1, 1, 1, 4, 4)
+    g = torch.Generator().manual_seed(0)
+
+    def side():
+        return _render(torch.rand(1, 1, 3, 4, 4, generator=g).requires_grad_(),
+                       (torch.rand(shape, generator=g) + 1).requires_grad_(), torch.ones(shape))
+
+    student, teacher = side(), side()
+    d2s_loss(student, teacher)["total"].backward()
+    assert teacher.depth.grad is None and teacher.rgb.grad is None
+    assert student.depth.grad is not None and student.rgb.grad is not None
+    final, scaffold = side(), side()
+    preservation_loss(final, scaffold)["total"].backward()
+    assert scaffold.depth.grad is None and scaffold.rgb.grad is None
+    assert final.depth.grad is not None and final.rgb.grad is not None
+    moved, ref = _gaussians(seed=1), _gaussians(seed=2)
+    for gs in (moved, ref):
+        gs.means.requires_grad_()
+    regularizer_loss(final=moved, scaffold=ref)["total"].backward()
+    assert ref.means.grad is None and moved.means.grad is not None
