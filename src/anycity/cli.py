@@ -677,7 +677,7 @@ def config_error(message: str, argv: list[str]) -> str:
     nested = [] if "has no attribute" in message else re.findall(r"NestedArg\(key='(\w+)'", message)
     bad = re.findall(r"Option '([\w.]+)' is not accepted", message) + nested
     bad += re.findall(r"[Kk]ey '([\w.]+)' is not expected", message)
-    # a key in a --config file ("nested key" in jsonargparse 4.39, the oldest pyproject.toml allows)
+    # a key in a --config file ("nested key" in jsonargparse 4.39)
     bad += re.findall(r"does not accept (?:option|nested key) '([\w.]+)'", message)
     bad += re.findall(r"[Uu]nrecognized arguments: --([\w.]+)", message)  # capitalised in older releases
     from_top = bool(bad)  # each of these names the key from the config's top (model.init_args.x)

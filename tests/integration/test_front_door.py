@@ -107,7 +107,7 @@ def test_typos_in_every_section_name_the_nearest_key(typo, said, tmp_path, capsy
     assert err.count("\n") == 0 and said in err, err
 
 
-@pytest.mark.parametrize("message, argv, said", [  # older jsonargparse phrasings (4.39, the floor; 4.29)
+@pytest.mark.parametrize("message, argv, said", [  # older jsonargparse phrasings (4.39; 4.29)
     ("Validation failed: Subcommand 'fit' does not accept nested key 'trainer.max_stpes'", [],
      "unknown key trainer.max_stpes in a --config file; did you mean max_steps?"),
     ("Unrecognized arguments: --data.num_contxt 5", ["fit", "--data.num_contxt", "5"],

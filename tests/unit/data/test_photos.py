@@ -292,11 +292,13 @@ def _exif_jpg(folder, name, original=None, changed=None, subsec=None):
     exif = Image.Exif()
     if changed:
         exif[306] = changed
-    ifd = exif.get_ifd(0x8769)  # the Exif sub-IFD
+    ifd = {}  # the Exif sub-IFD, set whole: Pillow 10.0 does not save edits made through get_ifd()
     if original:
         ifd[36867] = original
     if subsec:
         ifd[37521] = subsec
+    if ifd:
+        exif[0x8769] = ifd
     Image.new("RGB", (8, 8)).save(folder / name, exif=exif)
     return folder / name
 

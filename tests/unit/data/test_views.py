@@ -198,6 +198,9 @@ def test_resized_depth_normal_and_mask_land_where_the_rescaled_K_says(src, size,
     gu, gv = (d2 - 1) % 100, (d2 - 1) // 100
     err_u, err_v = gu + 0.5 - us[None], gv + 0.5 - vs[:, None]
     assert np.abs(err_u).max() <= 0.5 + 1e-6 and np.abs(err_v).max() <= 0.5 + 1e-6
-    assert abs(err_u.mean()) < 0.1 and abs(err_v.mean()) < 0.1  # no bias
+    # no bias; a centre on a pixel border (an exact tie, every third pixel at a scale of 8/3) may go either way,
+    # and OpenCV 4.8 and 5.0 break ties differently
+    tie_u, tie_v = np.isclose(np.abs(err_u), 0.5), np.isclose(np.abs(err_v), 0.5)
+    assert abs(err_u[~tie_u].mean()) < 0.1 and abs(err_v[~tie_v].mean()) < 0.1
     assert np.array_equal(n2[..., 0], gu) and np.array_equal(n2[..., 1], gv)
     assert np.array_equal(m2, gu % 2 == 1)
