@@ -153,16 +153,21 @@ _BACKENDS = [
 ]
 
 
+def _one_gaussian_on_axis(z: float, scale: float, backend: str):
+    """One Gaussian on the optical axis at depth ``z``, an identity camera and a K with a 20 px focal (24 x 16)."""
+    device = "cuda" if backend == "gsplat" else "cpu"
+    g = Gaussians(means=torch.tensor([[[0.0, 0.0, z]]]), quats=torch.tensor([[[1.0, 0, 0, 0]]]),
+                  scales=torch.full((1, 1, 3), scale), opacities=torch.full((1, 1), 0.9),
+                  sh=torch.ones(1, 1, 1, 3)).to(device=device)
+    K = torch.tensor([[20.0, 0, 12.0], [0, 20.0, 8.0], [0, 0, 1]], device=device)[None, None]
+    return g, torch.eye(4, device=device)[None, None], K
+
+
 @pytest.mark.parametrize("backend", _BACKENDS)
 def test_a_gaussian_beyond_the_far_plane_is_culled_by_every_backend(backend):
-    """One Gaussian on the optical axis at z = 5: far = 4 culls it (alpha 0 everywhere), far = 6 keeps it. A
-    backend that ignored ``far`` would draw geometry the caller clipped away (e.g. a distant backdrop)."""
-    device = "cuda" if backend == "gsplat" else "cpu"
-    g = Gaussians(means=torch.tensor([[[0.0, 0.0, 5.0]]]), quats=torch.tensor([[[1.0, 0, 0, 0]]]),
-                  scales=torch.full((1, 1, 3), 0.5), opacities=torch.full((1, 1), 0.9),
-                  sh=torch.ones(1, 1, 1, 3)).to(device=device)
-    w2c = torch.eye(4, device=device)[None, None]
-    K = torch.tensor([[20.0, 0, 12.0], [0, 20.0, 8.0], [0, 0, 1]], device=device)[None, None]  # a 2 px std
+    """One Gaussian on the optical axis at z = 5 (a 2 px std): far = 4 culls it (alpha 0 everywhere), far = 6 keeps
+    it. A backend that ignored ``far`` would draw geometry the caller clipped away (e.g. a distant backdrop)."""
+    g, w2c, K = _one_gaussian_on_axis(5.0, 0.5, backend)
     culled = render(g, w2c, K, 24, 16, near=0.01, far=4.0, backend=backend)
     assert torch.all(culled.alpha == 0) and torch.all(culled.depth == 0)
     kept = render(g, w2c, K, 24, 16, near=0.01, far=6.0, backend=backend)
@@ -175,16 +180,12 @@ def test_a_gaussian_before_the_near_plane_is_culled_by_every_backend(backend):
     """One small Gaussian on the optical axis at z = 0.5, in front of the camera: near = 1 culls it (alpha and depth
     0 everywhere), near = 0.1 keeps it. A backend that culled only z <= 0 would draw geometry between the camera and
     the near plane the caller set (e.g. floaters right in front of the lens)."""
-    device = "cuda" if backend == "gsplat" else "cpu"
-    g = Gaussians(means=torch.tensor([[[0.0, 0.0, 0.5]]]), quats=torch.tensor([[[1.0, 0, 0, 0]]]),
-                  scales=torch.full((1, 1, 3), 0.05), opacities=torch.full((1, 1), 0.9),
-                  sh=torch.ones(1, 1, 1, 3)).to(device=device)
-    w2c = torch.eye(4, device=device)[None, None]
-    K = torch.tensor([[20.0, 0, 12.0], [0, 20.0, 8.0], [0, 0, 1]], device=device)[None, None]  # a 2 px std
+    g, w2c, K = _one_gaussian_on_axis(0.5, 0.05, backend)
     culled = render(g, w2c, K, 24, 16, near=1.0, far=10.0, backend=backend)
     assert torch.all(culled.alpha == 0) and torch.all(culled.depth == 0)
     kept = render(g, w2c, K, 24, 16, near=0.1, far=10.0, backend=backend)
     assert kept.alpha.max() > 0.5
+
 
 def test_gradcheck_tiny():
     g = make_gaussians(N=4, K=4, seed=17, scale=(0.15, 0.3), spread=(0.3, 0.3, 0.2))
