@@ -136,6 +136,7 @@ def preset_config(preset: str, **overrides) -> NetConfig:
         raise ValueError(f"build_network: unknown option(s) {unknown}; valid options are {sorted(names)}")
     cfg = replace(PRESETS[preset], **overrides)
     check_int_options(cfg)
+    check_widths(cfg)
     for name, allowed in (("color_mode", ("head", "pixel")), ("scale_mode", ("absolute", "pixel"))):
         if getattr(cfg, name) not in allowed:
             raise ValueError(f"{name}: expected one of {list(allowed)}, got {getattr(cfg, name)!r}")
@@ -158,6 +159,36 @@ def check_int_options(cfg: NetConfig) -> None:
         if not isinstance(v, Integral) or isinstance(v, bool) or v < lo or (hi is not None and v > hi):
             span = f"{lo}..{hi}" if hi is not None else f">= {lo}"
             raise ValueError(f"net.{name}: expected an integer {span} ({why}), got {v!r}")
+
+
+def check_widths(cfg: NetConfig) -> None:
+    """One line naming ``net.<option>`` for a width the layers cannot split: the aggregator's 2D RoPE needs a head
+    width ``embed_dim / num_heads`` that is a multiple of 4, the camera head and the completion branch whole heads,
+    the DPT heads' UV embedding a multiple of 4 for each of the 4 ``dpt_out_channels`` and for
+    ``dpt_features / 2``."""
+    dim, heads = cfg.embed_dim, cfg.num_heads
+    if dim % (4 * heads):
+        fits = [n for n in range(1, heads + 1) if dim % (4 * n) == 0]
+        fix = f"use num_heads {fits[-1]}" if fits else "use an embed_dim that is a multiple of 4 * num_heads"
+        raise ValueError(f"net.num_heads: expected a divisor of embed_dim {dim} that leaves a head width divisible "
+                         f"by 4 (the aggregator's 2D RoPE), got {heads} (head width {dim / heads:g}); {fix}")
+    for name, width, what in (("camera_num_heads", 2 * dim, "the camera head's width, 2 * embed_dim"),
+                              ("completion_heads", cfg.completion_dim, "completion_dim")):
+        n = getattr(cfg, name)
+        if width % n:
+            fits = [k for k in range(1, n + 1) if width % k == 0]
+            raise ValueError(f"net.{name}: expected a divisor of {what} ({width}), got {n}; use {name} {fits[-1]}")
+    f = cfg.dpt_features
+    if f % 8:
+        raise ValueError(f"net.dpt_features: expected a multiple of 8 (the DPT heads halve it and their UV embedding "
+                         f"needs a multiple of 4), got {f}; use {f + (-f) % 8}")
+    oc = cfg.dpt_out_channels
+    ok = isinstance(oc, (tuple, list)) and len(oc) == 4 and all(
+        isinstance(c, Integral) and not isinstance(c, bool) and c > 0 and c % 4 == 0 for c in oc)
+    if not ok:
+        raise ValueError(f"net.dpt_out_channels: expected 4 positive multiples of 4 (one width per DPT layer; the UV "
+                         f"embedding needs a multiple of 4), got {list(oc) if isinstance(oc, (tuple, list)) else oc!r}"
+                         f"; e.g. {list(PRESETS['tiny'].dpt_out_channels)}")
 
 
 def build_network(preset: str = "tiny", **overrides):

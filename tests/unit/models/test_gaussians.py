@@ -3,8 +3,15 @@ import math
 import pytest
 import torch
 
-from anycity.models.gaussians import activate_raw, pixel_footprint, raw_to_gaussians, sh_band_mask, voxel_merge
-from anycity.models.heads.activations import activate_dense
+from anycity.models.gaussians import (
+    activate_raw,
+    pixel_centres,
+    pixel_footprint,
+    raw_to_gaussians,
+    sh_band_mask,
+    voxel_merge,
+)
+from anycity.models.heads.activations import activate_dense, activate_pose
 
 
 def test_activations_and_xyzw_to_wxyz():
@@ -91,3 +98,56 @@ def test_depth_confidence_is_one_plus_exp():
     torch.testing.assert_close(conf, 1 + torch.tensor([[[math.exp(-30.0), math.exp(-1.0), 1.0, math.exp(2.0)]]]))
     assert conf.min() >= 1.0
     torch.testing.assert_close(values, torch.full((1, 1, 4, 1), math.exp(7.0)))
+
+
+def test_centre_offset_is_depth_times_offset_rotated_into_the_world():
+    """An offset is in the source camera's frame and in units of the pixel's depth: offset (0.1, 0, 0) at depth 2
+    moves the centre 0.2 along the camera's x axis, which for a camera looking along world +x (camera x = world -z)
+    is (0, 0, -0.2) in the world; R_c2w = R_w2c^T, not R_w2c."""
+    depth = torch.full((1, 1, 1, 1, 1), 2.0)
+    K = torch.tensor([[10.0, 0, 0.5], [0, 10.0, 0.5], [0, 0, 1]]).view(1, 1, 3, 3)  # the pixel centre is on the axis
+    R_c2w = torch.tensor([[0.0, 0, 1], [0, 1, 0], [-1, 0, 0]])  # camera z -> world +x, camera x -> world -z
+    w2c = torch.eye(4)
+    w2c[:3, :3] = R_c2w.T
+    w2c = w2c.view(1, 1, 4, 4)
+    offset = torch.zeros(1, 1, 3, 1, 1)
+    offset[:, :, 0] = 0.1
+    base = pixel_centres(depth, K, w2c)[0, 0, 0, 0]
+    moved = pixel_centres(depth, K, w2c, offset)[0, 0, 0, 0]
+    assert torch.allclose(base, torch.tensor([2.0, 0, 0]), atol=1e-6)
+    assert torch.allclose(moved - base, torch.tensor([0.0, 0, -0.2]), atol=1e-6)
+
+
+def test_sh_channels_are_channel_major():
+    """The raw SH channels hold all K coefficients of R, then of G, then of B: setting the first K raw SH channels
+    gives red coefficients only (band 1 damped by 0.1 * 0.25), not one coefficient of each colour."""
+    raw = torch.zeros(1, 8 + 3 * 4)
+    raw[0, 8:12] = 1.0
+    sh = activate_raw(raw, sh_degree=1)["sh"]  # [1, K, 3]
+    assert torch.allclose(sh[0, :, 0], torch.tensor([1.0, 0.025, 0.025, 0.025]))
+    assert not sh[0, :, 1:].any()
+
+
+def test_voxel_merge_softmax_is_stable_for_large_confidences():
+    """The per-voxel softmax subtracts the voxel's largest confidence: logits of 100 (exp overflows float32) still
+    give the weights 1/4 and 3/4 of logits 0 and ln 3, not NaN."""
+    means = torch.tensor([[0.0, 0, 0], [0.1, 0, 0]])
+    feats = torch.tensor([[1.0], [3.0]])
+    conf = torch.tensor([100.0, 100.0 + math.log(3.0)])
+    m, f = voxel_merge(means, feats, conf, voxel_size=1.0)
+    assert torch.allclose(f, torch.tensor([[0.25 * 1 + 0.75 * 3]]), atol=1e-4)
+    assert torch.allclose(m, torch.tensor([[0.75 * 0.1, 0, 0]]), atol=1e-4)
+
+
+def test_a_zero_voxel_size_is_refused_not_taken_for_no_merge():
+    """None is the documented "no merge"; a voxel size of 0 is an error, not a silent pixel-aligned output."""
+    with pytest.raises(ValueError, match="voxel_size"):
+        raw_to_gaussians(torch.zeros(1, 1, 12, 2, 2), torch.zeros(1, 1, 2, 2, 3), 0, voxel_size=0.0)
+
+
+def test_pose_activation_relus_the_field_of_view_by_default():
+    """VGGT's pose activation is linear for translation and quaternion and ReLU for the field of view."""
+    enc = torch.tensor([0.1, -0.2, 0.3, 0, 0, 0, 1, -0.3, 0.5])
+    out = activate_pose(enc)
+    assert torch.equal(out[:7], enc[:7])
+    assert torch.equal(out[7:], torch.tensor([0.0, 0.5]))

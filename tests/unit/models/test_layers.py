@@ -10,7 +10,7 @@ from anycity.geometry.pose_encoding import (
     pose_encoding_to_extri_intri,
 )
 from anycity.geometry.rotations import quat_to_rotmat
-from anycity.models.layers import Block, DinoViT, RoPE2D, patch_positions
+from anycity.models.layers import Attention, Block, DinoViT, RoPE2D, patch_positions
 
 
 def test_rope_scores_depend_only_on_relative_position():
@@ -158,3 +158,66 @@ def test_blend_pose_encoding_moves_translation_and_rotation_towards_a_pose():
     assert (w.grad.abs() > 0).all()
     with pytest.raises(ValueError, match="weight \\[..., 2\\]"):
         blend_pose_encoding(enc, goal, torch.zeros(1, 2, 1))
+
+
+def test_block_applies_rope_to_queries_and_keys():
+    """RoPE reaches the block's attention and rotates both q and k: shifting every position changes nothing
+    (scores depend on relative positions only), collapsing the positions does."""
+    torch.manual_seed(0)
+    blk = Block(32, 2, qk_norm=True, rope=RoPE2D(100.0), init_values=1.0).eval()
+    x, pos = torch.randn(1, 6, 32), torch.randint(1, 9, (1, 6, 2))
+    with torch.no_grad():
+        a, shifted, flat = blk(x, pos=pos), blk(x, pos=pos + torch.tensor([3, 5])), blk(x, pos=torch.zeros_like(pos))
+    assert torch.allclose(a, shifted, atol=1e-5)
+    assert not torch.allclose(a, flat, atol=1e-4)
+
+
+def test_aggregator_global_blocks_get_every_views_positions():
+    """The global attention sees all V*T tokens of a sample with their patch positions, as the frame attention does."""
+    from anycity.models.aggregator import Aggregator
+
+    agg = Aggregator(img_size=32, patch_size=8, embed_dim=32, depth=1, num_heads=2, patch_embed="conv").eval()
+    seen = {}
+
+    def hook(module, args, kwargs):
+        seen["pos"] = kwargs.get("pos", args[1] if len(args) > 1 else None)
+
+    agg.global_blocks[0].register_forward_pre_hook(hook, with_kwargs=True)
+    with torch.no_grad():
+        agg(torch.rand(1, 2, 3, 16, 16))
+    t = agg.patch_start_idx + 2 * 2
+    assert seen["pos"] is not None and tuple(seen["pos"].shape) == (1, 2 * t, 2)
+    frame = patch_positions(2, 2, 2, agg.patch_start_idx, None)
+    assert torch.equal(seen["pos"], frame.reshape(1, 2 * t, 2))
+
+
+def test_attention_k_norm_normalises_the_keys():
+    """qk-norm uses k_norm for the keys: a k_norm with zero weight and bias makes every key 0, so attention is
+    uniform and each output is the projection of the mean value."""
+    torch.manual_seed(0)
+    att = Attention(32, 2, qk_norm=True).eval()
+    with torch.no_grad():
+        att.k_norm.weight.zero_()
+        att.k_norm.bias.zero_()
+        x = torch.randn(1, 5, 32)
+        v = att.qkv(x)[..., 64:]
+        ref = att.proj(v.mean(1, keepdim=True).expand(1, 5, 32))
+        out = att(x)
+    assert torch.allclose(out, ref, atol=1e-5)
+
+
+def test_vit_stretches_its_square_position_grid_to_a_wide_grid_of_as_many_patches():
+    """A 2x8 patch grid has as many patches as the native 4x4 one, yet its position embedding is the 4x4 grid
+    resized to 2x8, not the 16 entries read row-wrapped: with channel 0 the native column and channel 1 the row,
+    each row of the 2x8 embedding has one row value and increasing columns."""
+    vit = DinoViT(img_size=56, patch_size=14, embed_dim=32, depth=1, num_heads=2).eval()
+    with torch.no_grad():
+        rows, cols = torch.meshgrid(torch.arange(4.0), torch.arange(4.0), indexing="ij")
+        vit.pos_embed[0, 1:, 0] = cols.flatten()
+        vit.pos_embed[0, 1:, 1] = rows.flatten()
+        wide = vit._pos_embed(2, 8, torch.float32)[0, 1:].reshape(2, 8, -1)
+    assert not torch.equal(vit._pos_embed(2, 8, torch.float32), vit._pos_embed(4, 4, torch.float32))
+    for r in range(2):
+        assert torch.allclose(wide[r, :, 1], wide[r, :1, 1].expand(8), atol=1e-5), r
+        assert (wide[r, 1:, 0] >= wide[r, :-1, 0] - 1e-5).all(), r
+    assert wide[1, 0, 1] > wide[0, 0, 1] + 0.5

@@ -1,3 +1,4 @@
+import math
 from dataclasses import fields
 
 import pytest
@@ -94,6 +95,7 @@ def test_tiny_budget(tiny):
     (torch.rand(1, 2, 4, 64, 64), "expected \\[B, V, 3, H, W\\]"),
     (torch.rand(1, 0, 3, 64, 64), "at least 1"),
     (torch.rand(1, 2, 3, 60, 64), "multiples of the patch size 8"),
+    (torch.rand(1, 2, 3, 64, 60), "multiples of the patch size 8"),  # the width too, not only the height
     (torch.zeros(1, 2, 3, 64, 64, dtype=torch.uint8), "float"),
 ])
 def test_bad_input_errors(tiny, bad, match):
@@ -423,6 +425,40 @@ def test_integer_options_out_of_range_are_one_line(option, value, match):
     assert getattr(preset_config("tiny", **{option: lowest}), option) == lowest  # the bound itself is allowed
 
 
+
+@pytest.mark.parametrize("option, value, match", [
+    ("dpt_features", 20, r"^net.dpt_features: expected a multiple of 8 .*got 20; use 24$"),
+    ("dpt_out_channels", (16, 32, 64, 66), r"^net.dpt_out_channels: expected 4 positive multiples of 4 .*"
+                                           r"got \[16, 32, 64, 66\]; e.g. \[16, 32, 64, 64\]$"),
+    ("dpt_out_channels", (16, 32, 64), r"^net.dpt_out_channels: expected 4 .*got \[16, 32, 64\]; "),
+    ("dpt_out_channels", (16, 32, 64, 0), r"^net.dpt_out_channels: expected 4 positive .*got \[16, 32, 64, 0\]; "),
+    ("num_heads", 32, r"^net.num_heads: expected a divisor of embed_dim 64 that leaves a head width divisible by 4 "
+                      r"\(the aggregator's 2D RoPE\), got 32 \(head width 2\); use num_heads 16$"),
+    ("num_heads", 5, r"^net.num_heads: .*got 5 \(head width 12.8\); use num_heads 4$"),
+    ("camera_num_heads", 3, r"^net.camera_num_heads: expected a divisor of the camera head's width, 2 \* embed_dim "
+                            r"\(128\), got 3; use camera_num_heads 2$"),
+    ("completion_heads", 3, r"^net.completion_heads: expected a divisor of completion_dim \(64\), got 3; "
+                            r"use completion_heads 2$"),
+])
+def test_widths_the_layers_cannot_split_are_one_line(option, value, match):
+    """The DPT heads' UV embedding splits each projected width (and half of dpt_features) in 4, the aggregator's 2D
+    RoPE each attention head: such widths built, then failed at the first forward with a reshape error or a RoPE
+    error that named no option (3 out_channels: an IndexError at build time); heads that do not divide the camera
+    head's or the completion branch's width were refused naming their layer, not the option."""
+    with pytest.raises(ValueError, match=match):
+        build_network("tiny", completion=option == "completion_heads", **{option: value})
+
+
+def test_uncommon_widths_that_the_layers_can_split_still_run():
+    """Widths that are not the presets' but split (dpt_features 24, out_channels multiples of 4 only, a head width
+    of exactly 4) build and run."""
+    torch.manual_seed(0)
+    net = build_network("tiny", completion=False, dpt_features=24, dpt_out_channels=[12, 20, 28, 36], num_heads=16)
+    with torch.no_grad():
+        assert net(torch.rand(1, 2, 3, 16, 16), refine=False)["depth"].shape == (1, 2, 1, 16, 16)
+    for preset in ("small", "base", "vggt-1b"):
+        preset_config(preset)
+
 def test_forward_on_the_meta_device():
     """torch.autocast('meta', enabled=False) raised 'unsupported scalarType': shapes could not be traced on meta."""
     with torch.device("meta"):
@@ -534,3 +570,121 @@ def test_the_gaussian_head_reads_the_images_as_well_as_the_tokens(tiny):
         raw_a, _ = tiny.gaussian_head(tokens, x, psi)
         raw_b, _ = tiny.gaussian_head(tokens, torch.rand_like(x), psi)
     assert (raw_a - raw_b).abs().max() > 1e-4
+
+
+
+def test_aggregator_token_layout_frame_half_first_and_two_camera_slots():
+    """With the frame blocks' LayerScales at 0 (identity blocks), the first half of each output is the frame
+    attention's input: camera and register slot 0 for view 0, slot 1 for every other view, then the patch embedding
+    of the ImageNet-normalised image; the global attention's output is the second half."""
+    from anycity.models.aggregator import IMAGENET_MEAN, IMAGENET_STD, Aggregator
+
+    torch.manual_seed(0)
+    agg = Aggregator(img_size=32, patch_size=8, embed_dim=32, depth=1, num_heads=2, patch_embed="conv").eval()
+    c, r = 32, agg.patch_start_idx - 1
+    with torch.no_grad():
+        agg.camera_token.normal_()
+        agg.register_token.normal_()
+        agg.frame_blocks[0].ls1.gamma.zero_()
+        agg.frame_blocks[0].ls2.gamma.zero_()
+        x = torch.rand(1, 3, 3, 16, 16)
+        out = agg(x)[0]  # [1, V, T, 2C]
+        mean, std = torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), torch.tensor(IMAGENET_STD).view(1, 3, 1, 1)
+        patches = agg.patch_embed((x[0] - mean) / std)
+    assert out.shape == (1, 3, 1 + r + 4, 2 * c)
+    for v, slot in ((0, 0), (1, 1), (2, 1)):
+        assert torch.equal(out[0, v, 0, :c], agg.camera_token[0, slot, 0]), v
+        assert torch.equal(out[0, v, 1:1 + r, :c], agg.register_token[0, slot]), v
+    assert torch.allclose(out[0, :, 1 + r:, :c], patches, atol=1e-6)
+    assert not torch.allclose(out[..., c:], out[..., :c], atol=1e-3)  # the global half is another tensor
+
+
+def test_more_views_than_a_decoding_chunk_take_their_own_residual():
+    """The DPT heads decode frames_chunk_size (8) views at a time; each chunk adds the Stage II residual of its
+    own views: 9 views give the same depth and Gaussian channels as one unchunked decode."""
+    net = _tiny_with_residual().eval()
+    assert net.depth_head.frames_chunk_size == net.gaussian_head.frames_chunk_size == 8
+    x = torch.rand(1, 9, 3, 16, 16)
+    with torch.no_grad():
+        out = net(x)
+        net.depth_head.frames_chunk_size = net.gaussian_head.frames_chunk_size = 0
+        ref = net(x)
+    assert (out["depth"] - out["scaffold_depth"]).abs().max() > 1e-4  # the residual is there
+    torch.testing.assert_close(out["depth"], ref["depth"], atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(out["raw_gaussians"], ref["raw_gaussians"], atol=1e-5, rtol=1e-5)
+
+
+def test_refined_cameras_size_the_refined_gaussians():
+    """With refine_cameras, the final Gaussians' pixel-footprint scales use the re-placed intrinsics, as
+    place_gaussians with the final cameras does, not the scaffold's."""
+    torch.manual_seed(0)
+    net = build_network("tiny", refine_cameras=True, scale_mode="pixel").eval()
+    x = torch.rand(1, 2, 3, 32, 32)
+    with torch.no_grad():
+        net.completion.camera_proj.weight.normal_(0, 0.5)
+        net.completion.camera_proj.bias.normal_(0, 0.5)
+        out = net(x)
+        ref = net.place_gaussians(out["raw_gaussians"], out["depth"], out["offset"], out["w2c"], out["K"], x)
+    assert (out["K"] - out["scaffold_K"]).abs().max() > 1e-3  # the focal length moved
+    assert torch.equal(out["gaussians"].scales, ref.scales)
+
+
+def test_camera_head_modulation_is_vggts_adaln():
+    """VGGT's camera-token modulation is gate * (LN(t) * (1 + scale) + shift) + t: with shift 0, scale 0 and gate 1
+    one iteration is the pose branch of trunk(LN(t) + t), FoV through a ReLU."""
+    from anycity.models.heads import CameraHead
+
+    torch.manual_seed(0)
+    head = CameraHead(dim_in=32, trunk_depth=1, num_heads=2).eval()
+    with torch.no_grad():
+        lin = head.poseLN_modulation[1]
+        lin.weight.zero_()
+        lin.bias.zero_()
+        lin.bias[64:] = 1.0  # (shift, scale, gate) = (0, 0, 1)
+        tok = torch.randn(1, 2, 5, 32)
+        out = head([tok], num_iterations=1)
+        t = head.token_norm(tok[:, :, 0])
+        ref = head.pose_branch(head.trunk_norm(head.trunk(head.adaln_norm(t) + t)))
+    assert len(out) == 1
+    torch.testing.assert_close(out[0], torch.cat([ref[..., :7], ref[..., 7:].relu()], -1), atol=1e-6, rtol=1e-6)
+
+
+def test_camera_head_passes_no_gradient_across_iterations():
+    """Each iteration starts from the previous encoding detached (VGGT): the last encoding's gradient does not reach
+    the empty pose token, which only the first iteration reads."""
+    from anycity.models.heads import CameraHead
+
+    torch.manual_seed(0)
+    head = CameraHead(dim_in=32, trunk_depth=1, num_heads=2)
+    out = head([torch.randn(1, 3, 5, 32)], num_iterations=2)
+    out[-1].sum().backward()
+    assert head.embed_pose.weight.grad is not None and head.pose_branch.fc2.weight.grad.abs().sum() > 0
+    assert head.empty_pose_tokens.grad is None
+
+
+def test_dpt_uv_embedding_spans_aspect_over_diagonal_in_x():
+    """VGGT's create_uv_grid: x spans +-aspect/diag * (W-1)/W, y +-1/diag * (H-1)/H (diag = sqrt(aspect^2 + 1));
+    channel 0 is sin(x), channel C/2 sin(y) at the lowest frequency (1)."""
+    from anycity.models.heads.dpt import uv_embedding
+
+    e = uv_embedding(2, 4, 8, aspect=2.0, dtype=torch.float32, device=None)  # [C, H, W]
+    assert e.shape == (8, 2, 4)
+    assert math.isclose(float(e[0, 0, 0]), math.sin(-(2 / math.sqrt(5)) * 3 / 4), abs_tol=1e-6)
+    assert math.isclose(float(e[4, 0, 0]), math.sin(-(1 / math.sqrt(5)) * 1 / 2), abs_tol=1e-6)
+
+
+def test_dpt_fusion_upsamples_with_aligned_corners():
+    """The RefineNet fusion doubles its map with bilinear align_corners=True (VGGT): [0, 3] becomes [0, 1, 2, 3]."""
+    from anycity.models.heads.dpt import FusionBlock
+
+    fb = FusionBlock(1, has_residual=False)
+    with torch.no_grad():
+        for conv in (fb.resConfUnit2.conv1, fb.resConfUnit2.conv2):
+            conv.weight.zero_()
+            conv.bias.zero_()
+        fb.out_conv.weight.fill_(1.0)
+        fb.out_conv.bias.zero_()
+        y = fb(torch.tensor([[[[0.0, 3.0], [6.0, 9.0]]]]))
+    assert y.shape == (1, 1, 4, 4)
+    torch.testing.assert_close(y[0, 0, 0], torch.tensor([0.0, 1.0, 2.0, 3.0]))
+    torch.testing.assert_close(y[0, 0, :, 0], torch.tensor([0.0, 2.0, 4.0, 6.0]))
