@@ -98,9 +98,15 @@ def free_name(path: Path) -> Path:
 
 def check_writable_folder(path: str | os.PathLike, what: str) -> None:
     """Raise one line before any work when ``path`` (a folder to create or fill) cannot be written: the nearest
-    part of it that exists is a file, or a folder this user may not write in. ``what`` names the option."""
+    part of it that exists is a file, or a folder this user may not write in, or a part of it is a broken link.
+    ``what`` names the option."""
     path = Path(path).absolute()
-    existing = next(p for p in (path, *path.parents) if p.exists())
+    for existing in (path, *path.parents):
+        if existing.exists():
+            break
+        if existing.is_symlink():  # mkdir would raise a bare FileExistsError on it
+            raise NotADirectoryError(f"{what} {path}: {existing} is a broken link (to {os.readlink(existing)}); "
+                                     "create its target, remove the link, or pass another folder")
     if not existing.is_dir():
         raise NotADirectoryError(f"{what} {path}: {existing} is a file, not a folder; pass a folder")
     if not os.access(existing, os.W_OK | os.X_OK):

@@ -48,8 +48,11 @@ def safe_torch_load(path: str | os.PathLike, map_location: Any = "cpu", *, mmap:
     """``torch.load(path, weights_only=True)`` with the checkpoint allow-list (``mmap``: memory-mapped when the
     file allows it, so a 5 GB file stays out of RAM). A file that tries to construct anything else (e.g. call
     ``os.system`` on unpickling) raises a one-line ``ValueError``, as does one that is truncated or not a torch
-    file. ``what`` names the file in the messages (e.g. ``"net.pose_prior"``)."""
+    file; a missing path, or a folder, ``FileNotFoundError``. ``what`` names the file in the messages (e.g.
+    ``"net.pose_prior"``)."""
     path = Path(path)
+    if path.is_dir():  # e.g. a sharded (FSDP/DeepSpeed) checkpoint folder; FileNotFoundError, as callers catch that
+        raise FileNotFoundError(f"{what} {path} is a folder; pass the checkpoint file")
     if not path.is_file():
         raise FileNotFoundError(f"{what} not found: {path}")
 

@@ -2,6 +2,7 @@
 
 import errno
 import os
+import re
 import traceback
 from pathlib import Path
 
@@ -81,6 +82,18 @@ def test_missing_and_unreadable_paths_keep_their_own_errors(tmp_path, monkeypatc
     monkeypatch.setattr(torch, "load", denied)  # root reads a 0o000 file, so the refusal is simulated
     with pytest.raises(PermissionError, match="Permission denied"):
         safe_torch_load(path)
+
+
+def test_a_checkpoint_folder_is_named_a_folder_not_missing(tmp_path):
+    """A folder (a sharded FSDP/DeepSpeed checkpoint) passed as the checkpoint used to be reported as "not found";
+    it is named a folder, still as FileNotFoundError (what the callers and the CLI's one-line handler catch)."""
+    folder = tmp_path / "last.ckpt"
+    folder.mkdir()
+    one_line = f"^--ckpt_path {re.escape(str(folder))} is a folder; pass the checkpoint file$"
+    with pytest.raises(FileNotFoundError, match=one_line):
+        safe_torch_load(folder, what="--ckpt_path")
+    with pytest.raises(FileNotFoundError, match="is a folder"):
+        SafeCheckpointIO().load_checkpoint(folder)
 
 
 def test_save_then_load_roundtrip_plain_data(tmp_path):

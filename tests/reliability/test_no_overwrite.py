@@ -109,6 +109,13 @@ def test_free_name(tmp_path):
     assert free_name(tmp_path / "checkpoints") == tmp_path / "checkpoints.1"
 
 
+def test_free_name_skips_a_kept_folder(tmp_path):
+    """A kept folder (checkpoints.1 from an earlier run) is taken, like a kept file: the next free name is .2."""
+    (tmp_path / "checkpoints").mkdir()
+    (tmp_path / "checkpoints.1").mkdir()
+    assert free_name(tmp_path / "checkpoints") == tmp_path / "checkpoints.2"
+
+
 def test_a_run_that_fails_before_its_first_step_leaves_the_checkpoints_and_exports_where_they_were(tiny_shards,
                                                                                                      tmp_path, caplog):
     """They used to be moved aside before anything was checked: a wrong image size, a fast_dev_run or a photo that

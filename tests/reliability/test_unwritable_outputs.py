@@ -2,6 +2,7 @@
 end in a traceback after the network had run (predict), a broken pipe from ffmpeg (render-video) or a hang (view)."""
 
 import os
+import re
 from pathlib import Path
 
 import pytest
@@ -21,6 +22,28 @@ def test_a_folder_under_a_file_or_without_write_permission_is_refused(tmp_path, 
     monkeypatch.setattr(os, "access", lambda p, mode: real(p, mode) and Path(p) != tmp_path)
     with pytest.raises(PermissionError, match=f"may not write in {tmp_path};"):
         check_writable_folder(tmp_path / "new", "--out")
+
+
+def test_a_folder_whose_search_bit_is_off_is_refused(tmp_path, monkeypatch):
+    """Creating a folder inside ``existing`` needs write and search (x) permission: a folder with the write bit but
+    not the search bit is refused too."""
+    real = os.access
+    monkeypatch.setattr(os, "access", lambda p, mode: real(p, mode) and not (Path(p) == tmp_path and mode & os.X_OK))
+    with pytest.raises(PermissionError, match=f"may not write in {tmp_path};"):
+        check_writable_folder(tmp_path / "new", "--out")
+
+
+def test_a_folder_under_a_broken_link_is_refused_naming_the_link(tmp_path):
+    """A dangling symlink on the way used to pass the check, and creating the folder then failed with a bare
+    FileExistsError; it is refused in one line that names the link."""
+    link = tmp_path / "dangling"
+    link.symlink_to(tmp_path / "nowhere")
+    for out in (link / "sub", link):
+        one_line = f"^--out {re.escape(str(out))}: {re.escape(str(link))} is a broken link .*nowhere.*; "
+        with pytest.raises(NotADirectoryError, match=one_line) as e:
+            check_writable_folder(out, "--out")
+        assert "\n" not in str(e.value)
+    assert not (tmp_path / "nowhere").exists()
 
 
 def test_export_render_video_and_view_refuse_in_one_line(tmp_path, capsys, monkeypatch):

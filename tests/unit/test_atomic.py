@@ -32,6 +32,15 @@ def test_a_killed_hpc_save_leaves_nothing_lightnings_resume_scan_reads(tmp_path)
     assert os.path.dirname(tmp) == str(tmp_path) and "ckpt" not in os.path.basename(tmp)
 
 
+def test_a_failed_atomic_path_write_leaves_no_temp_file(tmp_path):
+    """When the writer fails inside ``atomic_path``, its half-written temp file is removed and ``path`` never
+    appears: the folder is as before."""
+    with pytest.raises(RuntimeError, match="writer failed"), atomic_path(tmp_path / "v.mp4") as t:
+        t.write_bytes(b"half a video")
+        raise RuntimeError("writer failed")
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_stale_temp_files_are_listed_and_removed(tmp_path):
     from anycity.atomic import remove_stale_temp_files, stale_temp_files
 

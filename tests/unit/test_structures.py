@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from anycity.structures import Gaussians, RenderOutput, ViewBatch, Views, sh_degree_from_k
+from anycity.structures import IMAGE_MIN, Gaussians, RenderOutput, ViewBatch, Views, image_range, sh_degree_from_k
 
 
 def gaussians(B=2, N=5, K=4):
@@ -29,6 +29,8 @@ def test_gaussians_validate_and_properties():
     ("opacities", torch.zeros(2, 5, 1), "opacities"),
     ("sh", torch.zeros(2, 5, 3, 3), "K=3"),
     ("sh", torch.zeros(2, 5, 4), "sh"),
+    ("sh", torch.zeros(2, 5, 1, 1), r"^gaussians.sh: expected shape \[B, N, K, 3\] with B=2, N=5, got \(2, 5, 1, 1\)$"),
+    ("quats", torch.zeros(2, 5, 4, device="meta"), "^gaussians.quats: on meta, but means are on cpu$"),
     ("valid", torch.ones(2, 5), "bool"),
     ("valid", torch.ones(2, 4, dtype=torch.bool), "valid"),
     ("opacities", torch.tensor([[float("nan")] * 5] * 2), "NaN"),
@@ -153,6 +155,26 @@ def test_gaussians_validate_refuses_log_scales(dtype):
     with pytest.raises(ValueError, match=r"gaussians.scales: expected standard deviations >= 0, got a minimum of -3; "
                                          r"these look like log-scales .*: pass scales.exp\(\)"):
         g.to(dtype=dtype).validate()
+
+
+def test_gaussians_validate_refuses_a_slightly_negative_scale():
+    """Any negative standard deviation is refused, however small: there is no tolerance below 0."""
+    scales = torch.full((2, 5, 3), 0.1)
+    scales[0, 0, 0] = -1e-4
+    with pytest.raises(ValueError, match="^gaussians.scales: expected standard deviations >= 0, got a minimum of "
+                                         "-0.0001;"):
+        Gaussians(**{**vars(gaussians()), "scales": scales}).validate()
+
+
+def test_image_range_flags_images_just_below_the_rounding_allowance():
+    """[0, 1] images may dip to IMAGE_MIN (a resize's rounding); just below it they read as [-1, 1] ("signed"),
+    below -1 as mean/std-normalised, and the callers refuse both."""
+    def fault(lo):
+        return image_range(torch.tensor([lo, 0.5, 1.0], dtype=torch.float64))[2]
+
+    assert fault(0.0) is None and fault(IMAGE_MIN) is None
+    assert fault(2 * IMAGE_MIN) == "signed" and fault(-0.01) == "signed" and fault(-1.0) == "signed"
+    assert fault(-1.5) == "normalised"
 
 
 def test_gaussians_validate_keeps_zero_scales_and_zero_quaternions():

@@ -3,6 +3,8 @@ two-rank agreement is in tests/integration/test_ddp.py)."""
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import lightning.pytorch as pl
 import pytest
 import torch
@@ -193,3 +195,20 @@ def test_the_skip_count_is_restored_from_a_checkpoint():
     assert guard.state_dict() == {"skipped": 5}
     guard.load_state_dict({})  # a checkpoint from before the count was saved
     assert guard.skipped == 0
+
+
+@pytest.mark.filterwarnings("ignore:NonFiniteGuard. skipped")
+def test_the_run_stops_on_the_first_skip_past_max_skips():
+    """max_skips=2 allows two skipped steps; the third raises, naming the count and the limit."""
+    guard = NonFiniteGuard(max_skips=2)
+    p = nn.Parameter(torch.zeros(2))
+    opt = torch.optim.SGD([p], lr=0.1)
+    trainer = SimpleNamespace(precision_plugin=SimpleNamespace(), world_size=1, global_step=0)
+    module = SimpleNamespace(device=torch.device("cpu"), log=lambda *a, **k: None)
+    for _ in range(2):
+        p.grad = torch.tensor([float("nan"), 0.0])
+        guard.on_before_optimizer_step(trainer, module, opt)
+    assert guard.skipped == 2
+    p.grad = torch.tensor([float("nan"), 0.0])
+    with pytest.raises(RuntimeError, match=r"^NonFiniteGuard: 3 steps skipped .*\(> nonfinite\.max_skips=2\)"):
+        guard.on_before_optimizer_step(trainer, module, opt)

@@ -53,6 +53,19 @@ def test_ground_hit_exact():
     assert not sky["mask"][0].any() and (sky["depth"][0] == 0).all()
 
 
+def test_boxes_behind_a_street_level_camera_are_not_hit():
+    """A camera standing beside a building, looking along its wall: the boxes behind it (and the one it stands
+    next to, half behind) must not be hit at a negative ray distance; every depth is >= 0 and every hit > 0."""
+    city = make_city(np.random.default_rng(0))
+    sc = SceneTensors(city)
+    i = int(np.argmax(city.box_hi[:, 2] - city.box_lo[:, 2]))  # the tallest building
+    lo, hi = city.box_lo[i], city.box_hi[i]
+    eye = [float(hi[0]) + 3.0, float(lo[1] + hi[1]) / 2, 2.0]
+    out, _, _ = _view(sc, eye, [eye[0], eye[1] + 50, 2.0])
+    assert out["mask"].any()
+    assert (out["depth"] >= 0).all() and (out["depth"][out["mask"]] > 0).all()
+
+
 @pytest.mark.parametrize("kind", ["orbit", "nadir", "mixed"])
 def test_trajectories(kind):
     city = make_city(np.random.default_rng(2))
@@ -138,6 +151,7 @@ def test_hfov_sets_the_intrinsics():
     fx = rec.views[0].K[0, 0]
     assert fx == pytest.approx(16 / math.tan(math.radians(20)))
     assert rec.extra["hfov_deg"] == 40.0
+    assert fov_intrinsics(64, 48, 60.0)[:2, 2].tolist() == [32.0, 24.0]  # the image centre, pixel edges at integers
     with pytest.raises(ValueError, match="hfov"):
         synth("/nonexistent", scenes=1, hfov=200)
 
