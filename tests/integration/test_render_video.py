@@ -25,6 +25,19 @@ def test_render_video_frames(tmp_path):
     assert min(diffs) > 0.1, diffs
 
 
+def test_render_video_says_its_frame_size_and_where_it_came_from(tmp_path, capsys):
+    """The default width is the input's (tiny for the quickstart's model) and an odd --width is rounded down: both
+    were silent, so a user got a 56 px video, or another width than asked, without a word."""
+    pytest.importorskip("imageio_ffmpeg")
+    (tmp_path / "s").mkdir()
+    folder = tiny_predict_folder(tmp_path / "s", n=20, with_prov=False)
+    assert main(["render-video", str(folder), "--out", str(tmp_path / "a.mp4"), "--per-segment", "1"]) == 0
+    assert "frames of 48x32 (the input width; --width sets another)" in capsys.readouterr().out
+    assert main(["render-video", str(folder), "--out", str(tmp_path / "b.mp4"), "--per-segment", "1",
+                 "--width", "17"]) == 0
+    assert "frames of 16x" in capsys.readouterr().out
+
+
 def test_render_video_writes_at_the_fps_asked(tmp_path):
     imageio_ffmpeg = pytest.importorskip("imageio_ffmpeg")
     (tmp_path / "s").mkdir()

@@ -201,7 +201,7 @@ class PhotoFolder:
             shown = ", ".join(self.names[i] for i in odd[:5]) + (" ..." if len(odd) > 5 else "")
             warnings.warn(f"predict_images: {len(odd)} of {len(self.files)} photos in {self.folder} ({shown}) have "
                           f"another aspect ratio than the most common one; they are scaled and centre-cropped to "
-                          f"{self.hw[0]}x{self.hw[1]} like the rest", stacklevel=2)
+                          f"{self.hw[1]}x{self.hw[0]} (width x height) like the rest", stacklevel=2)
 
     def __len__(self) -> int:
         return len(self.files)

@@ -170,9 +170,14 @@ def render_video(path: str | Path, out: str | Path, per_segment: int = 12, orbit
         up = scene_up(means, c2w[:, :3, 3], -c2w[:, :3, 1].mean(0))
         ow, oK = orbit_path(scene.w2c, scene.K, means.median(0).values, orbit, up)
         w2c, K = torch.cat([w2c, ow]), torch.cat([K, oK])
+    asked = width
     width = width or scene.width
     width -= width % 2  # yuv420p needs even sizes
     height = max(2, round(width * scene.height / scene.width / 2) * 2)
+    if progress:
+        why = ("the input width; --width sets another" if asked is None else
+               "--width rounded down to an even width, as H.264 needs" if asked != width else "--width")
+        print(f"render-video: {len(w2c)} frames of {width}x{height} ({why})")
     n = 0
     # renamed into place when complete: a run that fails or is killed leaves no short mp4 that looks whole, and an
     # --overwrite run that fails keeps the old one

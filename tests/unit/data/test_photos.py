@@ -258,7 +258,7 @@ def test_keep_aspect_no_crop_and_mixed_sizes_go_to_the_most_common(tmp_path, odd
     for i in range(3):
         _write(d, f"img{i}.png", 60, 80, i)  # 4:3
     _write(d, odd_name, 32, 96, 9)  # 3:1
-    with pytest.warns(UserWarning, match=rf"1 of 4 photos .*\({odd_name}\).*most common"):
+    with pytest.warns(UserWarning, match=rf"1 of 4 photos .*\({odd_name}\).*most common.* to 40x24 \(width x height\)"):
         out = load_photo_folder(d, (32, 32), mode="keep", patch=8)
     h, w = out["images"].shape[-2:]
     assert (h, w) == (24, 40) and out["images"].shape[0] == 4  # ~32*32 px at 4:3, sides multiples of 8
