@@ -234,7 +234,8 @@ def _resume_verb(subcommand: str) -> str:
 def _cli_class():
     from lightning.pytorch.cli import LightningCLI
 
-    from anycity.callbacks import FreezeModules, ImagePreviews, LossProgressBar, NonFiniteGuard, PredictionExport
+    import anycity.callbacks
+    from anycity.callbacks import LossProgressBar, PredictionExport
 
     class AnyCityCLI(LightningCLI):
         """LightningCLI with the always-present ("forced") callbacks as top-level config groups:
@@ -251,11 +252,8 @@ def _cli_class():
         ``save_dir`` contradicts (:func:`check_run_folder`)."""
 
         def add_arguments_to_parser(self, parser) -> None:
-            parser.add_lightning_class_args(FreezeModules, "freeze")
-            parser.add_lightning_class_args(ImagePreviews, "previews")
-            parser.add_lightning_class_args(LossProgressBar, "progress")
-            parser.add_lightning_class_args(PredictionExport, "export")
-            parser.add_lightning_class_args(NonFiniteGuard, "nonfinite")
+            for section, name in CALLBACK_SECTIONS.items():
+                parser.add_lightning_class_args(getattr(anycity.callbacks, name), section)
 
         def _prepare_subcommand_parser(self, klass, subcommand: str, **kwargs):
             parser = super()._prepare_subcommand_parser(klass, subcommand, **kwargs)
@@ -427,6 +425,9 @@ def _cli_class():
 
             from anycity.lit.keep import RunLocks, separate_from_training
 
+            check_split = getattr(self.datamodule, "check_split", None)
+            if check_split is not None:  # a split with no shards: refused before any log file moves
+                check_split(subcommand)
             moved_to = separate_from_training(self.trainer, subcommand) or \
                 self._separate_without_logger(subcommand)  # the training's own files stay as they are
             if moved_to is not None:
@@ -590,6 +591,9 @@ LIGHTNING = ("fit", "validate", "test", "predict")
 # the top-level keys of a training command's config (`anycity fit --print_config`; tests/integration/test_front_door.py)
 SECTIONS = ("seed_everything", "trainer", "model", "data", "freeze", "previews", "progress", "export", "nonfinite",
             "ckpt_path", "weights_only")
+# the always-present callbacks' config sections and their classes in anycity.callbacks
+CALLBACK_SECTIONS = {"freeze": "FreezeModules", "previews": "ImagePreviews", "progress": "LossProgressBar",
+                     "export": "PredictionExport", "nonfinite": "NonFiniteGuard"}
 _ALIASES = {"learning_rate": "lr", "learningrate": "lr", "max_step": "max_steps", "epochs": "max_epochs"}
 
 
@@ -662,6 +666,10 @@ def _section_candidates(dotted: str) -> list[str] | None:
         else:
             from lightning.pytorch import Trainer as cls
         return sorted(_init_params(cls))
+    if parts[:1] and parts[0] in CALLBACK_SECTIONS:
+        import anycity.callbacks
+
+        return sorted(_init_params(getattr(anycity.callbacks, CALLBACK_SECTIONS[parts[0]])))
     return None
 
 
@@ -686,14 +694,20 @@ def config_error(message: str, argv: list[str]) -> str:
         section = re.findall(r'Parser key "(\w+)"', message[:unexpected.start()])
         bad.append(".".join(section[-1:] + [unexpected.group(1)]))
     if not bad:
+        # a class typo as --model's value: jsonargparse lists "Expected a path" before the class_path problem
+        flat = " ".join(ln.strip() for ln in message.splitlines())
+        problem = re.search(r"Problem with given class_path '[\w.]+': module '[\w.]+' has no attribute '\w+'", flat)
         return (_yaml_error(argv) if "Problems parsing config" in message else None) or \
-            _class_path_hint(_one_line(message).replace("\n", " "))
+            _class_path_hint(problem.group(0) if problem else _one_line(message).replace("\n", " "))
     section = bad[0].split(".")[0]
     if from_top and "." in bad[0] and section not in SECTIONS:  # a misspelt section (modle:) is the key to name
         near = difflib.get_close_matches(section, SECTIONS, n=1, cutoff=0.6)
         return f"unknown section {section} (in {bad[0]})" + (f"; did you mean {near[0]}?" if near else
                                                               f"; expected one of {', '.join(SECTIONS)}")
     key = bad[0].split(".")[-1]
+    elsewhere = _other_module_option(key, message, argv)
+    if elsewhere:
+        return elsewhere
     given = next((a.split("=")[0] for a in argv if a.startswith("--") and
                   (a.split("=")[0].endswith("." + key) or a.split("=")[0] == f"--{bad[0]}")), None)
     where = given or bad[0]
@@ -703,8 +717,61 @@ def config_error(message: str, argv: list[str]) -> str:
     alias = difflib.get_close_matches(key.lower(), list(_ALIASES), n=1, cutoff=0.8)
     hint = near[0] if near else (f"{_ALIASES[alias[0]]} ({alias[0].replace('_', ' ')})" if alias else None)
     what = f"unknown option {given}" if given else f"unknown key {bad[0]} in a --config file"
-    return what + (f"; did you mean {hint}?" if hint else "; see anycity COMMAND --help")
+    command = argv[0] if argv and argv[0] in LIGHTNING else "COMMAND"
+    return what + (f"; did you mean {hint}?" if hint else f"; see anycity {command} --help")
 
+
+def _other_module_option(key: str, message: str, argv: list[str]) -> str | None:
+    """One line for a model key that the class jsonargparse built does not take but another anycity
+    LightningModule does (``pres_weight``, Stage II's, in an ablation overlay given without its stage's config);
+    None otherwise."""
+    import importlib
+    import re
+
+    import yaml
+
+    from anycity.lit import AnyCityModule
+
+    named = []
+    for path in re.findall(r"class_path '([\w.]+)'", message):
+        module, _, name = path.rpartition(".")
+        try:
+            named.append(getattr(importlib.import_module(module), name))
+        except (ImportError, AttributeError, ValueError):
+            pass
+    built = next((c for c in named if isinstance(c, type) and issubclass(c, AnyCityModule)), None)
+    if built is None or key in _init_params(built):
+        return None
+    stack, others = [AnyCityModule], []
+    while stack:
+        cls = stack.pop()
+        stack += cls.__subclasses__()
+        if cls is not built and key in _init_params(cls):
+            others.append(cls)
+    if not others:
+        return None
+    cls = others[0]
+    path = f"{cls.__module__.rpartition('.')[0]}.{cls.__name__}" if cls.__module__.startswith("anycity.lit.") else \
+        f"{cls.__module__}.{cls.__name__}"
+    stage = re.match(r"(Stage [IV]+)\b", (cls.__doc__ or "").strip())
+    base = _STAGE_CONFIGS.get(cls.__name__, f"a config whose model.class_path is {path}")
+    source = None
+    for _, value in _option_values(argv, ("-c", "--config")):
+        try:
+            model = (yaml.safe_load(Path(value).read_text()) or {}).get("model") or {}
+        except (OSError, yaml.YAMLError, AttributeError):
+            continue
+        if key in ((model.get("init_args") if isinstance(model, dict) else None) or {}):
+            source = value
+    where = f"before -c {source}" if source else "before this option"
+    return (f"{key} is an option of {path}{f' ({stage.group(1)})' if stage else ''}, not of the model class this "
+            f"run builds ({built.__name__}); put {base} {where}")
+
+
+# the configs that build each stage's module, named when a key of one is given to another
+_STAGE_CONFIGS = {"ScaffoldModule": "-c configs/stage1.yaml (or -c configs/quickstart.yaml)",
+                  "RefinementModule": "-c configs/stage2.yaml (or -c configs/quickstart.yaml -c "
+                                      "configs/quickstart_stage2.yaml)"}
 
 _UNKNOWN_KEY = ("is not accepted", "is not expected", "Unexpected keys", "does not accept", "No action for key",
                 "nrecognized arguments")

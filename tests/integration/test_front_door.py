@@ -229,7 +229,11 @@ def test_a_missing_data_root_is_one_line_and_the_run_writes_nothing(tmp_path, ca
     assert not run.exists()  # refused when the data module is built: no config.yaml for the next run to move aside
     from anycity.lit.datamodule import AerialDataModule
 
-    AerialDataModule(root=str(tmp_path / "nope"), predict_images=str(tmp_path))  # predicting photos reads no shards
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for name in ("a.jpg", "b.jpg"):  # listed, not decoded, when the data module is built
+        (photos / name).write_bytes(b"")
+    AerialDataModule(root=str(tmp_path / "nope"), predict_images=str(photos))  # predicting photos reads no shards
 
 
 def test_a_misspelt_section_a_class_path_and_broken_yaml_are_named(tmp_path, capsys, monkeypatch):
@@ -450,3 +454,23 @@ def test_the_sigterm_line_names_the_newest_checkpoint_of_every_checkpoint_folder
     line = cli._cli_class()._stopped(SimpleNamespace(trainer=trainer), "fit")
     assert line == (f"stopped by SIGTERM at step 4; the newest checkpoint is {b / 'step4.ckpt'}; resume with the same "
                     f"command and --ckpt_path {b / 'step4.ckpt'}")
+
+
+def test_export_typos_a_model_class_typo_and_another_stages_key_are_named(tmp_path, capsys, monkeypatch):
+    """--export.* typos got no suggestion and a literal "see anycity COMMAND --help"; a class typo as --model's value
+    gave jsonargparse's "Expected a path"; an ablation overlay alone named preset for Stage II's pres_weight."""
+    monkeypatch.delenv("ANYCITY_DEBUG", raising=False)
+    cases = [(["predict", "-c", "configs/quickstart.yaml", "--export.outdir", "x"],
+              "unknown option --export.outdir; did you mean out_dir?"),
+             (["predict", "-c", "configs/quickstart.yaml", "--export.zzzz", "x"],
+              "unknown option --export.zzzz; see anycity predict --help"),
+             (["predict", "-c", "configs/quickstart.yaml", "--model", "anycity.lit.ScafoldModule"],
+              "has no attribute 'ScafoldModule'; did you mean anycity.lit.ScaffoldModule?"),
+             (["fit", "-c", "configs/ablations/wo_pres.yaml", "--print_config"],
+              "pres_weight is an option of anycity.lit.RefinementModule (Stage II), not of the model class this run "
+              "builds (AnyCityModule); put -c configs/stage2.yaml (or -c configs/quickstart.yaml -c "
+              "configs/quickstart_stage2.yaml) before -c configs/ablations/wo_pres.yaml")]
+    for argv, said in cases:
+        assert cli.main(argv) == 2, argv
+        err = capsys.readouterr().err.strip()
+        assert err.count("\n") == 0 and said in err, err

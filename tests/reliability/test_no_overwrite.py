@@ -2,6 +2,7 @@
 
 import contextlib
 import os
+import re
 import subprocess
 import sys
 import warnings
@@ -432,3 +433,33 @@ def test_an_empty_folder_is_not_moved_aside(tmp_path):
     (tmp_path / "checkpoints").mkdir()
     assert move_aside(tmp_path / "checkpoints") is None
     assert (tmp_path / "checkpoints").is_dir() and not (tmp_path / "checkpoints.1").exists()
+
+
+def test_a_run_refused_for_its_input_leaves_the_previous_runs_logs_where_they_were(tmp_path, capsys):
+    """A predict from a folder of 1 photo, and a test or validate of a shard set with no shards of that split, were
+    refused only after the previous run's config.yaml and metrics.csv were moved aside (config.1.yaml, and a folder
+    with a config.yaml but no metrics.csv); they are refused, in one line, before anything moves."""
+    import torch
+
+    data_main(["synth", "--out", str(tmp_path / "train_only"), "--scenes", "1", "--views", "8", "--size", "32x32",
+               "--workers", "1"])
+    run, photos = tmp_path / "run", tmp_path / "one_photo"
+    args = _args(tmp_path / "train_only", run)
+    ckpt = tmp_path / "weights.ckpt"  # the config's network, untrained, and no stored settings
+    torch.save({"pytorch-lightning_version": "2.4.0", "hyper_parameters": {},
+                "state_dict": build_cli(args, run=False).model.state_dict()}, ckpt)
+    run.mkdir()
+    photos.mkdir()
+    Image.fromarray(np.zeros((32, 32, 3), dtype=np.uint8)).save(photos / "0.jpg")
+    logs = {"config.yaml": b"an earlier run's config\n", "metrics.csv": b"step,test/psnr\n0,20.0\n"}
+    for name, data in logs.items():
+        (run / name).write_bytes(data)
+    args += ["--ckpt_path", str(ckpt)]
+    for cmd, extra, refused in (("predict", ["--data.predict_images", str(photos)], "holds 1 photo"),
+                                ("test", [], "test shards: .*index.json lists none"),
+                                ("validate", [], "val shards: .*index.json lists none")):
+        assert main([cmd, *args, *extra]) == 2, cmd
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and re.match(rf"anycity: error: [^\n]*{refused}", err), (cmd, err)
+        assert sorted(p.name for p in run.iterdir()) == sorted(logs), cmd  # no config.1.yaml, nothing written
+        assert {n: (run / n).read_bytes() for n in logs} == logs, cmd

@@ -21,7 +21,7 @@ from lightning.pytorch.utilities import rank_zero_warn
 from torch.utils.data import DataLoader
 from webdataset.utils import pytorch_worker_info
 
-from anycity.data.photos import check_photo_folder, scene_name
+from anycity.data.photos import list_photos, scene_name
 from anycity.data.pipeline import (
     SampleBuilder,
     SkipCounter,
@@ -225,7 +225,7 @@ class AerialDataModule(pl.LightningDataModule):
             raise FileNotFoundError(f"data.root {root}: no such folder; fix the path, or write shards there with "
                                     f"anycity data synth --out {root} (or anycity data convert)")
         if predict_images is not None:  # as data.root: before the run writes any output
-            check_photo_folder(predict_images)
+            _check_photo_count(predict_images)
         self.save_hyperparameters()
         self.hp = self.hparams
         self.skip_counter = SkipCounter()
@@ -249,6 +249,13 @@ class AerialDataModule(pl.LightningDataModule):
             raise ValueError(f"{split} shards: none found (root={self.hp.root!r}, {split}_shards={spec!r}); give "
                              f"a shard directory with index.json listing {split} shards, or a shard pattern")
         return urls
+
+    def check_split(self, subcommand: str) -> None:
+        """Refuse a ``validate|test|predict`` run whose split has no shards (a train-only ``index.json``), in the
+        line its first batch would give, before the run moves the previous run's logs aside."""
+        split = {"validate": "val", "test": "test", "predict": "test"}.get(subcommand)
+        if split and not (subcommand == "predict" and self.hp.predict_images is not None):
+            self._urls(split)
 
     def _builder(self, train: bool) -> SampleBuilder:
         return SampleBuilder(self.hp.num_context, self.hp.num_targets, self.hp.num_dense, tuple(self.hp.image_size),
@@ -399,6 +406,16 @@ def _check_epoch(epoch_samples: int | None, num_workers: int, batch_size: int) -
                          f"fewer than batch_size {batch_size}, so every training epoch would have no batch; set "
                          f"epoch_samples >= {workers * batch_size} (num_workers x batch_size) or lower num_workers or "
                          "batch_size")
+
+
+def _check_photo_count(folder: str) -> None:
+    """Refuse a ``predict_images`` folder that is no folder or holds too few photos, by the photo loader's own
+    listing (no photo is decoded); its warnings about files it does not read come when the photos are loaded."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        list_photos(folder)
 
 
 def _check_root_names_splits(root: str | None, split: str) -> None:

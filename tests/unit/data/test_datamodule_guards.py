@@ -230,7 +230,27 @@ def test_a_missing_photo_folder_is_refused_when_the_datamodule_is_built(tmp_path
     # before the run writes its config and logs (it replaced the previous run's config.yaml, then failed)
     with pytest.raises(FileNotFoundError, match=r"^predict_images: .*nowhere is not a folder; pass a folder"):
         AerialDataModule(predict_images=str(tmp_path / "nowhere"))
-    AerialDataModule(predict_images=str(tmp_path))  # a folder: the photos themselves are read by predict
+    (tmp_path / "a.jpg").write_bytes(b"not decoded here")
+    with pytest.raises(ValueError, match=r"^predict_images: .* holds 1 photo \(only a.jpg\).*a scene needs at least 2 "
+                                         r"overlapping photos[^\n]*$"):
+        AerialDataModule(predict_images=str(tmp_path))  # refused by the loader's own listing, not at predict
+    (tmp_path / "b.jpg").write_bytes(b"not decoded here")
+    AerialDataModule(predict_images=str(tmp_path))  # the photos themselves are decoded by predict
+
+
+def test_an_evaluation_split_with_no_shards_is_refused_by_check_split(tmp_path):
+    """``check_split`` (the CLI calls it before any log file moves) refuses a train-only shard set for the split
+    validate/test read; explicit ``test_shards`` and a predict from photos read no such split."""
+    from anycity.data.cli import data_main
+
+    data_main(["synth", "--out", str(tmp_path / "one"), "--scenes", "1", "--views", "8", "--size", "32x32",
+               "--workers", "1"])
+    dm = _dm(tmp_path / "one")
+    for sub, split in (("test", "test"), ("validate", "val"), ("predict", "test")):
+        with pytest.raises(ValueError, match=rf"^{split} shards: .*index.json lists none \(it has train: 1[^\n]*$"):
+            dm.check_split(sub)
+    dm.check_split("fit")
+    _dm(tmp_path / "one", test_shards=shard_urls(str(tmp_path / "one"), "train")).check_split("test")
 
 
 def test_the_shortest_train_sample_is_the_one_with_fewest_views(tmp_path):
