@@ -722,15 +722,14 @@ def config_error(message: str, argv: list[str]) -> str:
 
 
 def _other_module_option(key: str, message: str, argv: list[str]) -> str | None:
-    """One line for a model key that the class jsonargparse built does not take but another anycity
-    LightningModule does (``pres_weight``, Stage II's, in an ablation overlay given without its stage's config);
-    None otherwise."""
+    """One line for a model key that the class jsonargparse built does not take but the other stage's module does
+    (``pres_weight``, Stage II's, in an ablation overlay given without its stage's config); None otherwise."""
     import importlib
     import re
 
     import yaml
 
-    from anycity.lit import AnyCityModule
+    import anycity.lit
 
     named = []
     for path in re.findall(r"class_path '([\w.]+)'", message):
@@ -739,22 +738,13 @@ def _other_module_option(key: str, message: str, argv: list[str]) -> str | None:
             named.append(getattr(importlib.import_module(module), name))
         except (ImportError, AttributeError, ValueError):
             pass
-    built = next((c for c in named if isinstance(c, type) and issubclass(c, AnyCityModule)), None)
+    built = next((c for c in named if isinstance(c, type) and issubclass(c, anycity.lit.AnyCityModule)), None)
     if built is None or key in _init_params(built):
         return None
-    stack, others = [AnyCityModule], []
-    while stack:
-        cls = stack.pop()
-        stack += cls.__subclasses__()
-        if cls is not built and key in _init_params(cls):
-            others.append(cls)
-    if not others:
+    other = next((name for name in _STAGE_MODULES if getattr(anycity.lit, name) is not built
+                  and key in _init_params(getattr(anycity.lit, name))), None)
+    if other is None:
         return None
-    cls = others[0]
-    path = f"{cls.__module__.rpartition('.')[0]}.{cls.__name__}" if cls.__module__.startswith("anycity.lit.") else \
-        f"{cls.__module__}.{cls.__name__}"
-    stage = re.match(r"(Stage [IV]+)\b", (cls.__doc__ or "").strip())
-    base = _STAGE_CONFIGS.get(cls.__name__, f"a config whose model.class_path is {path}")
     source = None
     for _, value in _option_values(argv, ("-c", "--config")):
         try:
@@ -763,15 +753,16 @@ def _other_module_option(key: str, message: str, argv: list[str]) -> str | None:
             continue
         if key in ((model.get("init_args") if isinstance(model, dict) else None) or {}):
             source = value
+    stage, configs = _STAGE_MODULES[other]
     where = f"before -c {source}" if source else "before this option"
-    return (f"{key} is an option of {path}{f' ({stage.group(1)})' if stage else ''}, not of the model class this "
-            f"run builds ({built.__name__}); put {base} {where}")
+    return (f"{key} is an option of anycity.lit.{other} ({stage}), not of the model class this run builds "
+            f"({built.__name__}); put {configs} {where}")
 
 
-# the configs that build each stage's module, named when a key of one is given to another
-_STAGE_CONFIGS = {"ScaffoldModule": "-c configs/stage1.yaml (or -c configs/quickstart.yaml)",
-                  "RefinementModule": "-c configs/stage2.yaml (or -c configs/quickstart.yaml -c "
-                                      "configs/quickstart_stage2.yaml)"}
+# each stage's module in anycity.lit and the configs that build it, named when a key of one is given to another
+_STAGE_MODULES = {"ScaffoldModule": ("Stage I", "-c configs/stage1.yaml (or -c configs/quickstart.yaml)"),
+                  "RefinementModule": ("Stage II", "-c configs/stage2.yaml (or -c configs/quickstart.yaml -c "
+                                                   "configs/quickstart_stage2.yaml)")}
 
 _UNKNOWN_KEY = ("is not accepted", "is not expected", "Unexpected keys", "does not accept", "No action for key",
                 "nrecognized arguments")
