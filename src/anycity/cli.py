@@ -427,7 +427,7 @@ def _cli_class():
 
             check_split = getattr(self.datamodule, "check_split", None)
             if check_split is not None:  # a split with no shards: refused before any log file moves
-                check_split(subcommand)
+                check_split(subcommand, self.trainer)
             moved_to = separate_from_training(self.trainer, subcommand) or \
                 self._separate_without_logger(subcommand)  # the training's own files stay as they are
             if moved_to is not None:

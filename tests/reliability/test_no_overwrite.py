@@ -463,3 +463,9 @@ def test_a_run_refused_for_its_input_leaves_the_previous_runs_logs_where_they_we
         assert len(err.splitlines()) == 1 and re.match(rf"anycity: error: [^\n]*{refused}", err), (cmd, err)
         assert sorted(p.name for p in run.iterdir()) == sorted(logs), cmd  # no config.1.yaml, nothing written
         assert {n: (run / n).read_bytes() for n in logs} == logs, cmd
+    # a fresh fit that would validate, on a set with no val shards: refused before its config.yaml is written (it
+    # failed at the sanity check, leaving config.yaml and hparams.yaml for the next run to move aside)
+    assert main(["fit", *_args(tmp_path / "train_only", tmp_path / "fit_run")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and re.match(r"anycity: error: val shards: [^\n]*index.json lists none", err)
+    assert not (tmp_path / "fit_run").exists() or not any((tmp_path / "fit_run").iterdir())

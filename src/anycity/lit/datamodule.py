@@ -250,11 +250,16 @@ class AerialDataModule(pl.LightningDataModule):
                              f"a shard directory with index.json listing {split} shards, or a shard pattern")
         return urls
 
-    def check_split(self, subcommand: str) -> None:
-        """Refuse a ``validate|test|predict`` run whose split has no shards (a train-only ``index.json``), in the
-        line its first batch would give, before the run moves the previous run's logs aside."""
-        split = {"validate": "val", "test": "test", "predict": "test"}.get(subcommand)
-        if split and not (subcommand == "predict" and self.hp.predict_images is not None):
+    def check_split(self, subcommand: str, trainer: pl.Trainer | None = None) -> None:
+        """Refuse a run whose split has no shards (a train-only ``index.json``), in the line its first batch would
+        give, before the run moves the previous run's logs aside; a ``fit`` checks ``val`` too when ``trainer``
+        will validate (else its first validation, maybe hours in, would stop it)."""
+        splits = {"fit": ["train"], "validate": ["val"], "test": ["test"], "predict": ["test"]}.get(subcommand, [])
+        if subcommand == "fit" and trainer is not None and _validates(trainer):
+            splits.append("val")
+        if subcommand == "predict" and self.hp.predict_images is not None:
+            splits = []
+        for split in splits:
             self._urls(split)
 
     def _builder(self, train: bool) -> SampleBuilder:
@@ -406,6 +411,16 @@ def _check_epoch(epoch_samples: int | None, num_workers: int, batch_size: int) -
                          f"fewer than batch_size {batch_size}, so every training epoch would have no batch; set "
                          f"epoch_samples >= {workers * batch_size} (num_workers x batch_size) or lower num_workers or "
                          "batch_size")
+
+
+def _validates(trainer: pl.Trainer) -> bool:
+    """Whether a ``fit`` with ``trainer`` reads the val split: its sanity check, or a validation within
+    ``max_steps`` (an int ``val_check_interval`` past ``max_steps`` with no sanity check never validates)."""
+    if trainer.limit_val_batches == 0:
+        return False
+    interval = trainer.val_check_interval
+    never = isinstance(interval, int) and 0 < trainer.max_steps < interval
+    return trainer.num_sanity_val_steps != 0 or not never
 
 
 def _check_photo_count(folder: str) -> None:

@@ -249,8 +249,38 @@ def test_an_evaluation_split_with_no_shards_is_refused_by_check_split(tmp_path):
     for sub, split in (("test", "test"), ("validate", "val"), ("predict", "test")):
         with pytest.raises(ValueError, match=rf"^{split} shards: .*index.json lists none \(it has train: 1[^\n]*$"):
             dm.check_split(sub)
-    dm.check_split("fit")
+    dm.check_split("fit")  # no trainer: the train split alone
     _dm(tmp_path / "one", test_shards=shard_urls(str(tmp_path / "one"), "train")).check_split("test")
+
+
+def test_a_fit_that_will_validate_is_refused_for_a_missing_val_split_and_one_that_will_not_runs(tmp_path):
+    """A fit on a train-only shard set failed at its sanity check (or, with none, at its first validation, hours
+    in) after writing config.yaml; ``check_split('fit', trainer)`` refuses it first, unless no validation runs."""
+    import json
+    from types import SimpleNamespace
+
+    from anycity.data.cli import data_main
+
+    data_main(["synth", "--out", str(tmp_path / "one"), "--scenes", "1", "--views", "8", "--size", "32x32",
+               "--workers", "1"])
+    dm = _dm(tmp_path / "one")
+
+    def trainer(limit=1.0, sanity=2, interval=1.0, max_steps=-1):
+        return SimpleNamespace(limit_val_batches=limit, num_sanity_val_steps=sanity, val_check_interval=interval,
+                               max_steps=max_steps)
+
+    for validating in (trainer(), trainer(sanity=0), trainer(sanity=0, interval=100, max_steps=100),
+                       trainer(interval=1000, max_steps=10), trainer(sanity=0, interval=10)):
+        with pytest.raises(ValueError, match=r"^val shards: .*lists none .*or skip validation with "
+                                             r"--trainer.limit_val_batches 0$"):
+            dm.check_split("fit", validating)
+    for quiet in (trainer(limit=0), trainer(limit=0.0), trainer(sanity=0, interval=1000, max_steps=10)):
+        dm.check_split("fit", quiet)
+    index = json.loads((tmp_path / "one" / "index.json").read_text())
+    index["splits"] = {"val": index["splits"]["train"]}  # the same shards, listed as val alone
+    (tmp_path / "one" / "index.json").write_text(json.dumps(index))
+    with pytest.raises(ValueError, match=r"^train shards: .*lists none \(it has val: 1"):
+        dm.check_split("fit", trainer(limit=0))
 
 
 def test_the_shortest_train_sample_is_the_one_with_fewest_views(tmp_path):
