@@ -66,3 +66,19 @@ def test_readme_network_example_loads_a_trained_checkpoint_as_written(tmp_path, 
     scope: dict = {}
     exec(f"from anycity.models import load_checkpoint\n{line.split('#')[0]}", scope)
     assert not scope["net"].training and scope["net"].cfg == m.net.cfg
+
+
+def test_docs_stage2_fits_pass_the_wan_folder_the_config_leaves_empty():
+    """``configs/stage2.yaml`` asks for the Wan prior with ``wan_dir: null``, which refuses to build; the README's and
+    design.md's Stage II ``fit`` lines did not pass the folder, so they failed as written."""
+    import yaml
+
+    net = yaml.safe_load((ROOT / "configs/stage2.yaml").read_text())["model"]["init_args"]["net"]
+    assert net["video_prior"] == "wan" and net["wan_dir"] is None
+    fits = []
+    for doc in DOCS:
+        for cmd in doc.read_text().replace("\\\n", " ").splitlines():  # continued lines joined
+            if re.search(r"anycity fit .*--config configs/stage2\.yaml", cmd):
+                fits.append(cmd)
+    assert len(fits) >= 2
+    assert all("--model.init_args.net.wan_dir " in cmd for cmd in fits), fits

@@ -86,7 +86,7 @@ class NetConfig:
     # umT5 embedding of "" as a [1, L, 4096] tensor (torch.save); None: <wan_dir>/empty_prompt.pt if present, else zeros
     wan_empty_prompt: str | None = None
     # Stage II: the depth head also decodes Z_final = Z_geo + dZ (else only the Gaussian head does, centre offsets
-    # included); measured on the quickstart, see README "Stage II"
+    # included); measured on the quickstart, see docs/stage2.md "Levers tried"
     refine_depth: bool = True
     # Beyond the paper (whose cameras stay the scaffold's): the completion residual also reaches the camera token the
     # frozen camera head reads, so Stage II can re-place the views; train it with RefinementModule(camera_weight>0).
