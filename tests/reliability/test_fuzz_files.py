@@ -161,8 +161,8 @@ def _png_header_only(w, h):
             + chunk(b"IDAT", zlib.compress(b"\0" * 64)) + chunk(b"IEND", b""))
 
 
-def _photo_bytes(kind):
-    rgb = np.random.default_rng(0).integers(0, 255, (40, 56, 3), dtype=np.uint8)
+def _photo_bytes(kind, seed=0):
+    rgb = np.random.default_rng(seed).integers(0, 255, (40, 56, 3), dtype=np.uint8)
     buf = io.BytesIO()
     if kind == "1x1":
         Image.fromarray(rgb[:1, :1]).save(buf, "PNG")
@@ -192,7 +192,7 @@ def test_photo_folder_hostile_images(tmp_path, kind, ok):
     folder = tmp_path / "photos"
     folder.mkdir()
     for i in range(2):
-        (folder / f"good{i}.jpg").write_bytes(_photo_bytes("jpeg"))
+        (folder / f"good{i}.jpg").write_bytes(_photo_bytes("jpeg", seed=1 + i))  # not copies of one another
     ext = "jpg" if kind in ("cmyk", "truncated", "garbage") else "png"
     bad = folder / f"x_{kind}.{ext}"
     bad.write_bytes(_photo_bytes(kind))

@@ -11,6 +11,7 @@ from torch import Tensor
 from anycity.city.align import ChunkGeometry, apply_sim3, w2c_to_world
 from anycity.geometry.alignment import sim3_matrix, umeyama
 from anycity.geometry.cameras import camera_centers
+from anycity.metrics.pose import rotation_angle_deg
 
 
 def random_rotation(gen: torch.Generator, n: int | None = None) -> Tensor:
@@ -97,15 +98,14 @@ def camera_errors(w2c: Tensor, w2c_gt: Tensor) -> dict:
     aligned = w2c_to_world(w2c, sim3_matrix(s, R, t))
     extent = float((c_gt - c_gt.mean(0)).norm(dim=-1).max())
     Rrel = aligned[:, :3, :3] @ w2c_gt[:, :3, :3].transpose(-1, -2)
-    cos = ((Rrel.diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2).clamp(-1, 1)
-    rot = torch.rad2deg(torch.arccos(cos))
+    rot = rotation_angle_deg(Rrel)
     pos = (camera_centers(aligned) - c_gt).norm(dim=-1) / extent
     # the global rotation fitted to the camera orientations alone (chordal mean), which a poor set of centres
     # (the tiny model's) cannot throw off
     U, _, Vh = torch.linalg.svd((w2c_gt[:, :3, :3].transpose(-1, -2) @ w2c[:, :3, :3]).sum(0))
     Q = U @ torch.diag(torch.tensor([1.0, 1.0, float(torch.det(U @ Vh))], dtype=U.dtype)) @ Vh
     Rq = w2c[:, :3, :3] @ Q.T @ w2c_gt[:, :3, :3].transpose(-1, -2)
-    rot_q = torch.rad2deg(torch.arccos(((Rq.diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2).clamp(-1, 1)))
+    rot_q = rotation_angle_deg(Rq)
     diff = (aligned - w2c_gt).abs()
     diff[:, :3, 3] /= extent
     return {"rot_deg_mean": float(rot.mean()), "rot_deg_max": float(rot.max()),

@@ -27,26 +27,35 @@ def capture_time(path: str | Path) -> str | None:
 
     try:
         with Image.open(path) as im:
-            exif = im.getexif()
-            sub = exif.get_ifd(0x8769)
-            t = sub.get(36867) or exif.get(306)  # DateTimeOriginal, DateTime
-            frac = sub.get(37521) or ""  # SubSecTimeOriginal
+            return exif_capture_time(im.getexif())
     except Exception:  # noqa: BLE001 - unreadable files are reported by the loader, with their name
         return None
-    return f"{t}.{frac}" if t and frac else (str(t) if t else None)
 
 
-def order_photos(paths: list[Path], by: str = "auto") -> tuple[list[int], str]:
+def exif_capture_time(exif) -> str | None:
+    """The capture time ``"YYYY:MM:DD HH:MM:SS"`` (+ ``.sub-seconds`` when present) of a Pillow ``Exif``, or None
+    when it has none or a placeholder (``0000:00:00 00:00:00``, or blanks, as some cameras write with no clock)."""
+    sub = exif.get_ifd(0x8769)
+    t = sub.get(36867) or exif.get(306)  # DateTimeOriginal, DateTime
+    frac = sub.get(37521) or ""  # SubSecTimeOriginal
+    if not t or not str(t).strip("0: \x00"):
+        return None
+    return f"{t}.{frac}" if frac else str(t)
+
+
+def order_photos(paths: list[Path], by: str = "auto", times: list[str | None] | None = None
+                 ) -> tuple[list[int], str]:
     """Indices of ``paths`` in capture order and how it was decided (``"time"`` or ``"name"``).
 
     ``by="auto"`` uses capture time when every photo has a distinct one, else the natural file-name order.
+    ``times``: the photos' :func:`capture_time` when the caller has read them already.
     """
     if by not in ("auto", "time", "name"):
         raise ValueError(f"predict_order: expected 'auto', 'time' or 'name', got {by!r}")
     by_name = sorted(range(len(paths)), key=lambda i: natural_key(paths[i].name))
     if by == "name":
         return by_name, "name"
-    times = [capture_time(p) for p in paths]
+    times = [capture_time(p) for p in paths] if times is None else times
     if all(times) and len(set(times)) == len(times):
         return sorted(by_name, key=lambda i: times[i]), "time"
     if by == "time":

@@ -25,6 +25,7 @@ from anycity.city.align import (
     sim3_inverse,
     sim3_parts,
 )
+from anycity.metrics.pose import rotation_angle_deg
 
 
 def _exp_sim3(p: Tensor) -> Tensor:
@@ -279,7 +280,7 @@ def _loop_correction(C: int, edges: list[Edge], loop: int, S: Tensor) -> dict:
     chain = [edges[i] for i in _without_loop_cycle(edges, loop)]
     D = S[:loop] @ sim3_inverse(pose_graph(C, chain)[0][:loop])
     s, R, _ = sim3_parts(D)
-    deg = torch.rad2deg(torch.arccos(((R.diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2).clamp(-1, 1)))
+    deg = rotation_angle_deg(R)
     k_rot, k_scale = int(deg.argmax()), int(s.log().abs().argmax())
     out = {"loop_rotation_deg": float(deg[k_rot]), "loop_scale": float(s[k_scale])}
     if out["loop_rotation_deg"] > LOOP_WARN_DEG or abs(math.log(out["loop_scale"])) > math.log(LOOP_WARN_SCALE):

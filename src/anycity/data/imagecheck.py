@@ -124,7 +124,12 @@ def exif_orientation(path: str | Path) -> int:
 
 
 def _orientation(im) -> int:
-    o = im.getexif().get(0x0112, 1)
+    return exif_orientation_of(im.getexif())
+
+
+def exif_orientation_of(exif) -> int:
+    """The orientation tag (1..8) of a Pillow ``Exif``; 1 when absent or out of range."""
+    o = exif.get(0x0112, 1)
     return o if o in range(1, 9) else 1
 
 

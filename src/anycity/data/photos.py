@@ -9,16 +9,25 @@ chunks.
 
 from __future__ import annotations
 
+import hashlib
+import os
 import stat
 import warnings
 from collections import Counter
 from pathlib import Path
+from typing import NamedTuple
 
 import cv2
 import numpy as np
 import torch
 
-from anycity.data.imagecheck import check_image_file, exif_orientation, image_size, pil_pixel_limit, read_image
+from anycity.data.imagecheck import (
+    check_image_file,
+    exif_orientation,
+    exif_orientation_of,
+    pil_pixel_limit,
+    read_image,
+)
 from anycity.data.views import jpeg_reduction, resize_plan, resize_view
 
 JPEG_SUFFIXES = (".jpg", ".jpeg", ".jfif", ".jpe")
@@ -49,13 +58,23 @@ def list_photos(folder: str | Path) -> list[Path]:
     Hidden files are not photos: a card copied from a Mac holds a ``._DJI_0001.JPG`` metadata file beside each
     photo. Any other file (camera raw, HEIF, TIFF, BMP, a video, ...) but the sidecars of :data:`SIDECAR_SUFFIXES` is
     named in a warning, as it is not read (in the error, when that leaves under 2 photos). A photo's name on
-    anything but a regular file (a FIFO, a device, a folder) is refused in one line.
+    anything but a regular file (a FIFO, a device, a folder) is refused in one line. A byte-for-byte copy of an
+    earlier photo (by name) is left out with a warning: two copies of one view would be read as two views of the
+    place with no parallax between them, as if it were flat.
     """
     folder = check_photo_folder(folder)
     visible = sorted(p for p in folder.iterdir() if not p.name.startswith("."))
     files = [p for p in visible if _is_photo(p)]
     for p in files:
         _check_regular(p)
+    copies = _copies(files)
+    if copies:
+        files = [p for p in files if p not in copies]
+        shown = ", ".join(f"{c.name} = {o.name}" for c, o in list(copies.items())[:5]) + (" ..." if len(copies) > 5
+                                                                                         else "")
+        warnings.warn(f"predict_images: {len(copies)} photo(s) in {folder} are byte-for-byte copies of another and "
+                      f"are left out ({shown}): a copy would be read as a second view with no parallax",
+                      stacklevel=2)
     unread = [p.name for p in visible
               if p.suffix.lower() not in (*PHOTO_SUFFIXES, *SIDECAR_SUFFIXES) and not p.is_dir()]
     unread_shown = ", ".join(unread[:5]) + (" ..." if len(unread) > 5 else "")
@@ -65,6 +84,7 @@ def list_photos(folder: str | Path) -> list[Path]:
                       f"{'/'.join(PHOTO_SUFFIXES)} photos are; export them as JPEG to use them", stacklevel=2)
     if len(files) < 2:
         only = f" (only {files[0].name})" if files else ""
+        only += f" and {len(copies)} byte-for-byte cop{'y' if len(copies) == 1 else 'ies'} of it" if copies else ""
         photos = "1 photo" if files else "no photos"
         if scenes:  # the parent of several scenes' folders
             shown = ", ".join(scenes[:5]) + (" ..." if len(scenes) > 5 else "")
@@ -77,6 +97,31 @@ def list_photos(folder: str | Path) -> list[Path]:
         raise ValueError(f"predict_images: {folder} holds {photos}{only} ({'/'.join(PHOTO_SUFFIXES)}); "
                          "a scene needs at least 2 overlapping photos, so add more views of it")
     return files
+
+
+def _copies(files: list[Path]) -> dict[Path, Path]:
+    """``{copy: original}`` for each of ``files`` with the same bytes as an earlier one; only files of equal size
+    are hashed, so a folder of distinct photos is not read here."""
+    by_size: dict[int, list[Path]] = {}
+    for p in files:
+        try:
+            by_size.setdefault(p.stat().st_size, []).append(p)
+        except OSError:  # a dangling symlink: "cannot decode ..." when it is read
+            continue
+    copies: dict[Path, Path] = {}
+    for size, same in by_size.items():
+        if len(same) < 2 or size == 0:  # empty files are refused as undecodable, each by name
+            continue
+        first: dict[str, Path] = {}
+        for p in same:
+            h = hashlib.sha1()
+            with open(p, "rb") as f:
+                for block in iter(lambda: f.read(1 << 20), b""):
+                    h.update(block)
+            original = first.setdefault(h.hexdigest(), p)
+            if original is not p:
+                copies[p] = original
+    return copies
 
 
 def _check_regular(path: Path) -> None:
@@ -92,18 +137,51 @@ def _check_regular(path: Path) -> None:
                          "it so that it does not end like a photo")
 
 
-def photo_size(path: Path) -> tuple[int, int]:
-    """``(h, w)`` as displayed (EXIF orientation applied), from the header only; decompression bombs and truncated
-    JPEGs are refused here, before anything is decoded (:func:`anycity.data.imagecheck.check_image_file`)."""
+class PhotoHeader(NamedTuple):
+    """What a photo's header says: ``h, w`` as displayed (EXIF orientation applied), the ``orientation`` (1..8),
+    the capture ``time`` (:func:`anycity.city.plan.exif_capture_time`) and whether it has ``alpha``."""
+
+    h: int
+    w: int
+    orientation: int
+    time: str | None
+    alpha: bool
+
+
+def photo_header(path: Path) -> PhotoHeader:
+    """The :class:`PhotoHeader` of ``path``, from one Pillow open (a PNG's EXIF can follow its pixels, so Pillow
+    decodes a PNG to look for it: once here, not once per tag); decompression bombs and truncated JPEGs are refused
+    first, before anything is decoded (:func:`anycity.data.imagecheck.check_image_file`)."""
+    from PIL import Image
+
+    from anycity.city.plan import exif_capture_time
+
+    if not path.exists():  # a dangling symlink
+        raise ValueError(f"predict_images: {path} is a link to a file that does not exist; fix or remove the link")
     try:
         check_image_file(path)
     except ValueError as e:  # its messages name the file and the fix; this names the argument, as the rest here
         raise ValueError(f"predict_images: {e}") from None
     try:
-        return image_size(path, as_shown=True)
+        with pil_pixel_limit(), Image.open(path) as im:
+            (w, h), exif = im.size, im.getexif()
+            alpha = im.mode in ("RGBA", "LA", "PA", "RGBa", "La") or "transparency" in im.info
     except Exception as e:  # noqa: BLE001 - any decoder error means the same thing to the user
         raise ValueError(f"predict_images: cannot decode {path} ({type(e).__name__}); re-save it as JPEG or PNG, or "
                          "remove it") from None
+    orientation = exif_orientation_of(exif)
+    if orientation in (5, 6, 7, 8):  # rotated by 90 degrees when shown
+        w, h = h, w
+    try:
+        time = exif_capture_time(exif)
+    except Exception:  # noqa: BLE001 - a damaged EXIF block: no capture time, as for a photo without one
+        time = None
+    return PhotoHeader(h, w, orientation, time, alpha)
+
+
+def photo_size(path: Path) -> tuple[int, int]:
+    """``(h, w)`` as displayed (EXIF orientation applied), from the header (:func:`photo_header`)."""
+    return photo_header(path)[:2]
 
 
 def common_size(sizes: list[tuple[int, int]], size: tuple[int, int], mode: str = "keep", patch: int = 14
@@ -123,12 +201,12 @@ def common_size(sizes: list[tuple[int, int]], size: tuple[int, int], mode: str =
 
 
 def load_photo(path: Path, hw: tuple[int, int], mode: str = "keep", patch: int = 14,
-               size: tuple[int, int] | None = None) -> torch.Tensor:
+               size: tuple[int, int] | None = None, orientation: int | None = None) -> torch.Tensor:
     """One photo -> ``[3, H, W]`` float32 RGB in [0, 1] at exactly ``hw`` (its aspect kept when it matches).
 
     A JPEG much larger than ``hw`` is decoded at 1/2, 1/4 or 1/8 of its size by libjpeg's DCT scaling (a 20 MP
     drone photo for a 448x672 input: 43 instead of 253 ms with the resize), then area-resized as in full.
-    ``size``: the photo's :func:`photo_size` when the caller has read it already.
+    ``size``, ``orientation``: the photo's :func:`photo_header` fields when the caller has read them already.
     """
     def fit(h: int, w: int) -> str:  # the folder's aspect ratio: kept; another one (or mode "crop"): cover, crop
         return "keep" if mode == "keep" and resize_plan(h, w, hw, "keep", patch)[2:] == tuple(hw) else "crop"
@@ -144,7 +222,7 @@ def load_photo(path: Path, hw: tuple[int, int], mode: str = "keep", patch: int =
     bgr = read_image(path, flag | cv2.IMREAD_IGNORE_ORIENTATION)
     if bgr is None:
         raise ValueError(f"predict_images: cannot decode {path}; re-save it as JPEG or PNG, or remove it")
-    bgr = oriented(bgr, exif_orientation(path))
+    bgr = oriented(bgr, exif_orientation(path) if orientation is None else orientation)
     h, w = bgr.shape[0] * r, bgr.shape[1] * r  # the full size (r divides both sides)
     K = np.array([[max(h, w), 0, w / 2], [0, max(h, w), h / 2], [0, 0, 1]], np.float64)  # unused placeholder
     rgb, *_ = resize_view(np.ascontiguousarray(bgr[..., ::-1]), K, hw, fit(h, w), patch, src_hw=(h, w))
@@ -164,7 +242,7 @@ GENERIC_FOLDERS = {"images", "imgs", "image", "photos", "input", "inputs", "rgb"
 def scene_name(folder: Path) -> str:
     """The scene's name for outputs: the folder's own name, or its parent's when the folder has a generic name
     (``boruszyn_kap/images`` -> ``boruszyn_kap``, as in the COLMAP / nerfstudio layouts)."""
-    folder = Path(folder).resolve()
+    folder = Path(os.path.abspath(folder))  # a symlinked folder keeps its own name, not its target's
     if folder.name.lower() in GENERIC_FOLDERS and folder.parent.name:
         return folder.parent.name
     return folder.name
@@ -190,13 +268,18 @@ class PhotoFolder:
 
         self.folder = Path(folder)
         files = list_photos(self.folder)
-        with pil_pixel_limit():  # order_photos reads capture times with Pillow
-            idx, self.ordered_by = order_photos(files, order)
+        self._headers = {f: photo_header(f) for f in files}  # read once: load reuses them
+        idx, self.ordered_by = order_photos(files, order, [self._headers[f].time for f in files])
         self.files = [files[i] for i in idx]
         self.names = [f.name for f in self.files]
         self.mode, self.patch = mode, patch
-        self._sizes = {f: photo_size(f) for f in self.files}  # the headers, read once (load reuses them)
-        self.hw, odd = common_size([self._sizes[f] for f in self.files], tuple(size), mode, patch)
+        alpha = [f.name for f in self.files if self._headers[f].alpha]
+        if alpha:
+            shown = ", ".join(alpha[:5]) + (" ..." if len(alpha) > 5 else "")
+            warnings.warn(f"predict_images: {len(alpha)} photo(s) in {self.folder} have transparency ({shown}); it "
+                          "is not read: a transparent pixel goes in as the colour stored under it (often black). "
+                          "Flatten them onto the background you want to use them as intended", stacklevel=2)
+        self.hw, odd = common_size([self._headers[f][:2] for f in self.files], tuple(size), mode, patch)
         if odd:
             shown = ", ".join(self.names[i] for i in odd[:5]) + (" ..." if len(odd) > 5 else "")
             warnings.warn(f"predict_images: {len(odd)} of {len(self.files)} photos in {self.folder} ({shown}) have "
@@ -217,8 +300,9 @@ class PhotoFolder:
     def load(self, indices: list[int] | None = None) -> torch.Tensor:
         """``[V, 3, H, W]`` float32 of the photos at ``indices`` (all by default)."""
         indices = range(len(self)) if indices is None else indices
-        return torch.stack([load_photo(self.files[i], self.hw, self.mode, self.patch, self._sizes[self.files[i]])
-                            for i in indices])
+        heads = [self._headers[self.files[i]] for i in indices]
+        return torch.stack([load_photo(self.files[i], self.hw, self.mode, self.patch, (hd.h, hd.w), hd.orientation)
+                            for i, hd in zip(indices, heads)])
 
 
 def load_photo_folder(folder: str | Path, size: tuple[int, int], mode: str = "keep", patch: int = 14,

@@ -90,7 +90,8 @@ def _frame_embedding(v: int, dim: int, device) -> Tensor:
 class SmallVideoPrior(nn.Module):
     """Conv stem (stride ``stride``) + ``depth`` transformer blocks over all views' tokens.
 
-    ``[B, V, 3, H, W] -> [B, V * (H/stride) * (W/stride), dim]``.
+    ``[B, V, 3, H, W] -> [B, V * (H'/stride) * (W'/stride), dim]``: a side under ``stride`` (a very wide photo's
+    height) is first resized up to ``stride`` (``H' = max(H, stride)``), as the Wan prior does.
     """
 
     def __init__(self, dim: int = 64, depth: int = 1, num_heads: int = 4, stride: int = 16):
@@ -109,9 +110,11 @@ class SmallVideoPrior(nn.Module):
 
     def forward(self, images: Tensor) -> Tensor:
         b, v, _, h, w = images.shape
-        if h < self.stride or w < self.stride:
-            raise ValueError(f"SmallVideoPrior: images must be at least {self.stride} px, got {h}x{w}")
-        x = self.stem(images.flatten(0, 1) * 2 - 1)  # [B*V, D, h, w]
+        x = images.flatten(0, 1)
+        if h < self.stride or w < self.stride:  # else the stem leaves no token
+            size = (max(h, self.stride), max(w, self.stride))
+            x = F.interpolate(x, size=size, mode="bilinear", align_corners=False)
+        x = self.stem(x * 2 - 1)  # [B*V, D, h, w]
         x = x.flatten(2).transpose(1, 2).unflatten(0, (b, v))  # [B, V, h*w, D]
         x = (x + _frame_embedding(v, self.out_dim, x.device)[None, :, None].to(x.dtype)).flatten(1, 2)
         for blk in self.blocks:

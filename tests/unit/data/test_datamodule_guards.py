@@ -234,7 +234,7 @@ def test_a_missing_photo_folder_is_refused_when_the_datamodule_is_built(tmp_path
     with pytest.raises(ValueError, match=r"^predict_images: .* holds 1 photo \(only a.jpg\).*a scene needs at least 2 "
                                          r"overlapping photos[^\n]*$"):
         AerialDataModule(predict_images=str(tmp_path))  # refused by the loader's own listing, not at predict
-    (tmp_path / "b.jpg").write_bytes(b"not decoded here")
+    (tmp_path / "b.jpg").write_bytes(b"not decoded here either")
     AerialDataModule(predict_images=str(tmp_path))  # the photos themselves are decoded by predict
 
 

@@ -42,8 +42,8 @@ def test_a_folder_of_survey_frames_is_planned_without_a_bomb_warning(tmp_path):
     """Predict's photo folder reads each header twice (size, capture time) with Pillow: never a warning."""
     from anycity.data.photos import PhotoFolder
 
-    for name in ("a.jpg", "b.jpg"):
-        (tmp_path / name).write_bytes(_declaring(11664, 8750))
+    for name, tail in (("a.jpg", b""), ("b.jpg", b"\0")):  # two frames: not byte-for-byte copies
+        (tmp_path / name).write_bytes(_declaring(11664, 8750) + tail)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         photos = PhotoFolder(tmp_path, (28, 42), patch=14)
