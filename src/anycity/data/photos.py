@@ -237,15 +237,30 @@ def oriented(img: np.ndarray, orientation: int) -> np.ndarray:
 
 
 GENERIC_FOLDERS = {"images", "imgs", "image", "photos", "input", "inputs", "rgb", "jpg", "jpgs"}
+# file names may hold 255 bytes; the outputs' hidden siblings (".<scene>.anycity_city_work", ".<scene>.partial",
+# ".<scene>.anycity-run.lock", ...) add up to 30 to the scene's name
+MAX_SCENE_NAME_BYTES = 200
 
 
 def scene_name(folder: Path) -> str:
     """The scene's name for outputs: the folder's own name, or its parent's when the folder has a generic name
-    (``boruszyn_kap/images`` -> ``boruszyn_kap``, as in the COLMAP / nerfstudio layouts)."""
+    (``boruszyn_kap/images`` -> ``boruszyn_kap``, as in the COLMAP / nerfstudio layouts). A name over
+    :data:`MAX_SCENE_NAME_BYTES` (UTF-8) is cut there and given 8 hex digits of its hash, with a warning."""
     folder = Path(os.path.abspath(folder))  # a symlinked folder keeps its own name, not its target's
-    if folder.name.lower() in GENERIC_FOLDERS and folder.parent.name:
-        return folder.parent.name
-    return folder.name
+    name = folder.parent.name if folder.name.lower() in GENERIC_FOLDERS and folder.parent.name else folder.name
+    raw = name.encode("utf-8", "surrogateescape")
+    if len(raw) <= MAX_SCENE_NAME_BYTES:
+        return name
+    short, size = "", 0
+    for ch in name:  # whole characters, up to the budget less "-" and the hash
+        size += len(ch.encode("utf-8", "surrogateescape"))
+        if size > MAX_SCENE_NAME_BYTES - 9:
+            break
+        short += ch
+    short = f"{short}-{hashlib.sha1(raw).hexdigest()[:8]}"
+    warnings.warn(f"predict_images: the scene's name ({name[:40]}..., {len(raw)} bytes) is too long for its output "
+                  f"files; they are named {short}", stacklevel=2)
+    return short
 
 
 class PhotoFolder:

@@ -118,8 +118,9 @@ def save_points_ply(path: str | Path, g: Gaussians, index: int = 0, max_points: 
 
 
 def _write_lines(path: Path, lines: list[str]) -> None:
-    """``lines`` as a text file, one a line."""
-    atomic_write_bytes(path, ("\n".join(lines) + "\n").encode())
+    """``lines`` as a text file, one a line; a photo name that is not UTF-8 (a latin-1 ``caf\\xe9.jpg``, which
+    Python holds as surrogate escapes) is written as the bytes of the file's own name."""
+    atomic_write_bytes(path, ("\n".join(lines) + "\n").encode("utf-8", "surrogateescape"))
 
 
 def transforms_dict(w2c: Tensor, K: Tensor, width: int, height: int, names: list[str],

@@ -512,3 +512,21 @@ def test_a_dangling_link_is_named_as_a_link(tmp_path):
     with pytest.raises(ValueError, match=r"^predict_images: .*c.jpg is a link to a file that does not exist; fix or "
                                          r"remove the link$"):
         PhotoFolder(d, (32, 32), "crop", 8)
+
+
+def test_a_folder_name_too_long_for_the_outputs_is_shortened_with_a_hash(tmp_path):
+    """A legal 246-byte folder name stopped predict with a traceback (OSError: File name too long) when its lock file
+    .<name>.anycity-run.lock was made; names over 200 bytes are cut on a character and given a hash."""
+    from anycity.data.photos import MAX_SCENE_NAME_BYTES, scene_name
+
+    long = "flight_" * 35 + "x"
+    with pytest.warns(UserWarning, match=r"^predict_images: the scene.s name \(flight_flight_.*246 bytes\) is too"):
+        short = scene_name(tmp_path / long)
+    assert len(short.encode()) <= MAX_SCENE_NAME_BYTES and short.startswith("flight_flight_")
+    with pytest.warns(UserWarning, match="too long"):
+        assert short != scene_name(tmp_path / (long + "y")) and short == scene_name(tmp_path / long / "images")
+    cjk = "航拍" * 40  # 240 bytes in UTF-8: cut on a character, not inside one
+    with pytest.warns(UserWarning, match="too long"):
+        assert len(scene_name(tmp_path / cjk).encode()) <= MAX_SCENE_NAME_BYTES
+    assert scene_name(tmp_path / ("a" * 200)) == "a" * 200  # at the limit: kept
+    (tmp_path / f".{short}.anycity_city_work.partial.kept-123456-abcdef01").mkdir()  # the longest sibling fits

@@ -363,3 +363,18 @@ def test_image_names_keep_only_a_names_last_component():
     got = image_names(["../../x/ESC.jpg", "/abs/dir/Y", "a\\b.JPG", "..", "c\0d"])
     assert got == ["ESC.png", "Y.png", "b.png", "view.png", "cd.png"]
     assert all("/" not in n and "\\" not in n and "\0" not in n for n in got)
+
+
+def test_a_photo_name_that_is_not_utf8_is_written_to_images_txt_as_its_own_bytes(tmp_path):
+    """A latin-1 ``caf\\xe9.jpg`` (held as a surrogate escape) loaded and predicted, then the COLMAP export stopped
+    with "'utf-8' codec can't encode character '\\udce9'": the name is written as the file name's bytes."""
+    import torch
+
+    from anycity.export.formats import save_colmap
+
+    w2c = torch.eye(4)[None].repeat(2, 1, 1)
+    K = torch.tensor([[40.0, 0, 24], [0, 40, 16], [0, 0, 1]])[None].repeat(2, 1, 1)
+    name = b"caf\xe9.jpg".decode("utf-8", "surrogateescape")
+    save_colmap(tmp_path / "c", w2c, K, 48, 32, ["a.jpg", name])
+    lines = [ln for ln in (tmp_path / "c" / "images.txt").read_bytes().splitlines() if ln and ln[:1] != b"#"]
+    assert lines[0].endswith(b" a.jpg") and lines[1].endswith(b" caf\xe9.jpg")
