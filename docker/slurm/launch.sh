@@ -22,7 +22,8 @@ if [[ "${SLURM_PROCID:-0}" == 0 ]]; then  # temp files a killed save left (anyci
     find "${run_dir}" "${run_dir}/checkpoints" -maxdepth 1 -type f -name '.anycity-tmp-*' -print -delete 2>/dev/null \
         | sed 's/^/launch.sh: deleted the unfinished save /' >&2 || true
 fi
-newest=$(ls -1t "${run_dir}"/hpc_ckpt_*.ckpt "${run_dir}/checkpoints/last.ckpt" 2>/dev/null | head -n 1 || true)
+newest=$(ls -1t "${run_dir}"/hpc_ckpt_*.ckpt "${run_dir}"/checkpoints/last.ckpt "${run_dir}"/checkpoints/last-v*.ckpt \
+    2>/dev/null | head -n 1 || true)  # last-vN.ckpt: an older anycity's resume of a moved run versioned its last
 if [[ -n "${newest}" ]]; then
     resume=(--ckpt_path "${newest}")
     echo "launch.sh: resuming from ${newest}" >&2

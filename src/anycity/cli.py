@@ -132,6 +132,25 @@ def check_accelerator(trainer: dict | None) -> None:
                              f"supported: it has no float64, which anycity needs); pass --trainer.accelerator {fix}")
 
 
+def check_nodes(trainer: dict | None) -> None:
+    """Refuse ``trainer.num_nodes`` > 1 outside a multi-node job (no SLURM, torchrun or LSF environment, no
+    ``NODE_RANK``/``MASTER_ADDR`` of a hand-started or Kubeflow one): the run would wait for nodes that never come,
+    silently, until the process group's timeout (30 min). A multi-node run's ``config.yaml``, reused for a ``test``
+    on one machine as the docs show, keeps its ``num_nodes``."""
+    import os
+
+    nodes = (_as_dict(trainer) or {}).get("num_nodes") or 1
+    if not isinstance(nodes, int) or nodes <= 1 or {"NODE_RANK", "MASTER_ADDR"} & set(os.environ):
+        return
+    from lightning.fabric.plugins.environments import LSFEnvironment, SLURMEnvironment, TorchElasticEnvironment
+
+    if any(env.detect() for env in (SLURMEnvironment, TorchElasticEnvironment, LSFEnvironment)):
+        return  # (Kubeflow's PyTorchJob sets MASTER_ADDR)
+    raise ValueError(f"trainer.num_nodes {nodes}: this machine is not in a multi-node job (no SLURM, torchrun or LSF "
+                     "environment, no NODE_RANK/MASTER_ADDR), so the run would wait for the other nodes "
+                     "until its timeout; pass --trainer.num_nodes 1 (and --trainer.devices N for this machine's GPUs)")
+
+
 def check_run_folder(trainer: dict | None) -> None:
     """Refuse a ``trainer.default_root_dir`` that a CSV or TensorBoard logger's ``save_dir`` contradicts: Lightning
     writes the checkpoints and logs under the logger's folder, so a config (an ablation on the quickstart) or a
@@ -326,6 +345,7 @@ def _cli_class():
             if subcommand == "fit":
                 ckpts = [f for c in t.checkpoint_callbacks if getattr(c, "dirpath", None)
                          for f in Path(c.dirpath).glob("*.ckpt") if f.is_file()]
+                ckpts += [f for f in Path(t.default_root_dir).glob("hpc_ckpt_*.ckpt") if f.is_file()]  # SIGUSR1's
                 newest = max(ckpts, key=lambda f: f.stat().st_mtime) if ckpts else None
                 how = (f"resume with the same command and --ckpt_path {newest}" if newest else
                        "nothing to resume from: rerun the command to start again")
@@ -378,6 +398,15 @@ def _cli_class():
             for k, v in keep.items():
                 self.config[f"{sub}.model.init_args.{k}"] = v
             now_class = self.config.get(f"{sub}.model.class_path") if sub else None
+            if asked_class and now_class and now_class != asked_class and sub == "fit":
+                # a Stage II job sent to a Stage I run folder resumed Stage I under Stage II's trainer settings (or,
+                # Stage I done, ended at once with exit 0, and the jobs waiting on it started)
+                have, want = now_class.rsplit(".", 1)[-1], asked_class.rsplit(".", 1)[-1]
+                fix = ("to start Stage II from it, pass it as --model.init_args.init_from in another run folder"
+                       if (have, want) == ("ScaffoldModule", "RefinementModule") else
+                       "resume it with its own stage's config, or give this fit another run folder")
+                raise ValueError(f"--ckpt_path {self.config[sub].get('ckpt_path')} holds a {have}, but the config "
+                                 f"fits a {want}: a fit resumes its own stage; {fix}")
             if asked_class and now_class and now_class != asked_class:  # Lightning takes the checkpoint's class
                 from lightning.pytorch.utilities import rank_zero_warn
 
@@ -406,6 +435,7 @@ def _cli_class():
             sub = self.subcommand
             config = self.config[sub] if sub else self.config
             check_accelerator(config.get("trainer"))
+            check_nodes(config.get("trainer"))
             check_run_folder(config.get("trainer"))
             if sub in ("validate", "test", "predict"):
                 require_weights(sub, config)

@@ -431,3 +431,27 @@ def test_apple_mps_is_refused_in_one_line(accelerator, monkeypatch):
     with pytest.raises(ValueError, match=r"^trainer.accelerator mps: anycity runs on CUDA GPUs and the CPU only .*"
                                          r"--trainer.accelerator gpu$"):
         check_accelerator({"accelerator": "mps"})
+
+
+def test_a_multi_node_config_outside_a_multi_node_job_is_refused(tiny_shards, tmp_path, capsys, monkeypatch):
+    """A 2-node run's config.yaml reused for a test on one machine waited for ranks that never started, silently,
+    until the process group's 30 min timeout (a fit too); inside SLURM/torchrun, or with NODE_RANK/MASTER_ADDR set,
+    it runs."""
+    from anycity.cli import check_nodes
+
+    for var in ("SLURM_NTASKS", "SLURM_JOB_NAME", "SLURM_NODELIST", "TORCHELASTIC_RUN_ID", "LSB_JOBID", "NODE_RANK",
+                "MASTER_ADDR", "WORLD_SIZE", "LOCAL_RANK", "GROUP_RANK", "RANK"):
+        monkeypatch.delenv(var, raising=False)
+    rc = main(["fit", *_tiny_args(tiny_shards, tmp_path / "r"), "--trainer.num_nodes", "2"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and err[-1].startswith("anycity: error: trainer.num_nodes 2: this machine is not in a multi-node "
+                                          "job") and "--trainer.num_nodes 1" in err[-1], err
+    assert not (tmp_path / "r").exists()  # before the run wrote anything
+    check_nodes({"num_nodes": 1})
+    monkeypatch.setenv("NODE_RANK", "1")  # a hand-started multi-node run
+    check_nodes({"num_nodes": 2})
+    monkeypatch.delenv("NODE_RANK")
+    monkeypatch.setenv("TORCHELASTIC_RUN_ID", "x")  # torchrun
+    for var, value in (("RANK", "0"), ("WORLD_SIZE", "2"), ("LOCAL_RANK", "0"), ("GROUP_RANK", "0")):
+        monkeypatch.setenv(var, value)
+    check_nodes({"num_nodes": 2})

@@ -449,11 +449,16 @@ def test_the_sigterm_line_names_the_newest_checkpoint_of_every_checkpoint_folder
         folder.mkdir(exist_ok=True)
         (folder / name).write_bytes(b"x")
         os.utime(folder / name, (mtime, mtime))
-    trainer = SimpleNamespace(global_rank=0, global_step=4,
+    trainer = SimpleNamespace(global_rank=0, global_step=4, default_root_dir=str(tmp_path),
                               checkpoint_callbacks=[SimpleNamespace(dirpath=str(a)), SimpleNamespace(dirpath=str(b))])
     line = cli._cli_class()._stopped(SimpleNamespace(trainer=trainer), "fit")
     assert line == (f"stopped by SIGTERM at step 4; the newest checkpoint is {b / 'step4.ckpt'}; resume with the same "
                     f"command and --ckpt_path {b / 'step4.ckpt'}")
+    # a SIGUSR1 requeue checkpoint in the run folder, newer than last.ckpt, was left out of the candidates
+    (tmp_path / "hpc_ckpt_1.ckpt").write_bytes(b"x")
+    os.utime(tmp_path / "hpc_ckpt_1.ckpt", (1002, 1002))
+    line = cli._cli_class()._stopped(SimpleNamespace(trainer=trainer), "fit")
+    assert line.startswith(f"stopped by SIGTERM at step 4; the newest checkpoint is {tmp_path / 'hpc_ckpt_1.ckpt'};")
 
 
 def test_export_typos_a_model_class_typo_and_another_stages_key_are_named(tmp_path, capsys, monkeypatch):

@@ -136,3 +136,25 @@ def test_requeued_job_resumes_from_the_newest_checkpoint(ddp_shards, tmp_path):
     assert_params_equal(tmp_path / "probe")  # both ranks resumed and trained in one process group
     if newest != candidates[0]:  # a preemption checkpoint older than the one resumed from is deleted
         assert not candidates[0].exists()
+
+
+def test_launch_resumes_from_the_newest_of_the_preemption_and_last_checkpoints(tmp_path):
+    """launch.sh names the newest (by modification time) of RUN_DIR/hpc_ckpt_*.ckpt, checkpoints/last.ckpt and an
+    older anycity's versioned checkpoints/last-vN.ckpt (a moved run's resume wrote those, and launch.sh went back to
+    the stale last.ckpt); a fresh RUN_DIR starts afresh."""
+    run = tmp_path / "run"
+    (run / "checkpoints").mkdir(parents=True)
+
+    def launch() -> str:
+        env = {**os.environ, "ANYCITY": "echo anycity", "CONTAINER": "", "SLURM_PROCID": "1"}
+        out = subprocess.run(["bash", str(ROOT / "docker/slurm/launch.sh"), "cfg.yaml", str(run)], env=env,
+                             capture_output=True, text=True, check=True)
+        return out.stderr + out.stdout
+
+    assert "--ckpt_path" not in launch()
+    for name, mtime in (("checkpoints/last.ckpt", 1000), ("hpc_ckpt_1.ckpt", 1001), ("checkpoints/last-v1.ckpt", 1002)):
+        (run / name).write_bytes(b"x")
+        os.utime(run / name, (mtime, mtime))
+    assert f"launch.sh: resuming from {run / 'checkpoints' / 'last-v1.ckpt'}" in launch()
+    os.utime(run / "hpc_ckpt_1.ckpt", (1003, 1003))
+    assert f"--ckpt_path {run / 'hpc_ckpt_1.ckpt'}" in launch()

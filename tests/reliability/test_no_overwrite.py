@@ -469,3 +469,43 @@ def test_a_run_refused_for_its_input_leaves_the_previous_runs_logs_where_they_we
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and re.match(r"anycity: error: val shards: [^\n]*index.json lists none", err)
     assert not (tmp_path / "fit_run").exists() or not any((tmp_path / "fit_run").iterdir())
+
+
+def test_a_run_resumed_in_another_folder_writes_over_its_last_ckpt_and_not_last_v1(tiny_shards, tmp_path):
+    """Lightning restores where it wrote ``last`` only for the checkpoint folder path it stored: a copied or moved
+    run (or a SLURM RUN_DIR relative in one job, absolute in the next) wrote last-v1.ckpt beside the stale
+    last.ckpt, which launch.sh, Stage II's init_from and --ckpt_path last then read (step 4, not 8)."""
+    import shutil
+
+    import torch
+
+    ck = ["-c", str(tmp_path / "ck.yaml")]
+    (tmp_path / "ck.yaml").write_text("trainer:\n  callbacks:\n  - class_path: lightning.pytorch.callbacks."
+                                      "ModelCheckpoint\n    init_args: {save_last: true, save_top_k: 0, "
+                                      "every_n_train_steps: 1}\n")
+    a, b = tmp_path / "a", tmp_path / "b"
+    build_cli(["fit", *_args(tiny_shards, a, ck + ["--trainer.max_steps", "2"])])
+    shutil.copytree(a, b)
+    build_cli(["fit", *_args(tiny_shards, b, ck + ["--trainer.max_steps", "3"]),
+               "--ckpt_path", str(b / "checkpoints" / "last.ckpt")])
+    assert sorted(p.name for p in (b / "checkpoints").iterdir()) == ["last.ckpt"]
+    assert torch.load(b / "checkpoints" / "last.ckpt", weights_only=False)["global_step"] == 3
+
+
+def test_a_stage2_fit_resuming_a_stage1_checkpoint_is_refused(tiny_shards, tmp_path, capsys):
+    """A Stage II job sent to a Stage I run folder resumed Stage I under Stage II's trainer settings, with only a
+    warning (Stage I done: it ended at once with exit 0, and the jobs waiting on it started)."""
+    ck = ["-c", str(tmp_path / "ck.yaml")]
+    (tmp_path / "ck.yaml").write_text("trainer:\n  callbacks:\n  - class_path: lightning.pytorch.callbacks."
+                                      "ModelCheckpoint\n    init_args: {save_last: true, save_top_k: 0, "
+                                      "every_n_train_steps: 1}\n")
+    run = tmp_path / "s1"
+    build_cli(["fit", *_args(tiny_shards, run, ck)])
+    last = run / "checkpoints" / "last.ckpt"
+    stage2 = ["-c", str(REPO / "configs/quickstart_stage2.yaml")]
+    assert main(["fit", *_args(tiny_shards, run, ck), *stage2, "--ckpt_path", str(last)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and re.match(
+        rf"anycity: error: --ckpt_path {re.escape(str(last))} holds a ScaffoldModule, but the config fits a "
+        r"RefinementModule: a fit resumes its own stage; to start Stage II from it, pass it as "
+        r"--model.init_args.init_from in another run folder", err), err

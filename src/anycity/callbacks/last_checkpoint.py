@@ -1,4 +1,4 @@
-"""``last.ckpt`` holds the step a finished fit ended at.
+"""``last.ckpt`` holds the step a finished fit ended at, and a resumed fit's newest step.
 
 Lightning (2.6) writes ``last.ckpt`` at the end of training only when its ``ModelCheckpoint`` saved nothing during
 the run. So a ``max_steps`` that is not a multiple of ``every_n_train_steps`` left ``last.ckpt`` at the last
@@ -7,6 +7,8 @@ multiple (a 1500-step quickstart Stage I: step 1000), and whatever read it next 
 """
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import lightning.pytorch as pl
 from lightning.pytorch.callbacks import Callback, ModelCheckpoint
@@ -32,6 +34,19 @@ class FinalLastCheckpoint(Callback):
     the global step, the same on every rank. Lightning calls ``on_train_end`` only when the training loop ends by
     itself (``max_steps``, ``max_epochs``, a callback's ``should_stop``): an exception, SIGTERM (also under SLURM)
     or Ctrl-C goes to ``on_exception`` instead, so an interrupted run writes nothing here."""
+
+    def on_train_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        """A resumed fit writes its ``last`` over the folder's ``last.ckpt``: Lightning restores where it wrote
+        ``last`` only when the checkpoint folder's path is the one stored (not for a copied or moved run, or one
+        named relative in one SLURM job and absolute in the next), and else wrote ``last-v1.ckpt`` beside the old
+        ``last.ckpt``, which ``launch.sh``, Stage II's ``init_from`` and ``--ckpt_path last`` then read."""
+        if not trainer.ckpt_path:
+            return
+        for cb in trainer.checkpoint_callbacks:
+            if isinstance(cb, ModelCheckpoint) and cb.save_last and cb.dirpath and not cb.last_model_path:
+                last = cb.format_checkpoint_name({}, cb.CHECKPOINT_NAME_LAST)  # the name its next save compares
+                if Path(last).is_file():
+                    cb.last_model_path = last
 
     def on_train_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
         missing = missing_private_api()
