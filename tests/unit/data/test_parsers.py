@@ -211,13 +211,147 @@ def test_colmap_distorted_and_missing(tmp_path):
         convert("colmap", tmp_path / "scene" / "images", tmp_path / "o2")
     with pytest.raises(FileNotFoundError):
         convert("colmap", tmp_path / "nothing", tmp_path / "o3")
-    # the model folder instead of the scene's: named with the folder to pass (it said "images/v0.png: not found")
+    # the model folder instead of the scene's converts that model, with the scene's images/ and name (it was
+    # refused, and before that said "images/v0.png: not found")
     ok = tmp_path / "ok"
     _images(ok / "images", [f"v{i}.png" for i in range(N)])
     _write_colmap_bin(ok / "sparse" / "0", _gt())
-    with pytest.raises(FileNotFoundError, match=f"is the scene's COLMAP model folder; pass --src the scene folder "
-                                                f"that holds images/ and sparse/: {ok}$"):
-        convert("colmap", ok / "sparse" / "0", tmp_path / "o4")
+    meta = _check_convert("colmap", ok / "sparse" / "0", tmp_path / "o4", _gt())
+    assert meta["extra"]["scene"] == "ok"
+
+
+def _colmap_models(scene, models):
+    """COLMAP models of ``_gt()`` at ``scene``'s ``models`` (folders relative to it: binary; text for ``sparse``
+    itself, holding the first two images only) and its ``images/``."""
+    _images(scene / "images", [f"v{i}.png" for i in range(N)])
+    for m in models:
+        if m == "sparse":
+            (scene / "sparse").mkdir(exist_ok=True)
+            (scene / "sparse" / "cameras.txt").write_text(f"1 PINHOLE {W} {H} 30 31 16 12\n")
+            (scene / "sparse" / "images.txt").write_text("".join(_image_blocks(_gt()[:2])))
+        else:
+            _write_colmap_bin(scene / m, _gt())
+
+
+@pytest.mark.parametrize("models", [["sparse/0", "sparse/1"], ["sparse", "sparse/0", "sparse/1"]])
+def test_a_colmap_scene_with_several_models_is_refused_naming_each(tmp_path, models):
+    """The mapper writes sparse/0, sparse/1, ... for disconnected parts, and a merge script writes sparse/ beside
+    them: only the first of sparse/0, sparse was read, the other model's images warned of as "not registered"."""
+    _colmap_models(tmp_path / "scene", models)
+    counts = {"sparse": 2, "sparse/0": N, "sparse/1": N}
+    listed = ", ".join(f"{m} \\({counts[m]} images\\)" for m in models)
+    with pytest.raises(ValueError, match=rf"^{tmp_path}/scene: {len(models)} COLMAP models, {listed}; pass --src "
+                                         rf"{tmp_path}/scene/sparse/N \(one model\), or merge them \(colmap "
+                                         r"model_merger\) into one$"):
+        convert("colmap", tmp_path / "scene", tmp_path / "out")
+
+
+def test_the_one_model_of_a_colmap_scene_is_read_whatever_its_number(tmp_path):
+    _colmap_models(tmp_path / "scene", ["sparse/1"])
+    _check_convert("colmap", tmp_path / "scene", tmp_path / "out", _gt())
+
+
+def test_src_one_model_of_a_scene_converts_it_and_names_that_model_in_the_warning(tmp_path):
+    scene = tmp_path / "scene"
+    _colmap_models(scene, ["sparse", "sparse/0", "sparse/1"])
+    _images(scene / "images", ["v0.png", "v1.png", "v2.png", "stray.png"])
+    with pytest.warns(UserWarning, match=rf"images: 2 image\(s\) are not in the COLMAP model {scene}/sparse and are "
+                                         r"left out: stray\.png, v2\.png$"):
+        meta = _check_convert("colmap", scene / "sparse", tmp_path / "out", _gt()[:2])
+    assert meta["extra"]["scene"] == "scene"
+    with pytest.warns(UserWarning, match=rf"not in the COLMAP model {scene}/sparse/1 and are left out: stray\.png$"):
+        meta = _check_convert("colmap", scene / "sparse" / "1", tmp_path / "out1", _gt())
+    assert meta["extra"]["scene"] == "scene"
+
+
+def test_a_folder_of_colmap_scenes_skips_those_without_a_model_with_one_warning(tmp_path):
+    """A scene whose SfM failed (images/ only, or an empty sparse/) was passed over silently, or stopped the run."""
+    for name in ("a", "b"):
+        _colmap_scene(tmp_path / "src" / name, [f"v{i}.png" for i in range(N)])
+    _images(tmp_path / "src" / "failed" / "images", ["v0.png"])
+    _images(tmp_path / "src" / "empty" / "images", ["v0.png"])
+    (tmp_path / "src" / "empty" / "sparse").mkdir()
+    with pytest.warns(UserWarning, match=rf"^{tmp_path}/src: skipped 2 sub-folder\(s\), no COLMAP model in sparse/: "
+                                         r"empty, failed$"):
+        convert("colmap", tmp_path / "src", tmp_path / "out", split="train")
+    assert sorted(m["extra"]["scene"] for m in _read(tmp_path / "out")) == ["a", "b"]
+    for name in ("a", "b"):
+        shutil.rmtree(tmp_path / "src" / name)
+    with pytest.raises(FileNotFoundError, match=r"src: no COLMAP model"):
+        convert("colmap", tmp_path / "src", tmp_path / "out2")
+
+
+def test_a_camera_model_id_a_newer_colmap_added_is_named_as_such(tmp_path):
+    """COLMAP 4.x's ids 12+ (SIMPLE_DIVISION, ..., EQUIRECTANGULAR) were called "the file is corrupt"."""
+    _images(tmp_path / "scene" / "images", [f"v{i}.png" for i in range(N)])
+    _write_colmap_bin(tmp_path / "scene" / "sparse" / "0", _gt(), model_id=12, params=(30.0, 16.0, 12.0, -1e-7))
+    with pytest.raises(ValueError, match=r"cameras\.bin: camera model id 12 is not one this reader knows \(a newer "
+                                         r"COLMAP's lens model, or a damaged file\); undistort first \(colmap "
+                                         r"image_undistorter\) so the model is PINHOLE, or export the model as text to "
+                                         r"see its name$"):
+        convert("colmap", tmp_path / "scene", tmp_path / "out")
+
+
+@pytest.mark.parametrize("kind", ["bin", "txt"])
+def test_converting_reads_neither_the_2d_observations_nor_the_3d_points(tmp_path, kind):
+    """They were parsed and held (a city model: minutes and GB) though converting never uses them: a damaged
+    points3D file or POINTS2D line does not stop it, and read_model(points=False) leaves them empty."""
+    from anycity.data.parsers.colmap import read_model
+
+    scene = tmp_path / "scene"
+    if kind == "bin":
+        _images(scene / "images", [f"v{i}.png" for i in range(N)])
+        _write_colmap_bin(scene / "sparse" / "0", _gt())  # one observation per image
+        model = read_model(scene)  # the default still reads them
+        assert list(model.points) == [7] and all(im["point3D_ids"].tolist() == [7] for im in model.images.values())
+        (scene / "sparse" / "0" / "points3D.bin").write_bytes(b"garbage")
+    else:
+        _colmap_scene(scene, [f"v{i}.png" for i in range(N)])
+        (scene / "sparse" / "images.txt").write_text("".join(_image_blocks(_gt(), points="1.0 2.0 x")))
+        (scene / "sparse" / "points3D.txt").write_text("garbage\n")
+    _check_convert("colmap", scene, tmp_path / "out", _gt())
+    model = read_model(scene, points=False)
+    assert len(model.images) == N and not model.points
+    assert all(im["xys"].shape == (0, 2) and im["point3D_ids"].shape == (0,) for im in model.images.values())
+
+
+def _dl3dv(scene, gt):
+    """A DL3DV scene as shipped: ``scene/nerfstudio/{transforms.json, images/}``; returns its nerfstudio folder."""
+    src = scene / "nerfstudio"
+    _images(src / "images", [f"f{i}.png" for i in range(N)])
+    frames = [{"file_path": f"images/f{i}.png", "transform_matrix": (np.linalg.inv(g) @ GL_TO_CV).tolist()}
+              for i, g in enumerate(gt)]
+    (src / "transforms.json").write_text(json.dumps({"fl_x": 30, "fl_y": 31, "cx": 16, "cy": 12, "w": W, "h": H,
+                                                     "frames": frames}))
+    return src
+
+
+def test_dl3dv_scenes_are_named_after_their_scene_folder_not_nerfstudio(tmp_path):
+    """``--src HASH/nerfstudio`` named every DL3DV scene "nerfstudio": two scenes collided in one index."""
+    from anycity.data.parsers.nerfstudio import parse
+
+    gt = _gt()
+    for h in ("0a1b2c", "9f8e7d"):
+        assert parse(_dl3dv(tmp_path / h, gt))[0].name == h
+        assert parse(_dl3dv(tmp_path / h, gt) / "transforms.json")[0].name == h
+    (tmp_path / "0a1b2c" / "nerfstudio").rename(tmp_path / "0a1b2c" / "garden")
+    assert parse(tmp_path / "0a1b2c" / "garden")[0].name == "garden"  # a folder of its own name keeps it
+
+
+def test_a_360_equirectangular_nerfstudio_camera_is_refused_as_such(tmp_path):
+    """It was called "(k4: a fisheye lens)", with the advice to undistort it, which no 360 image can be."""
+    src = _dl3dv(tmp_path / "scene", _gt())
+    meta = json.loads((src / "transforms.json").read_text())
+    (src / "transforms.json").write_text(json.dumps({**meta, "camera_model": "EQUIRECTANGULAR"}))
+    with pytest.raises(ValueError, match=r"frame 0: camera model EQUIRECTANGULAR \(360 equirectangular images\) is "
+                                         r"not read here; these images cannot be converted, cut perspective crops "
+                                         r"from them \(e\.g\. ns-process-data images --camera-type equirectangular\) "
+                                         r"and convert those$"):
+        convert("nerfstudio", src, tmp_path / "out")
+    (src / "transforms.json").write_text(json.dumps({**meta, "camera_model": "OPENCV_FISHEYE"}))
+    with pytest.raises(ValueError, match=r"camera model OPENCV_FISHEYE \(a fisheye lens\) is not read here; "
+                                         "undistort the images first"):
+        convert("nerfstudio", src, tmp_path / "out")
 
 
 def test_nerfstudio(tmp_path):
@@ -487,6 +621,39 @@ def test_llff_and_bungeenerf(tmp_path):
             assert np.allclose(v["w2c"], g, atol=1e-6) and np.allclose(v["K"], Kf)
     with pytest.raises(FileNotFoundError, match="poses_bounds.npy"):
         convert("llff", tmp_path / "bungeenerf", tmp_path / "o")
+
+
+@pytest.mark.parametrize("fmt,cols,pose_file", [("llff", ((1, 1), (0, 1), (2, -1)), "poses_bounds.npy"),
+                                               ("bungeenerf", ((0, 1), (1, -1), (2, -1)), "poses_enu.json")])
+def test_llff_and_bungeenerf_take_the_pose_file_as_src(tmp_path, fmt, cols, pose_file):
+    """``--src`` is "the source dataset folder (or pose file)": the pose file itself was looked for inside itself
+    ("poses_bounds.npy/poses_bounds.npy: not found")."""
+    src = tmp_path / "scene"
+    _images(src / "images", [f"{i:03d}.png" for i in range(N)])
+    rows = _llff_rows(_gt(), cols)
+    if fmt == "llff":
+        np.save(src / pose_file, rows)
+    else:
+        (src / pose_file).write_text(json.dumps({"poses": rows.tolist()}))
+    convert(fmt, src / pose_file, tmp_path / "out")
+    meta = _read(tmp_path / "out")[0]
+    assert meta["extra"]["scene"] == "scene"
+    np.testing.assert_allclose([v["w2c"] for v in meta["views"]], _gt(), atol=1e-6)
+    with pytest.raises(ValueError, match=rf"000\.png: a file, not .*{pose_file}; pass --src the scene folder that "
+                                         rf"holds {pose_file} and images/$"):
+        convert(fmt, src / "images" / "000.png", tmp_path / "out2")
+
+
+def test_blendedmvs_refuses_a_file_naming_the_scene_folder_to_pass(tmp_path):
+    """A cam.txt as ``--src`` failed as "cannot parse ... NotADirectoryError; the file is truncated or damaged"."""
+    src = tmp_path / "5a3ca9cb270f0e3f14d0eddb"
+    _images(src / "blended_images", ["00000000.jpg"])
+    (src / "cams").mkdir()
+    (src / "cams" / "00000000_cam.txt").write_text("extrinsic\n")
+    for f in (src / "cams" / "00000000_cam.txt", src / "blended_images" / "00000000.jpg"):
+        with pytest.raises(ValueError, match=rf"^{f}: a file, not a BlendedMVS scene; pass --src the scene \(PID\) "
+                                             rf"folder that holds cams/ and blended_images/: {src}$"):
+            convert("blendedmvs", f, tmp_path / "out")
 
 
 @pytest.mark.parametrize("depth_hw,max_side", [((24, 32), 12), ((18, 24), None)])

@@ -66,6 +66,10 @@ def _scene(d: Path) -> ParsedScene:
 
 def parse(src: str | Path) -> list[ParsedScene]:
     src = require(Path(src), "a BlendedMVS scene (PID folder with cams/ and blended_images/)")
+    if src.is_file():  # a cam.txt or an image: its scene holds many, so name the folder to pass
+        pid = next((q for q in list(src.parents)[:2] if (q / "cams").is_dir()), None)
+        raise ValueError(f"{src}: a file, not a BlendedMVS scene; pass --src the scene (PID) folder that holds cams/ "
+                         f"and blended_images/{f': {pid}' if pid else ''}")
     dirs = [src] if (src / "cams").is_dir() else sorted(p for p in src.iterdir() if (p / "cams").is_dir())
     if not dirs:
         raise FileNotFoundError(f"{src}: no cams/ folder here or in its sub-folders; expected BlendedMVS PID folders")

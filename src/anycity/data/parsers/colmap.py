@@ -4,9 +4,13 @@ default), RADIAL, OPENCV and FULL_OPENCV images are undistorted to a pinhole cam
 first). Photos in ``images/`` the model did
 not register are named in a warning and left out.
 
-Layout: ``SCENE/images/*`` and ``SCENE/sparse/0/{cameras,images,points3D}.{bin,txt}`` (or ``SCENE/sparse/``);
-``--src`` may also be a folder of such scenes. Poses are world-to-camera with wxyz quaternions and OpenCV axes,
-so the world frame is kept as is (``world_from_source = I``, units "sfm", metres unknown).
+Layout: ``SCENE/images/*`` and ``SCENE/sparse/N/{cameras,images,points3D}.{bin,txt}`` (or ``SCENE/sparse/``). A
+scene with several models (the mapper's ``sparse/0``, ``sparse/1``, ... of disconnected parts, or a merged
+``sparse/`` beside them) is refused, naming them; ``--src SCENE/sparse/N`` converts that one model, with the
+scene's ``images/`` and name. ``--src`` may also be a folder of scenes (a sub-folder without a model is skipped with
+a warning). Poses are world-to-camera with wxyz quaternions and OpenCV axes, so the world frame is kept as is
+(``world_from_source = I``, units "sfm", metres unknown). Converting reads neither the 2D observations nor the 3D
+points (``read_model(points=False)``): a city model holds millions.
 """
 
 from __future__ import annotations
@@ -33,8 +37,10 @@ _BY_NAME = {name: (i, n) for i, (name, n) in MODELS.items()}
 @dataclass
 class ColmapModel:
     cameras: dict[int, tuple[str, int, int, np.ndarray]]  # id -> (model, width, height, params)
-    images: dict[int, dict]  # id -> {qvec, tvec, camera_id, name, xys [n, 2], point3D_ids [n]}
-    points: dict[int, np.ndarray]  # id -> xyz
+    # id -> {qvec, tvec, camera_id, name, xys [n, 2], point3D_ids [n]}; xys and point3D_ids are empty (n = 0) when
+    # read with points=False
+    images: dict[int, dict]
+    points: dict[int, np.ndarray]  # id -> xyz; empty when read with points=False
 
 
 def _read(f, fmt: str):
@@ -42,13 +48,29 @@ def _read(f, fmt: str):
     return struct.unpack(fmt, f.read(struct.calcsize(fmt)))
 
 
-def _read_bin(d: Path) -> ColmapModel:
+def _no_observations() -> dict:
+    return {"xys": np.zeros((0, 2)), "point3D_ids": np.zeros(0, np.int64)}
+
+
+def _observations(f, keep: bool) -> dict:
+    """The next image's 2D observations in ``images.bin``, or none (passed over, not read) unless ``keep``."""
+    n2d = _read(f, "Q")[0]
+    if not keep:
+        f.seek(24 * n2d, 1)
+        return _no_observations()
+    obs = np.frombuffer(f.read(24 * n2d), dtype=[("x", "<f8"), ("y", "<f8"), ("id", "<i8")])
+    return {"xys": np.stack([obs["x"], obs["y"]], 1), "point3D_ids": obs["id"]}
+
+
+def _read_bin(d: Path, points: bool = True) -> ColmapModel:
     cams, imgs, pts = {}, {}, {}
     with open(d / "cameras.bin", "rb") as f:
         for _ in range(_read(f, "Q")[0]):
             cid, mid, w, h = _read(f, "iiQQ")
-            if mid not in MODELS:
-                raise ValueError(f"{d / 'cameras.bin'}: unknown camera model id {mid}; the file is corrupt")
+            if mid not in MODELS:  # COLMAP 4.x added ids 12+; their parameter counts are not known here
+                raise ValueError(f"{d / 'cameras.bin'}: camera model id {mid} is not one this reader knows (a newer "
+                                 "COLMAP's lens model, or a damaged file); undistort first (colmap image_undistorter) "
+                                 "so the model is PINHOLE, or export the model as text to see its name")
             cams[cid] = (MODELS[mid][0], w, h, np.array(_read(f, "d" * MODELS[mid][1])))
     with open(d / "images.bin", "rb") as f:
         for _ in range(_read(f, "Q")[0]):
@@ -58,11 +80,9 @@ def _read_bin(d: Path) -> ColmapModel:
                 if not c:
                     raise ValueError(f"{d / 'images.bin'}: truncated image name; the file is corrupt")
                 name += c
-            n2d = _read(f, "Q")[0]
-            obs = np.frombuffer(f.read(24 * n2d), dtype=[("x", "<f8"), ("y", "<f8"), ("id", "<i8")])
             imgs[iid] = {"qvec": np.array(qt[:4]), "tvec": np.array(qt[4:]), "camera_id": cid,
-                         "name": name.decode(), "xys": np.stack([obs["x"], obs["y"]], 1), "point3D_ids": obs["id"]}
-    if (d / "points3D.bin").exists():
+                         "name": name.decode(), **_observations(f, points)}
+    if points and (d / "points3D.bin").exists():
         with open(d / "points3D.bin", "rb") as f:
             for _ in range(_read(f, "Q")[0]):
                 pid, x, y, z, _r, _g, _b, _err, n = _read(f, "QdddBBBdQ")
@@ -102,38 +122,77 @@ def _image_blocks(lines: list[str]) -> list[tuple[str, str]]:
     return blocks
 
 
-def _read_txt(d: Path) -> ColmapModel:
+def _read_txt(d: Path, points: bool = True) -> ColmapModel:
     imgs, pts = {}, {}
     cams = dict(_camera(ln, d / "cameras.txt") for ln in _data(_lines(d / "cameras.txt")))
-    for ln, points in _image_blocks(_lines(d / "images.txt")):
+    for ln, points2d in _image_blocks(_lines(d / "images.txt")):
         e = ln.split()
-        obs = np.array([float(x) for x in points.split()]).reshape(-1, 3)
+        obs = _no_observations()
+        if points:
+            xyi = np.array([float(x) for x in points2d.split()]).reshape(-1, 3)
+            obs = {"xys": xyi[:, :2], "point3D_ids": xyi[:, 2].astype(np.int64)}
         imgs[int(e[0])] = {"qvec": np.array([float(x) for x in e[1:5]]), "tvec": np.array([float(x) for x in e[5:8]]),
-                           "camera_id": int(e[8]), "name": " ".join(e[9:]), "xys": obs[:, :2],
-                           "point3D_ids": obs[:, 2].astype(np.int64)}
-    if (d / "points3D.txt").exists():
+                           "camera_id": int(e[8]), "name": " ".join(e[9:]), **obs}
+    if points and (d / "points3D.txt").exists():
         for ln in _data(_lines(d / "points3D.txt")):
             e = ln.split()
             pts[int(e[0])] = np.array([float(x) for x in e[1:4]])
     return ColmapModel(cams, imgs, pts)
 
 
+def _has_model(d: Path) -> bool:
+    return (d / "cameras.bin").exists() or (d / "cameras.txt").exists()
+
+
+def _models(scene: Path) -> list[Path]:
+    """The COLMAP models of a scene: ``sparse/`` itself (where model_merger or a 3DGS script writes one) and
+    ``sparse/<N>/`` (the mapper's, one per disconnected part), in that order."""
+    sparse = scene / "sparse"
+    subs = sorted((p for p in sparse.iterdir() if p.is_dir() and p.name.isdigit()),
+                  key=lambda p: int(p.name)) if sparse.is_dir() else []
+    return [d for d in (sparse, *subs) if _has_model(d)]
+
+
+def _image_count(d: Path) -> str:
+    """How many images the model at ``d`` holds, read cheaply: images.bin's leading count, or the image lines of
+    images.txt; "?" when its images file is missing or short."""
+    if (d / "cameras.bin").exists():
+        if not (d / "images.bin").exists():
+            return "?"
+        with open(d / "images.bin", "rb") as f:
+            head = f.read(8)
+        return str(struct.unpack("<Q", head)[0]) if len(head) == 8 else "?"
+    return str(len(_image_blocks(_lines(d / "images.txt")))) if (d / "images.txt").exists() else "?"
+
+
 def model_dir(scene: Path) -> Path:
-    for d in (scene / "sparse" / "0", scene / "sparse", scene):
-        if (d / "cameras.bin").exists() or (d / "cameras.txt").exists():
-            return d
-    raise FileNotFoundError(f"{scene}: no COLMAP model (cameras.bin or cameras.txt in sparse/0, sparse or the "
+    """The folder of the scene's one COLMAP model: ``sparse/<N>/``, ``sparse/``, or ``scene`` itself (a model
+    folder). Several models are refused: reading one left the others' images out as "not registered"."""
+    models = _models(scene)
+    if len(models) > 1:
+        listed = ", ".join(f"{d.relative_to(scene).as_posix()} ({_image_count(d)} images)" for d in models)
+        raise ValueError(f"{scene}: {len(models)} COLMAP models, {listed}; pass --src {scene}/sparse/N (one model), "
+                         "or merge them (colmap model_merger) into one")
+    if models:
+        return models[0]
+    if _has_model(scene):
+        return scene
+    raise FileNotFoundError(f"{scene}: no COLMAP model (cameras.bin or cameras.txt in sparse/N, sparse or the "
                             "folder itself); point --src at a COLMAP scene")
 
 
-def read_model(scene: str | Path) -> ColmapModel:
-    """Read the sparse model of a COLMAP scene folder (binary preferred, else text)."""
-    d = model_dir(Path(scene))
+def _read_dir(d: Path, points: bool) -> ColmapModel:
     if (d / "cameras.bin").exists():
         require(d / "images.bin", "COLMAP images.bin beside cameras.bin")
-        return _read_bin(d)
+        return _read_bin(d, points)
     require(d / "images.txt", "COLMAP images.txt beside cameras.txt")
-    return _read_txt(d)
+    return _read_txt(d, points)
+
+
+def read_model(scene: str | Path, points: bool = True) -> ColmapModel:
+    """Read the sparse model of a COLMAP scene (or model) folder, binary preferred, else text. ``points=False``
+    reads only cameras and poses: the 2D observations are passed over and points3D is not opened."""
+    return _read_dir(model_dir(Path(scene)), points)
 
 
 _NOT_READ = {"OPENCV_FISHEYE": "a fisheye lens", "SIMPLE_RADIAL_FISHEYE": "a fisheye lens",
@@ -168,43 +227,66 @@ def w2c_of(image: dict) -> np.ndarray:
     return rigid(R, image["tvec"])
 
 
+def _scenes(src: Path) -> list[Path]:
+    """``[src]`` when it holds a model (or is one), else its sub-folders that do. Sub-folders with ``images/`` or
+    ``sparse/`` but no model (a failed SfM) are skipped with one warning: they must not stop the other scenes."""
+    try:
+        model_dir(src)
+        return [src]
+    except FileNotFoundError as e:
+        missing = e
+    scenes, skipped = [], []
+    for p in sorted(q for q in src.iterdir() if q.is_dir() and ((q / "sparse").exists() or (q / "images").is_dir())):
+        try:
+            model_dir(p)
+        except FileNotFoundError:
+            skipped.append(p.name)
+            continue
+        scenes.append(p)
+    if not scenes:
+        raise missing
+    if skipped:
+        warnings.warn(f"{src}: skipped {len(skipped)} sub-folder(s), no COLMAP model in sparse/: "
+                      f"{', '.join(skipped[:5])}{', ...' if len(skipped) > 5 else ''}", stacklevel=3)
+    return scenes
+
+
+def _scene_of(model: Path) -> Path:
+    """The scene folder of a model folder given as ``--src`` (``SCENE/sparse/N``, ``SCENE/sparse``): the first of
+    its parent and grandparent that holds ``images/``; the folder itself when it holds ``images/`` or none does."""
+    if (model / "images").is_dir():
+        return model
+    return next((q for q in list(model.parents)[:2] if (q / "images").is_dir()), model)
+
+
 def parse(src: str | Path) -> list[ParsedScene]:
     """One ParsedScene per COLMAP scene under ``src`` (views sorted by image name, the llffhold order)."""
     src = require(Path(src), "a COLMAP scene folder")
-    try:
-        scenes = [src] if model_dir(src) else []
-    except FileNotFoundError:
-        scenes = sorted(p for p in src.iterdir() if p.is_dir() and any((p / s).exists() for s in ("sparse",)))
-        if not scenes:
-            raise
     out = []
-    for sc in scenes:
-        m = read_model(sc)
-        where = str(model_dir(sc))
-        if model_dir(sc) == sc and not (sc / "images").is_dir():  # --src SCENE/sparse/0
-            root = next((q for q in list(sc.parents)[:2] if (q / "images").is_dir()), None)
-            if root is not None:
-                raise FileNotFoundError(f"{sc} is the scene's COLMAP model folder; pass --src the scene folder that "
-                                        f"holds images/ and sparse/: {root}")
-        _warn_unregistered(sc / "images", {img["name"] for img in m.images.values()})
+    for sc in _scenes(src):
+        d = model_dir(sc)
+        root = _scene_of(d) if d == sc else sc
+        m = _read_dir(d, points=False)
+        _warn_unregistered(root / "images", {img["name"] for img in m.images.values()}, d if root != sc else None)
         views = []
         for img in sorted(m.images.values(), key=lambda x: x["name"]):
             model, w, h, params = m.cameras[img["camera_id"]]
-            K, dist = intrinsics(model, params, where)
-            views.append(ParsedView(name=img["name"], image_path=sc / "images" / img["name"], w2c=w2c_of(img),
+            K, dist = intrinsics(model, params, str(d))
+            views.append(ParsedView(name=img["name"], image_path=root / "images" / img["name"], w2c=w2c_of(img),
                                     K=K, width=w, height=h, dist=dist))
-        out.append(ParsedScene(name=sc.name, views=views, source="colmap", units="sfm", metres_per_unit=None,
-                               extra={"model": where}))
+        out.append(ParsedScene(name=root.name, views=views, source="colmap", units="sfm", metres_per_unit=None,
+                               extra={"model": str(d)}))
     return out
 
 
-def _warn_unregistered(images: Path, registered: set[str]) -> None:
-    """Warn, naming a few, when ``images`` holds photos the model did not register: they are left out, and the
-    llffhold split counts the registered views only."""
+def _warn_unregistered(images: Path, registered: set[str], model: Path | None = None) -> None:
+    """Warn, naming a few, when ``images`` holds photos the model did not register (or, for ``--src`` a ``model``
+    folder, that are not in that one): they are left out, and the llffhold split counts the model's views only."""
     if not images.is_dir():
         return
     left = sorted(p.relative_to(images).as_posix() for p in images.rglob("*")
                   if p.suffix.lower() in PHOTO_SUFFIXES and p.relative_to(images).as_posix() not in registered)
+    which = "the COLMAP model (not registered)" if model is None else f"the COLMAP model {model}"
     if left:
-        warnings.warn(f"{images}: {len(left)} image(s) are not in the COLMAP model (not registered) and are left "
+        warnings.warn(f"{images}: {len(left)} image(s) are not in {which} and are left "
                       f"out: {', '.join(left[:3])}{', ...' if len(left) > 3 else ''}", stacklevel=2)

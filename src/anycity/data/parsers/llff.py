@@ -3,6 +3,7 @@
 LLFF camera columns are (down, right, back): OpenCV is ``[c1, c0, -c2]``. BungeeNeRF's are already OpenGL
 (right, up, back): OpenCV is ``[c0, -c1, -c2]``. Images are the sorted files of ``images/``; K assumes a centred
 principal point and is rescaled when the images are not the size recorded in the poses. The world is kept.
+``--src`` is the scene folder or its pose file.
 """
 
 from __future__ import annotations
@@ -43,9 +44,18 @@ def _views(rows: np.ndarray, imgs: list[Path], cols: tuple, where: Path) -> list
     return views
 
 
+def _pose_file(src: Path, name: str, what: str) -> Path:
+    """``src`` itself when ``--src`` names a pose file (a file with ``name``'s suffix), else ``src / name``."""
+    if src.is_file():
+        if src.suffix.lower() != Path(name).suffix:
+            raise ValueError(f"{src}: a file, not {what}; pass --src the scene folder that holds {name} and images/")
+        return src
+    return require(src / name, what)
+
+
 def parse_llff(src: str | Path) -> list[ParsedScene]:
-    src = Path(src)
-    path = require(src / "poses_bounds.npy", "LLFF poses_bounds.npy")
+    path = _pose_file(Path(src), "poses_bounds.npy", "LLFF poses_bounds.npy")
+    src = path.parent
     rows = np.load(path)
     views = _views(rows, _images(src, len(rows), path), ((1, 1), (0, 1), (2, -1)), path)
     return [ParsedScene(name=src.name, views=views, source="llff", units="llff", metres_per_unit=None,
@@ -53,8 +63,8 @@ def parse_llff(src: str | Path) -> list[ParsedScene]:
 
 
 def parse_bungeenerf(src: str | Path) -> list[ParsedScene]:
-    src = Path(src)
-    path = require(src / "poses_enu.json", "BungeeNeRF poses_enu.json")
+    path = _pose_file(Path(src), "poses_enu.json", "BungeeNeRF poses_enu.json")
+    src = path.parent
     meta = json.loads(path.read_text())
     if "poses" not in meta:
         raise ValueError(f"{path}: missing key 'poses' (an [N, 17] list)")
