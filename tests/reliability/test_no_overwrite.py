@@ -502,8 +502,9 @@ def test_a_stage2_fit_resuming_a_stage1_checkpoint_is_refused(tiny_shards, tmp_p
     run = tmp_path / "s1"
     build_cli(["fit", *_args(tiny_shards, run, ck)])
     last = run / "checkpoints" / "last.ckpt"
-    stage2 = ["-c", str(REPO / "configs/quickstart_stage2.yaml")]
-    assert main(["fit", *_args(tiny_shards, run, ck), *stage2, "--ckpt_path", str(last)]) == 2
+    args = _args(tiny_shards, run, ck)  # Stage II's config right after Stage I's: the run folder stays this test's
+    stage2 = [*args[:2], "-c", str(REPO / "configs/quickstart_stage2.yaml"), *args[2:]]
+    assert main(["fit", *stage2, "--ckpt_path", str(last)]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and re.match(
         rf"anycity: error: --ckpt_path {re.escape(str(last))} holds a ScaffoldModule, but the config fits a "

@@ -28,6 +28,8 @@ from anycity.structures import RenderOutput, ViewBatch, Views
 # scaffold weights a Stage I checkpoint may lack: the centre offset came later, and its zero init is what an older
 # Stage I decoded
 OPTIONAL_SCAFFOLD_PREFIXES = ("gaussian_head.offset_conv.",)
+# scaffold settings that change what its weights decode but not their shapes: Stage II must use Stage I's
+DECODE_KEYS = ("scale_mode", "color_mode", "gaussian_head_slope", "head_layers", "camera_iterations", "camera_init_fov")
 
 
 def stage1_net_flags(stage1: dict, stage2_net: dict | None) -> str:
@@ -41,6 +43,24 @@ def stage1_net_flags(stage1: dict, stage2_net: dict | None) -> str:
     net = {**(stage2_net or {}), **{k: v for k, v in (stage1.get("net") or {}).items() if k != "completion"}}
     return (f"--model.init_args.preset {shlex.quote(str(stage1['preset']))} "
             f"--model.init_args.net {shlex.quote(json.dumps(net))}")
+
+
+def decode_mismatch(stage1: dict, cfg) -> list[str]:
+    """``"KEY: A there, B here"`` for each of :data:`DECODE_KEYS` on which the network of a Stage I checkpoint
+    (``stage1``: its ``hyper_parameters``) and ``cfg`` (this network's ``NetConfig``) differ; empty when they agree or
+    the checkpoint stores no preset to rebuild its settings from."""
+    from anycity.models.presets import preset_config
+
+    if not stage1.get("preset"):
+        return []
+    net = {k: v for k, v in (stage1.get("net") or {}).items() if k in DECODE_KEYS}
+    theirs = preset_config(stage1["preset"], **net)
+
+    def value(c, key):
+        return c.resolved_head_layers() if key == "head_layers" else getattr(c, key)
+
+    return [f"net.{k}: {value(theirs, k)} there, {value(cfg, k)} here" for k in DECODE_KEYS
+            if value(theirs, k) != value(cfg, k)]
 
 
 def pretrained_scaffold_gaps(net: nn.Module, path: str, kind: str) -> list[str]:
@@ -255,6 +275,9 @@ class RefinementModule(AnyCityModule):
             k = shapes[0]
             problems.append(f"{len(shapes)} shapes differ (e.g. {k}: {list(theirs[k].shape)} there, "
                             f"{list(own[k].shape)} here)")
+        decode_problems = decode_mismatch(stage1_hp, self.net.cfg)
+        if decode_problems:  # same shapes, other Gaussians: the frozen scaffold would not be the one Stage I trained
+            problems.append(f"it decodes its weights with other settings ({', '.join(decode_problems)})")
         if problems:
             raise ValueError(f"model.init_from: {path} does not fit this network's scaffold: {'; '.join(problems)}; "
                              "give Stage II the Stage I network after its config: "

@@ -842,3 +842,24 @@ def test_ssim_weight_reaches_every_photometric_term(batch, monkeypatch):
 
 def test_the_depth_warm_up_defaults_to_200_steps():
     assert ScaffoldModule().hparams.depth_warmup_steps == 200
+
+
+def test_load_stage1_refuses_a_scaffold_trained_with_other_decode_settings(tmp_path):
+    """Settings that change what the scaffold's weights decode but not their shapes (scale_mode, color_mode, the
+    head's slope, ...) were taken from the Stage II config: a Stage I trained with scale_mode absolute was frozen and
+    decoded with pixel scales (mean scale 0.0007 in Stage I, 0.024 in Stage II), without a word."""
+    from anycity.models import build_network
+
+    net = build_network("tiny", scale_mode="absolute", color_mode="head")
+    ckpt = tmp_path / "stage1.ckpt"
+    torch.save({"state_dict": {f"net.{k}": v for k, v in net.state_dict().items()},
+                "hyper_parameters": {"preset": "tiny", "net": {"scale_mode": "absolute", "color_mode": "head"}}}, ckpt)
+    with pytest.raises(ValueError, match=r"^model.init_from: .*stage1.ckpt does not fit this network's scaffold: it "
+                                         r"decodes its weights with other settings \(net.scale_mode: absolute there, "
+                                         r"pixel here, net.color_mode: head there, pixel here\); give Stage II the "
+                                         r"Stage I network after its config: --model.init_args.preset tiny "
+                                         r".*\"scale_mode\": \"absolute\""):
+        RefinementModule().load_stage1(str(ckpt))
+    m = RefinementModule(net={"scale_mode": "absolute", "color_mode": "head"})
+    m.load_stage1(str(ckpt))  # the same settings: loaded
+    torch.testing.assert_close(m.net.gaussian_head.state_dict(), net.gaussian_head.state_dict())
