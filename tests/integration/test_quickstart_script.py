@@ -135,3 +135,21 @@ def test_a_bad_override_stops_in_one_line(tmp_path, capsys, monkeypatch):
     err = capsys.readouterr().err
     lines = [ln for ln in err.splitlines() if "error" in ln.lower()]  # Lightning's INFO lines come before it
     assert len(lines) == 1 and "num_context" in lines[0] and "Traceback" not in err, err
+
+
+def test_metrics_json_names_the_protocols_the_test_run_ran():
+    """The labels were constants: with camera_refine_steps 0 the targetalign figure (which then starts from the
+    network's cameras) still said "after camrefine", and eval_align sim3 was still "relative to the first context
+    view"; they follow the test run's hyperparameters."""
+    qs = _quickstart()
+    m = {"psnr_baseline": 18.0, "psnr_scaffold": 19.5}
+    quickstart = {"eval_align": "none", "camera_refine_steps": 50, "eval_pose_align_steps": 50}
+    assert qs.quickstart_metrics(m, 1.0, quickstart)["protocols"] == {
+        (k.lstrip("_") or "feedforward"): v for k, v in qs.PROTOCOLS.items()}
+    other = qs.quickstart_metrics(m, 1.0, {"eval_align": "sim3", "camera_refine_steps": 0,
+                                           "eval_pose_align_steps": 50})["protocols"]
+    assert sorted(other) == ["feedforward", "targetalign"]
+    assert "Sim(3) fit" in other["feedforward"] and "first context view" not in other["feedforward"]
+    assert other["targetalign"].startswith("from the network's cameras") and "camrefine" not in other["targetalign"]
+    none = qs.quickstart_metrics(m, 1.0, {**quickstart, "eval_pose_align_steps": 0})["protocols"]
+    assert sorted(none) == ["camrefine", "feedforward"]

@@ -36,7 +36,7 @@ from anycity.data.schema import decode_image, decode_normals, decode_npy, member
 from anycity.data.tario import NoSampleGuard, tar_samples
 from anycity.data.views import (
     Selection,
-    TooFewViews,
+    SettingsError,
     jpeg_reduction,
     normalise,
     resize_plan,
@@ -129,8 +129,8 @@ class SampleBuilder:
         context_weighting: how ``context_range`` draws: "uniform", or "square" (probability proportional to the
             count squared, AnySplat's ``DynamicBatchSampler``).
         batch_size: samples per batch, so that all samples of a batch (in this worker) draw the same count.
-        eval_dense: evaluation samples carry (and decode) their dense views. Either way ``num_dense`` sizes the pool
-            of non-held-out views the context is spread over, so the context views do not depend on this.
+        eval_dense: evaluation samples carry (and decode) their dense views. The context views are the same either
+            way, and whatever ``num_dense`` (see :func:`~anycity.data.views.select_eval`).
         compact: compact tensors for the trip to the device: images uint8 ``[0, 255]``, depth and normals
             float16 (a third of the bytes; :func:`to_float32` restores the usual batch on the device).
     """
@@ -246,9 +246,9 @@ class SampleBuilder:
         V, nc = len(vs), len(sel.context)
         H, W = vs[0]["image"].shape[:2]
         if any(v["image"].shape[:2] != (H, W) for v in vs):
-            raise ValueError(f"scene {meta['scene']}: views resize to different sizes "
-                             f"{sorted({v['image'].shape[:2] for v in vs})}; use resize_mode 'crop' or one "
-                             "aspect ratio per scene")
+            raise SettingsError(f"scene {meta['scene']}: views resize to different sizes "
+                                f"{sorted({v['image'].shape[:2] for v in vs})}; use resize_mode 'crop' or one "
+                                "aspect ratio per scene")
         w2c = torch.as_tensor(np.stack([v["w2c"] for v in vs]))
         K = torch.as_tensor(np.stack([v["K"] for v in vs]))
         has_depth = all(v["depth"] is not None for v in vs)
@@ -375,12 +375,28 @@ def collate(samples: list[dict]) -> ViewBatch:
         return _collate(samples)
 
 
+def _check_image_sizes(samples: list[dict], grp: list[dict]) -> None:
+    """Refuse a batch whose samples' images differ in size (``resize_mode: keep`` keeps each scene's aspect ratio),
+    in one line naming the scenes, rather than torch.stack's traceback."""
+    sizes: dict[str, list[str]] = {}
+    for s, x in zip(samples, grp):
+        scenes = sizes.setdefault("x".join(str(d) for d in x["images"].shape[-2:]), [])
+        if s["scene"] not in scenes:
+            scenes.append(s["scene"])
+    if len(sizes) > 1:
+        mixed = "; ".join(f"{hw}: {', '.join(sc)}" for hw, sc in sizes.items())
+        raise ValueError(f"collate: a batch mixes image sizes (HxW {mixed}): resize_mode 'keep' keeps each scene's "
+                         "aspect ratio; set --data.batch_size 1 (--data.eval_batch_size 1 for val/test), use "
+                         "--data.resize_mode crop, or shards of one aspect ratio per run")
+
+
 def _collate(samples: list[dict]) -> ViewBatch:
 
     def views(g: str) -> Views | None:
         if g not in samples[0]:
             return None
         grp = [s[g] for s in samples]
+        _check_image_sizes(samples, grp)
         if len({len(x["images"]) for x in grp}) > 1:
             raise ValueError(f"collate: the samples of one batch have {sorted(len(x['images']) for x in grp)} "
                              f"{g} views; a batch needs one count (batch_size 1, or draw counts per batch)")
@@ -525,7 +541,7 @@ def count_samples(urls: list[str]) -> int:
 
 
 class _Handler:
-    """The pipeline's webdataset exception handler: ``TooFewViews`` (the settings, not the sample) raises; with
+    """The pipeline's webdataset exception handler: a ``SettingsError`` (the settings, not the sample) raises; with
     ``skip_corrupt`` anything else is skipped and counted in ``counter``, else raised as a ``ValueError`` naming the
     shard."""
 
@@ -533,7 +549,7 @@ class _Handler:
         self.skip_corrupt, self.counter, self.train = skip_corrupt, counter, train
 
     def __call__(self, exn: BaseException) -> bool:
-        if isinstance(exn, TooFewViews):  # the settings, not the sample: every sample would be skipped
+        if isinstance(exn, SettingsError):  # the settings, not the sample: every sample would be skipped
             raise exn
         if self.skip_corrupt:
             # every evaluation stream reads every shard: only the first one counts a shard's failure
@@ -548,7 +564,7 @@ class _Handler:
 class _Build:
     """The pipeline's map stage: a raw sample -> ``builder``'s selections; with ``skip_corrupt`` a sample that fails
     to build gives ``[]`` (skipped: no items; :func:`_pass_refill` fills its place in a pass), counted in
-    ``counter`` and told to ``guard``."""
+    ``counter`` and told to ``guard``; a :class:`SettingsError` raises, naming the sample."""
 
     def __init__(self, builder: SampleBuilder, skip_corrupt: bool, counter: SkipCounter | None,
                  guard: NoSampleGuard) -> None:
@@ -557,8 +573,8 @@ class _Build:
     def __call__(self, sample: dict) -> list[dict] | None:
         try:
             out = self.builder(sample)
-        except TooFewViews as e:
-            raise TooFewViews(f"{sample_where(sample)}: {e}") from None
+        except SettingsError as e:
+            raise type(e)(f"{sample_where(sample)}: {e}") from None
         except Exception as e:
             msg = str(e) if "shard" in str(e) else f"{sample_where(sample)}: {e}"
             if self.skip_corrupt:

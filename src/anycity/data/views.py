@@ -7,9 +7,10 @@ Selection works on trajectory positions ``0..n-1``:
 * evaluation (``llffhold=8``): the view at scene position ``i`` is a target when ``i % 8 == 0`` (positions are the
   views' ``index`` in the scene, so a trajectory window holds out the same views as its whole scene, and only the
   targets in the window's own range are scored: overlapping windows score each once); targets are cut into chunks
-  of T (the last chunk repeats its own views), and each chunk's context and dense views are spread evenly over the
-  non-held-out views nearest to it. Deterministic. A sample with fewer non-held-out views than context views is
-  refused (:class:`TooFewViews`): its context would repeat views.
+  of T (the last chunk repeats its own views), and each chunk's context views are spread evenly over the
+  ``2 x num_context`` non-held-out views nearest to it (whatever ``num_dense``), its dense views over the
+  ``max(2 x num_context, num_dense)`` nearest. Deterministic. A sample with fewer non-held-out views than context
+  views is refused (:class:`TooFewViews`): its context would repeat views.
 """
 
 from __future__ import annotations
@@ -23,10 +24,14 @@ import torch
 from anycity.geometry import camera_centers, crop_intrinsics, invert_rigid, rescale_intrinsics, unproject_depth
 
 
-class TooFewViews(ValueError):
+class SettingsError(ValueError):
+    """A sample the settings cannot build (not a corrupt one): every such sample would fail alike, so
+    ``skip_corrupt`` raises it instead of skipping the sample out of training."""
+
+
+class TooFewViews(SettingsError):
     """A training window too short for the distinct context + target views asked of it, or an evaluation sample with
-    fewer non-held-out views than context views: a setting to change, so ``skip_corrupt`` does not skip it as a
-    corrupt sample."""
+    fewer non-held-out views than context views."""
 
 
 @dataclass
@@ -90,6 +95,10 @@ def select_eval(n: int, num_context: int, num_targets: int, num_dense: int, hold
                 index: list[int] | None = None, own: tuple[int, int] | None = None) -> list[Selection]:
     """Deterministic llffhold selections covering every held-out view of an n-view sample (positions 0..n-1).
 
+    Each chunk's context is spread over the ``2 x num_context`` non-held-out views nearest its targets whatever
+    ``num_dense``, so runs with and without dense views (Stage I and II configs) test from the same context views;
+    the dense views are spread over the ``max(2 x num_context, num_dense)`` nearest.
+
     Args:
         index: trajectory position of each of the n views in its scene (default ``0..n-1``); llffhold applies to
             it, so a window of a longer trajectory holds out the same views as the whole scene would.
@@ -114,9 +123,9 @@ def select_eval(n: int, num_context: int, num_targets: int, num_dense: int, hold
         part = test[c:c + num_targets]
         chunk = [part[j % len(part)] for j in range(num_targets)]  # pad the last chunk with its own views
         centre = float(np.mean(chunk))
-        near = sorted(train, key=lambda i: (abs(i - centre), i))[: max(2 * num_context, num_dense)]
-        near.sort()
-        out.append(Selection(_spread(near, num_context), chunk, _spread(near, num_dense)))
+        near = sorted(train, key=lambda i: (abs(i - centre), i))
+        ctx, dense = sorted(near[:2 * num_context]), sorted(near[:max(2 * num_context, num_dense)])
+        out.append(Selection(_spread(ctx, num_context), chunk, _spread(dense, num_dense)))
     return out
 
 

@@ -352,6 +352,18 @@ class AnyCityModule(pl.LightningModule):
             return out.get("scaffold_w2c", out["w2c"]), out.get("scaffold_K", out["K"])
         return out["w2c"], out["K"]
 
+    def _warn_unscaled_placement(self, ctx: Views) -> None:
+        """Once: ``eval_align none`` takes the ground truth's scale as the network's, which holds for a frame scaled
+        by its context's median depth (as the network is trained), not for one scaled by its cameras' spread (a
+        sample with no ground-truth depth, e.g. COLMAP)."""
+        if self.hparams.eval_align != "none" or ctx.depth is not None or getattr(self, "_told_unscaled", False):
+            return
+        self._told_unscaled = True
+        rank_zero_warn("eval_align none: a batch has no ground-truth depth, so its frame is scaled by its context "
+                       "cameras' spread, not by the median depth the network learns, and its targets are placed at a "
+                       "scale the network does not share; pass --model.init_args.eval_align sim3 (a fit to the "
+                       "context cameras only) to place them at the network's scale")
+
     @torch.no_grad()
     @float32_outside_net
     def evaluate(self, batch: ViewBatch, metrics: EvalMetrics, want_preview: bool, protocols: tuple[str, ...] = (
@@ -364,6 +376,7 @@ class AnyCityModule(pl.LightningModule):
         from anycity.lit import protocols as P
 
         ctx, tgt = batch.context, batch.target
+        self._warn_unscaled_placement(ctx)
         cams = P.TargetCameras.of(tgt)
         out, variants = self.predict_variants(ctx.images)
         gt = tgt.images.flatten(0, 1)

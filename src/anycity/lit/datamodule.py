@@ -14,6 +14,7 @@ import math
 import os
 import signal
 from pathlib import Path
+from typing import NoReturn
 
 import lightning.pytorch as pl
 import torch
@@ -36,16 +37,33 @@ from anycity.structures import ViewBatch
 
 
 def _expand(spec: str | list[str] | None, split: str) -> list[str]:
-    """Shard directory (with index.json), brace pattern, file, or a list of those -> shard paths."""
+    """Shard directory (with index.json), brace pattern, file, or a list of those -> shard paths. Each entry of a
+    list must give shards of the split (:func:`_no_shards`): one that gave none was dropped, and the run read the
+    others alone."""
     if spec is None:
         return []
     if isinstance(spec, (list, tuple)):
-        return [u for s in spec for u in _expand(s, split)]
+        return [u for s in spec for u in _expand(s, split) or _no_shards(split, s, f"{split}_shards entry {s!r}")]
     if "://" not in spec and Path(spec).is_dir():
         return shard_urls(spec, split)
     import webdataset as wds
 
     return list(wds.shardlists.expand_urls(spec))
+
+
+def _no_shards(split: str, where, given: str) -> NoReturn:
+    """Raise the one-line error for ``where`` (a shard folder, pattern or list; ``given`` names it) giving no shards
+    of ``split``: a folder whose index.json lists none says how to write that split."""
+    if isinstance(where, str) and (Path(where) / "index.json").is_file():
+        has = {k: len(v) for k, v in read_index(where)["splits"].items() if v}
+        skip = {"val": "; or skip validation with --trainer.limit_val_batches 0", "train": ""}.get(split, "")
+        raise ValueError(f"{split} shards: {Path(where) / 'index.json'} lists none (it has "
+                         f"{', '.join(f'{k}: {n}' for k, n in has.items()) or 'no shards'}; the 8:1:1 scene "
+                         f"split puts a set of few scenes in train alone): write a {split} set with anycity "
+                         f"data convert --split {split} --out OTHER_FOLDER and pass --data.{split}_shards "
+                         f"OTHER_FOLDER{skip}")
+    raise ValueError(f"{split} shards: none found ({given}); give a shard directory with index.json listing {split} "
+                     "shards, or a shard pattern")
 
 
 def _collate_photos(items: list[dict]) -> dict:
@@ -138,8 +156,9 @@ class AerialDataModule(pl.LightningDataModule):
             AnySplat draws its counts).
         num_targets: target views per sample (rendered and scored).
         num_dense: dense teacher views per training sample for Stage II distillation; 0 disables the dense set.
-            Evaluation samples carry none unless ``eval_dense`` (evaluation reads none), but their context views are
-            spread over the ``max(2 x num_context, num_dense)`` non-held-out views nearest the targets either way.
+            Evaluation samples carry none unless ``eval_dense`` (evaluation reads none); their context views are
+            spread over the ``2 x num_context`` non-held-out views nearest the targets whatever ``num_dense``, so
+            Stage I and Stage II configs test from the same context views.
         eval_dense: validation/test samples decode their ``num_dense`` dense views too (for diagnostics that read
             them, e.g. ``benchmarks/stage2_headroom.py --fit-steps``); the context and target views are the same.
         image_size: output ``[H, W]`` in pixels.
@@ -235,20 +254,8 @@ class AerialDataModule(pl.LightningDataModule):
         spec = {"train": self.hp.train_shards, "val": self.hp.val_shards, "test": self.hp.test_shards}[split]
         if spec is None and split != "train":
             _check_root_names_splits(self.hp.root, split)
-        urls = _expand(spec if spec is not None else self.hp.root, split)
-        if not urls:
-            where = spec if spec is not None else self.hp.root
-            if isinstance(where, str) and (Path(where) / "index.json").is_file():
-                has = {k: len(v) for k, v in read_index(where)["splits"].items() if v}
-                skip = {"val": "; or skip validation with --trainer.limit_val_batches 0", "train": ""}.get(split, "")
-                raise ValueError(f"{split} shards: {Path(where) / 'index.json'} lists none (it has "
-                                 f"{', '.join(f'{k}: {n}' for k, n in has.items()) or 'no shards'}; the 8:1:1 scene "
-                                 f"split puts a set of few scenes in train alone): write a {split} set with anycity "
-                                 f"data convert --split {split} --out OTHER_FOLDER and pass --data.{split}_shards "
-                                 f"OTHER_FOLDER{skip}")
-            raise ValueError(f"{split} shards: none found (root={self.hp.root!r}, {split}_shards={spec!r}); give "
-                             f"a shard directory with index.json listing {split} shards, or a shard pattern")
-        return urls
+        where = spec if spec is not None else self.hp.root
+        return _expand(where, split) or _no_shards(split, where, f"root={self.hp.root!r}, {split}_shards={spec!r}")
 
     def check_split(self, subcommand: str, trainer: pl.Trainer | None = None) -> None:
         """Refuse a run whose split has no shards (a train-only ``index.json``), in the line its first batch would

@@ -68,6 +68,7 @@ class ScaffoldModule(AnyCityModule):
         super().__init__(**base)  # also records every argument, these and the base's, as hparams
         self.freeze_unsupervised_pose_token(camera_weight)
         self._told_no_depth = False
+        self._depth_kinds: set[bool] = set()  # whether batches seen so far had ground-truth depth
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
         # Stage I checkpoints written before Stage I stopped building the completion branch carry its (untrained)
@@ -99,6 +100,13 @@ class ScaffoldModule(AnyCityModule):
             gt_enc = extri_intri_to_pose_encoding(ctx.w2c, ctx.K, ctx.hw, self.net.cfg.focal_decode)
             terms["cam"] = camera_loss(out["pose_enc_list"], gt_enc, loss_type=hp.camera_loss_type)["total"]
             loss = loss + hp.camera_weight * terms["cam"]
+        if len(self._depth_kinds) < 2:
+            self._depth_kinds.add(ctx.depth is not None)
+            if len(self._depth_kinds) == 2:
+                rank_zero_warn("training mixes scenes with ground-truth depth and scenes without (e.g. synthetic and "
+                               "COLMAP shards): a sample's frame is scaled by its context's median depth, or without "
+                               "depth by its context cameras' spread, so the camera head is taught translations in "
+                               "two units; convert the depth-free scenes with depth, or train on one kind")
         if geo_on and hp.depth_weight > 0 and ctx.depth is None and not self._told_no_depth:
             self._told_no_depth = True  # shards converted without depth (e.g. COLMAP): a data matter, said once
             rank_zero_warn(f"model.depth_weight is {hp.depth_weight}, but a batch has no ground-truth depth (its "

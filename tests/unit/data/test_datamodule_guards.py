@@ -1,6 +1,7 @@
 """Settings and streams that used to fail quietly: an epoch with no batch, an evaluation whose every sample fails
 under several workers, a shard pattern as data.root read as val/test, windows too short for distinct targets, skip
-counts of events instead of things, resuming with gradient accumulation, and data work nothing reads."""
+counts of events instead of things, resuming with gradient accumulation, data work nothing reads, a shard folder of a
+list that gives none of the split, and scenes of another aspect ratio under resize_mode keep."""
 
 import tarfile
 from pathlib import Path
@@ -294,3 +295,88 @@ def test_the_shortest_train_sample_is_the_one_with_fewest_views(tmp_path):
                          {"split": "val", "num_views": 3}]}
     (tmp_path / "index.json").write_text(json.dumps(index))
     assert _shortest_train_sample(str(tmp_path)) == (6, str(tmp_path))
+
+
+def _split_moved(synth_root, dst: Path, split: str) -> Path:
+    """A copy of the fixture's shard folder whose index.json lists its shards as ``split`` alone (a folder written by
+    ``anycity data convert --split test``)."""
+    import json
+    import shutil
+
+    shutil.copytree(synth_root, dst)
+    index = json.loads((dst / "index.json").read_text())
+    index["splits"] = {split: [u for v in index["splits"].values() for u in v]}
+    (dst / "index.json").write_text(json.dumps(index))
+    return dst
+
+
+def test_a_folder_of_a_shard_list_that_gives_none_of_the_split_is_refused(synth_root, tmp_path):
+    """``--data.train_shards "[synth, boruszyn_test]"``, the second converted with --split test: it was dropped
+    without a word and training read the first alone. Refused in the line one such folder alone gives."""
+    other = _split_moved(synth_root, tmp_path / "other_test", "test")
+    dm = _dm(synth_root, train_shards=[str(synth_root), str(other)], val_shards=[str(other), str(synth_root)])
+    with pytest.raises(ValueError, match=r"^train shards: .*other_test/index.json lists none \(it has test: \d+;"
+                                         r".*--data.train_shards OTHER_FOLDER$"):
+        dm.check_split("fit")
+    with pytest.raises(ValueError, match=r"^val shards: .*other_test/index.json lists none .*--data.val_shards "
+                                         r"OTHER_FOLDER; or skip validation with --trainer.limit_val_batches 0$"):
+        dm.val_dataloader()
+    both = _dm(synth_root, test_shards=[str(other), str(synth_root)])
+    assert both._urls("test") == shard_urls(other, "test") + shard_urls(synth_root, "test")
+
+
+def _narrowed(synth_root, dst: Path, views) -> str:
+    """The fixture's test shard with the chosen views (``views(i)``) centre-cropped to half their width, as a COLMAP
+    scene of two cameras (another aspect ratio) gives them; returns the shard's path."""
+    import json
+
+    import cv2
+    import numpy as np
+
+    def edit(name: str, data: bytes) -> bytes:
+        if name.endswith("cameras.json"):
+            meta = json.loads(data)
+            for i, v in enumerate(meta["views"]):
+                if views(i):
+                    x0 = v["width"] // 4
+                    v["width"] -= 2 * x0
+                    v["K"][0][2] -= x0
+            return json.dumps(meta).encode()
+        stem = name.rsplit(".", 2)
+        if name.endswith(".jpg") and views(int(stem[-2])):
+            img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+            x0 = img.shape[1] // 4
+            return cv2.imencode(".jpg", np.ascontiguousarray(img[:, x0:img.shape[1] - x0]))[1].tobytes()
+        return data
+
+    return str(rewrite_shard(Path(shard_urls(synth_root, "test")[0]), dst, edit))
+
+
+def test_a_scene_whose_views_keep_different_sizes_stops_the_run_instead_of_leaving_it(synth_root, tmp_path):
+    """resize_mode keep and a scene of two aspect ratios: the scene was skipped as a corrupt sample (skip_corrupt,
+    the default) and silently left training. A setting to change, so it stops the run in one line naming the scene."""
+    url = _narrowed(synth_root, tmp_path / "mixed.tar", lambda i: i % 2 == 1)
+    builder = SampleBuilder(2, 1, 0, (32, 32), "keep", train=False, with_depth=False, patch=8)
+    counter = SkipCounter()
+    with pytest.raises(ValueError, match=r"^shard .* sample .*: scene \S+: views resize to different sizes .*use "
+                                         r"resize_mode 'crop' or one aspect ratio per scene$") as e:
+        list(make_pipeline([url], builder, train=False, skip_corrupt=True, counter=counter))
+    assert type(e.value).__name__ == "SettingsError" and counter.count == 0
+    crop = SampleBuilder(2, 1, 0, (32, 32), "crop", train=False, with_depth=False)
+    assert len(list(make_pipeline([url], crop, train=False, skip_corrupt=True))) > 0
+
+
+def test_a_keep_batch_of_two_aspect_ratios_is_refused_in_one_line(synth_root, tmp_path):
+    """resize_mode keep, eval_batch_size 2, a 4:3 and a 16:9 scene: torch.stack's "stack expects each tensor to be
+    equal size" traceback. Refused naming the scenes, their sizes and the fixes."""
+    from anycity.data.pipeline import collate
+
+    narrow = _narrowed(synth_root, tmp_path / "narrow.tar", lambda i: True)
+    builder = SampleBuilder(2, 1, 0, (32, 32), "keep", train=False, with_depth=False, patch=8)
+    a = next(iter(make_pipeline(shard_urls(synth_root, "test"), builder, train=False)))
+    b = {**next(iter(make_pipeline([narrow], builder, train=False))), "scene": "narrow_scene"}
+    with pytest.raises(ValueError, match=rf"^collate: a batch mixes image sizes \(HxW 32x32: {a['scene']}; 40x24: "
+                                         r"narrow_scene\): .*--data.batch_size 1 \(--data.eval_batch_size 1 .*\), use "
+                                         r"--data.resize_mode crop, or shards of one aspect ratio per run$"):
+        collate([a, b, a])
+    assert collate([b, b]).context.images.shape[-2:] == (40, 24)

@@ -82,6 +82,23 @@ def test_select_eval_context_surrounds_the_targets_centre():
     assert select_eval(24, 2, 3, 0)[0].context == [6, 10]
 
 
+def test_select_eval_context_does_not_depend_on_num_dense():
+    """stage1.yaml (num_dense 0) and stage2.yaml (12) tested the same targets from different context views ([7, 10,
+    13, 15] and [5, 10, 13, 18] of 48): the context was spread over the max(2 x num_context, num_dense) nearest
+    views, so a Stage I run's test figures did not compare with a Stage II run's. The context now spreads over the
+    2 x num_context nearest; the dense views keep the max(2 x num_context, num_dense) nearest."""
+    for n in (16, 24, 48, 96):
+        same = [(s.context, s.target) for s in select_eval(n, 4, 4, 0)]
+        for nd in (6, 12, 24):
+            assert [(s.context, s.target) for s in select_eval(n, 4, 4, nd)] == same
+    got = select_eval(48, 4, 4, 12)
+    assert [(s.context, s.target, s.dense) for s in got] == [
+        ([7, 10, 13, 15], [0, 8, 16, 24], [5, 6, 7, 9, 10, 11, 12, 13, 14, 15, 17, 18]),
+        ([31, 34, 37, 39], [32, 40, 32, 40], [29, 30, 31, 33, 34, 35, 36, 37, 38, 39, 41, 42])]
+    # the quickstart (4 context, 6 dense: a pool of 8 either way) is unchanged
+    assert [(s.context, s.target, s.dense) for s in select_eval(24, 4, 2, 6)] == [
+        ([1, 3, 6, 9], [0, 8], [1, 2, 4, 5, 7, 9]), ([12, 14, 18, 20], [16, 16], [12, 13, 15, 17, 19, 20])]
+
 def test_select_eval_refuses_a_context_it_would_have_to_repeat():
     """Fewer non-held-out views than num_context: the context silently repeated views ([1, 1, 2, 2]), and a repeated
     pair scored rte 90 deg and failed pose AUC for a perfect prediction. Refused in one line naming the view count,

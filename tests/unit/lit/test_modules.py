@@ -863,3 +863,50 @@ def test_load_stage1_refuses_a_scaffold_trained_with_other_decode_settings(tmp_p
     m = RefinementModule(net={"scale_mode": "absolute", "color_mode": "head"})
     m.load_stage1(str(ckpt))  # the same settings: loaded
     torch.testing.assert_close(m.net.gaussian_head.state_dict(), net.gaussian_head.state_dict())
+
+
+def test_training_on_scenes_with_and_without_depth_is_named_once(batch):
+    """A frame with depth is scaled by its context's median depth, one without by its cameras' spread (views.py),
+    so mixing synthetic and COLMAP shards teaches the camera head translations in two units, silently."""
+    import dataclasses
+    import warnings
+
+    no_depth = ViewBatch(context=dataclasses.replace(batch.context, depth=None, mask=None), target=batch.target,
+                         dense=batch.dense)
+    torch.manual_seed(0)
+    m = _no_log(ScaffoldModule(depth_weight=0.0, normal_weight=0.0, render_backend="torch"))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        m.training_step(batch, 0)
+        m.training_step(batch, 1)
+    assert not [w for w in caught if "two units" in str(w.message)]  # one kind: nothing to say
+    with pytest.warns(UserWarning, match=r"^training mixes scenes with ground-truth depth and scenes without .*two "
+                                         r"units; convert the depth-free scenes with depth, or train on one kind$"):
+        m.training_step(no_depth, 2)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        m.training_step(batch, 3)
+        m.training_step(no_depth, 4)
+    assert not [w for w in caught if "two units" in str(w.message)]  # said once
+
+
+def test_unscaled_placement_of_a_batch_without_depth_is_named_once(batch):
+    """eval_align none takes the ground truth's scale as the network's: true of a frame scaled by median depth, not
+    of a depth-free sample's (scaled by its cameras' spread); the zero-shot COLMAP figures carried it unsaid."""
+    import dataclasses
+
+    no_depth = ViewBatch(context=dataclasses.replace(batch.context, depth=None, mask=None),
+                         target=dataclasses.replace(batch.target, depth=None, mask=None))
+    torch.manual_seed(0)
+    m = _no_log(ScaffoldModule(eval_align="none", render_backend="torch"))
+    with pytest.warns(UserWarning, match=r"^eval_align none: a batch has no ground-truth depth, .*pass "
+                                         r"--model.init_args.eval_align sim3"):
+        m.evaluate(no_depth, m.val_metrics, want_preview=False)
+    import warnings
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        m.evaluate(no_depth, m.val_metrics, want_preview=False)  # once
+        _no_log(ScaffoldModule(eval_align="sim3", render_backend="torch")).evaluate(no_depth, m.val_metrics, False)
+        _no_log(ScaffoldModule(eval_align="none", render_backend="torch")).evaluate(batch, m.val_metrics, False)
+    assert not [w for w in caught if "eval_align none" in str(w.message)]
