@@ -156,7 +156,7 @@ def photo_header(path: Path) -> PhotoHeader:
 
     from anycity.city.plan import exif_capture_time
 
-    if not path.exists():  # a dangling symlink
+    if path.is_symlink() and not path.exists():
         raise ValueError(f"predict_images: {path} is a link to a file that does not exist; fix or remove the link")
     try:
         check_image_file(path)
