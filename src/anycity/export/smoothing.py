@@ -82,8 +82,10 @@ def smooth_3d(g: Gaussians, w2c: Tensor, K: Tensor, width: int, height: int,
 
     ``g`` holds B scenes of N Gaussians, ``w2c [B, V, 4, 4]`` and ``K [B, V, 3, 3]`` their input cameras for
     ``width x height`` images; ``variance_px`` is the filter in px² of those images."""
-    means, w2c, K = g.means.float(), w2c.float(), K.float()
-    var = g.scales.float() ** 2
+    # float64: the gain's determinants of a long thin footprint cancel in float32 (a 3000 px needle's opacity was
+    # exported at the 0.9 clamp instead of 0.70)
+    means, w2c, K = g.means.double(), w2c.double(), K.double()
+    var = g.scales.double() ** 2
     eye = torch.eye(2, dtype=means.dtype, device=means.device)
     filts, gains = [], []
     for s in range(0, means.shape[1], CHUNK):  # [B, V, CHUNK] and a few 3x3 matrices per Gaussian at a time
@@ -92,7 +94,7 @@ def smooth_3d(g: Gaussians, w2c: Tensor, K: Tensor, width: int, height: int,
         filt = torch.where(nu > 0, variance_px / nu.clamp_min(1e-12) ** 2, torch.zeros_like(nu))  # [B, n] world²
         take = cam[..., None, None].expand(-1, -1, 4, 4)
         T = footprint_jacobian(means[:, sl], w2c.gather(1, take), K.gather(1, take[..., :3, :3]))
-        R = quat_to_rotmat(g.quats[:, sl].float())
+        R = quat_to_rotmat(g.quats[:, sl].double())
         before = T @ (R * var[:, sl, None, :]) @ R.transpose(-1, -2) @ T.transpose(-1, -2) + EPS2D * eye
         after = before + filt[..., None, None] * (T @ T.transpose(-1, -2))
         gain = torch.sqrt(torch.linalg.det(before) / torch.linalg.det(after)).clamp(max=1.0)

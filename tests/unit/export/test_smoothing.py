@@ -133,3 +133,24 @@ def test_the_sampling_rate_takes_the_larger_focal_length():
     K = torch.tensor([[40.0, 0, 24], [0, 20, 16], [0, 0, 1]])[None, None]
     nu = sampling_rate(torch.tensor([[[0.0, 0, 5]]]), torch.eye(4)[None, None], K, 48, 32)
     torch.testing.assert_close(nu, torch.tensor([[8.0]]))  # max(fx, fy) / z = 40 / 5
+
+
+def test_a_long_thin_footprint_keeps_its_float64_opacity():
+    """The gain sqrt(det(before) / det(after)) of a needle seen edge-on cancelled in float32: a 3000 px needle's
+    opacity was exported at the 0.9 clamp instead of 0.697."""
+    import math
+
+    from anycity.geometry import make_intrinsics, quat_to_rotmat
+
+    s = 3000.0 * 3 / 32
+    q = torch.tensor([math.cos(math.pi / 8), 0, 0, math.sin(math.pi / 8)])
+    g = Gaussians(means=torch.tensor([[[0, 0, 3.0]]]), quats=q[None, None], scales=torch.tensor([[[s, 0, 0]]]),
+                  opacities=torch.tensor([[0.9]]), sh=torch.zeros(1, 1, 1, 3))
+    w2c, K = torch.eye(4)[None, None], make_intrinsics(32.0, 32.0, 16.0, 16.0)[None, None]
+    out = smooth_3d(g, w2c, K, 32, 32)
+    T = torch.tensor([[32 / 3, 0, 0], [0, 32 / 3, 0]], dtype=torch.float64)  # the footprint Jacobian at (0, 0, 3)
+    R = quat_to_rotmat(q.double())
+    before = T @ (R * torch.tensor([s * s, 0, 0], dtype=torch.float64)) @ R.T @ T.T + EPS2D * torch.eye(2).double()
+    after = before + (0.2 / (32 / 3) ** 2) * T @ T.T
+    expected = 0.9 * math.sqrt(torch.linalg.det(before) / torch.linalg.det(after))
+    assert abs(out.opacities.item() - expected) < 1e-4 and expected < 0.75
