@@ -125,7 +125,7 @@ def _write(g, cams: dict | None, src: Path, fmt: str, out: Path) -> Path:
                       f"false?); the {fmt} export names images/{images[0]} etc. without writing them", stacklevel=3)
     if fmt == "colmap":
         return save_colmap(out / "sparse" / "0", w2c, K, w, h, images, g)
-    save_ply(g, out / "scene.ply")
+    save_ply(g, out / "scene.ply", pad_degree=3)  # graphdeco's loader and SIBR take degree 3 only, as --format ply
     save_points_ply(out / "points3D.ply", g)  # nerfstudio seeds from x y z + red green blue, not from SH columns
     return save_transforms(out / "transforms.json", w2c, K, w, h, [f"images/{n}" for n in images],
                            ply_file_path="points3D.ply")

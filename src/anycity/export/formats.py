@@ -103,12 +103,12 @@ def _coloured_points(g: Gaussians, index: int, max_points: int | None) -> tuple[
 
 
 def save_points_ply(path: str | Path, g: Gaussians, index: int = 0, max_points: int | None = None) -> Path:
-    """The Gaussian centres of scene ``index`` as a coloured point cloud (``x y z`` float, ``red green blue``
-    uchar), the seed layout nerfstudio's ``ply_file_path`` and graphdeco's ``fetchPly`` read; returns ``path``.
-    Points as in :func:`save_colmap`."""
+    """The Gaussian centres of scene ``index`` as a coloured point cloud (``x y z`` float, zero ``nx ny nz`` float,
+    ``red green blue`` uchar: graphdeco's ``storePly`` layout, which its ``fetchPly`` requires, and nerfstudio's
+    ``ply_file_path`` reads); returns ``path``. Points as in :func:`save_colmap`."""
     xyz, rgb = _coloured_points(g, index, max_points)
-    data = np.empty(len(xyz), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
-                                     ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+    data = np.zeros(len(xyz), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("nx", "<f4"), ("ny", "<f4"),
+                                     ("nz", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")])
     for i, c in enumerate("xyz"):
         data[c] = xyz[:, i]
     for i, c in enumerate(("red", "green", "blue")):

@@ -1,5 +1,7 @@
 """Standard 3DGS PLY (graphdeco ``save_ply`` layout): x y z, nx ny nz, f_dc, f_rest (channel-major), opacity
-(logit), scale (log std), rot (wxyz). Readable by the common viewers (SuperSplat, antimatter15, SIBR, viser)."""
+(logit), scale (log std), rot (wxyz). Readable by the common viewers (SuperSplat, antimatter15, viser); graphdeco's
+own loader and SIBR take only SH degree 3 (45 ``f_rest``) and no extra columns: ``pad_degree=3`` and no ``extra``
+(``anycity export --format ply`` writes that)."""
 
 from __future__ import annotations
 

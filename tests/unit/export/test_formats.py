@@ -106,12 +106,16 @@ def test_nerfstudio_round_trip(tmp_path):
         assert (view.width, view.height) == (48, 32)
     meta = json.loads(path.read_text())
     assert (tmp_path / "out" / "scene.ply").is_file()
-    # the seed nerfstudio reads (open3d: points and colours; graphdeco's fetchPly: x y z red green blue)
+    # the seed nerfstudio reads (open3d: points and colours); graphdeco's fetchPly also requires nx ny nz (its
+    # storePly writes zeros), and refused the file without them
     from plyfile import PlyData
 
     seed = PlyData.read(str(tmp_path / "out" / meta["ply_file_path"]))["vertex"]
-    assert [p.name for p in seed.properties] == ["x", "y", "z", "red", "green", "blue"]
-    assert seed["red"].dtype == np.uint8
+    assert [p.name for p in seed.properties] == ["x", "y", "z", "nx", "ny", "nz", "red", "green", "blue"]
+    assert seed["red"].dtype == np.uint8 and not np.stack([seed[c] for c in ("nx", "ny", "nz")]).any()
+    # the Gaussians beside it in the layout graphdeco's loader and SIBR read: SH degree 3 (45 f_rest), no extras
+    names = [p.name for p in PlyData.read(str(tmp_path / "out" / "scene.ply"))["vertex"].properties]
+    assert sum(n.startswith("f_rest_") for n in names) == 45 and names[-1] == "rot_3"
     np.testing.assert_allclose(np.stack([seed[c] for c in "xyz"], -1), g.means[0].numpy(), atol=1e-6)
     rgb = (0.5 + SH_C0 * g.sh[0, :, 0]).clamp(0, 1).numpy() * 255
     np.testing.assert_allclose(np.stack([seed[c] for c in ("red", "green", "blue")], -1), rgb, atol=0.51)

@@ -96,7 +96,8 @@ def test_an_empty_scene_and_a_coloured_point_cloud_are_plyfiles_too(tmp_path):
     buf = io.BytesIO()
     PlyData([PlyElement.describe(v.data, "vertex")], text=False, byte_order="<").write(buf)
     assert (tmp_path / "p.ply").read_bytes() == buf.getvalue()
-    assert v.data.dtype.names == ("x", "y", "z", "red", "green", "blue") and v.count == int(g.valid.sum())
+    assert v.data.dtype.names == ("x", "y", "z", "nx", "ny", "nz", "red", "green", "blue")
+    assert v.count == int(g.valid.sum())
 
 
 def test_the_writer_holds_about_one_copy_of_the_file(tmp_path):
