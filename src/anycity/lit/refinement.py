@@ -53,7 +53,7 @@ def decode_mismatch(stage1: dict, cfg) -> list[str]:
 
     if not stage1.get("preset"):
         return []
-    net = {k: v for k, v in (stage1.get("net") or {}).items() if k in DECODE_KEYS}
+    net = {k: v for k, v in (stage1.get("net") or {}).items() if k in (*DECODE_KEYS, "depth")}  # depth: head layers
     theirs = preset_config(stage1["preset"], **net)
 
     def value(c, key):

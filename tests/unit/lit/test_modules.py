@@ -863,6 +863,11 @@ def test_load_stage1_refuses_a_scaffold_trained_with_other_decode_settings(tmp_p
     m = RefinementModule(net={"scale_mode": "absolute", "color_mode": "head"})
     m.load_stage1(str(ckpt))  # the same settings: loaded
     torch.testing.assert_close(m.net.gaussian_head.state_dict(), net.gaussian_head.state_dict())
+    # a deeper trunk resolves its default head layers from its own depth, in both checkpoints alike
+    deep = build_network("tiny", depth=8, completion=False)
+    torch.save({"state_dict": {f"net.{k}": v for k, v in deep.state_dict().items()},
+                "hyper_parameters": {"preset": "tiny", "net": {"depth": 8}}}, ckpt)
+    RefinementModule(net={"depth": 8}).load_stage1(str(ckpt))
 
 
 def test_training_on_scenes_with_and_without_depth_is_named_once(batch):
