@@ -242,12 +242,17 @@ GENERIC_FOLDERS = {"images", "imgs", "image", "photos", "input", "inputs", "rgb"
 MAX_SCENE_NAME_BYTES = 200
 
 
+def folder_scene_name(folder: Path, generic: set[str] | frozenset[str] = frozenset(GENERIC_FOLDERS)) -> str:
+    """``folder``'s own name, or its parent's when its own is one of ``generic`` (any case)."""
+    return folder.parent.name if folder.name.lower() in generic and folder.parent.name else folder.name
+
+
 def scene_name(folder: Path) -> str:
     """The scene's name for outputs: the folder's own name, or its parent's when the folder has a generic name
     (``boruszyn_kap/images`` -> ``boruszyn_kap``, as in the COLMAP / nerfstudio layouts). A name over
     :data:`MAX_SCENE_NAME_BYTES` (UTF-8) is cut there and given 8 hex digits of its hash, with a warning."""
     folder = Path(os.path.abspath(folder))  # a symlinked folder keeps its own name, not its target's
-    name = folder.parent.name if folder.name.lower() in GENERIC_FOLDERS and folder.parent.name else folder.name
+    name = folder_scene_name(folder)
     raw = name.encode("utf-8", "surrogateescape")
     if len(raw) <= MAX_SCENE_NAME_BYTES:
         return name

@@ -227,22 +227,20 @@ def w2c_of(image: dict) -> np.ndarray:
     return rigid(R, image["tvec"])
 
 
-def _scenes(src: Path) -> list[Path]:
-    """``[src]`` when it holds a model (or is one), else its sub-folders that do. Sub-folders with ``images/`` or
-    ``sparse/`` but no model (a failed SfM) are skipped with one warning: they must not stop the other scenes."""
+def _scenes(src: Path) -> list[tuple[Path, Path]]:
+    """``(scene, its model folder)``: ``src`` when it holds a model (or is one), else its sub-folders that do.
+    Sub-folders with ``images/`` or ``sparse/`` but no model (a failed SfM) are skipped with one warning: they must
+    not stop the other scenes."""
     try:
-        model_dir(src)
-        return [src]
+        return [(src, model_dir(src))]
     except FileNotFoundError as e:
         missing = e
     scenes, skipped = [], []
     for p in sorted(q for q in src.iterdir() if q.is_dir() and ((q / "sparse").exists() or (q / "images").is_dir())):
         try:
-            model_dir(p)
+            scenes.append((p, model_dir(p)))
         except FileNotFoundError:
             skipped.append(p.name)
-            continue
-        scenes.append(p)
     if not scenes:
         raise missing
     if skipped:
@@ -263,8 +261,7 @@ def parse(src: str | Path) -> list[ParsedScene]:
     """One ParsedScene per COLMAP scene under ``src`` (views sorted by image name, the llffhold order)."""
     src = require(Path(src), "a COLMAP scene folder")
     out = []
-    for sc in _scenes(src):
-        d = model_dir(sc)
+    for sc, d in _scenes(src):
         root = _scene_of(d) if d == sc else sc
         m = _read_dir(d, points=False)
         _warn_unregistered(root / "images", {img["name"] for img in m.images.values()}, d if root != sc else None)

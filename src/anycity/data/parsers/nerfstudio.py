@@ -21,7 +21,7 @@ import numpy as np
 
 from anycity.data.imagecheck import read_image
 from anycity.data.parsers.base import ParsedScene, ParsedView, c2w_gl_to_w2c, require
-from anycity.data.photos import GENERIC_FOLDERS
+from anycity.data.photos import GENERIC_FOLDERS, folder_scene_name
 
 _DIST = ("k1", "k2", "p1", "p2", "k3")  # OpenCV's order
 _PINHOLE = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE")
@@ -98,6 +98,5 @@ def parse(src: str | Path) -> list[ParsedScene]:
         views.append(ParsedView(name=Path(fr["file_path"]).name, image_path=_image_path(root, fr["file_path"]),
                                 w2c=c2w_gl_to_w2c(c2w), K=K, width=w, height=h, depth=depth, dist=dist))
     extra = {k: meta[k] for k in ("applied_transform", "applied_scale") if k in meta}
-    name = root.parent.name if root.name.lower() in _GENERIC and root.parent.name else root.name
-    return [ParsedScene(name=name, views=views, source="nerfstudio", units="nerfstudio",
+    return [ParsedScene(name=folder_scene_name(root, _GENERIC), views=views, source="nerfstudio", units="nerfstudio",
                         metres_per_unit=None, extra=extra)]
