@@ -33,7 +33,7 @@ import torch
 import webdataset as wds
 
 from anycity.data.schema import decode_image, decode_normals, decode_npy, member, read_meta, sample_where
-from anycity.data.tario import NoSampleGuard, tar_samples
+from anycity.data.tario import NoSampleGuard, is_url, tar_samples
 from anycity.data.views import (
     Selection,
     SettingsError,
@@ -214,14 +214,16 @@ class SampleBuilder:
             self._in_worker = torch.utils.data.get_worker_info() is not None
             if self._in_worker:
                 cv2.setNumThreads(0)  # workers are the parallelism; OpenCV's threads would oversubscribe
+        # a NaN camera/depth never reaches the loss; images (from uint8) and normals (from uint8, or from the depth
+        # and K checked here) cannot be non-finite, and checking them was a third of the build at 448 px. Checked on
+        # one thread too: torch's intra-op threads made it half the build's time with num_workers 0
         if self._in_worker:
             out = self._build(sample)
+            check_finite(out, sample_where(sample), skip=("images", "normal"))
         else:
             with single_thread():
                 out = self._build(sample)
-        # a NaN camera/depth never reaches the loss; images (from uint8) and normals (from uint8, or from the depth
-        # and K checked here) cannot be non-finite, and checking them was a third of the build at 448 px
-        check_finite(out, sample_where(sample), skip=("images", "normal"))
+                check_finite(out, sample_where(sample), skip=("images", "normal"))
         self._built += 1  # only a sample that reaches a batch counts (see train_context_count)
         return out
 
@@ -603,7 +605,7 @@ def make_pipeline(urls: list[str], builder: SampleBuilder, *, train: bool, resam
     if not urls:
         raise ValueError("shards: the split has no shards; check the shard root / url pattern")
     for u in urls:
-        if "://" not in u and not u.startswith("pipe:") and not Path(u).exists():
+        if not is_url(u) and not Path(u).exists():
             raise FileNotFoundError(f"shard {u}: file not found; check the data root or re-run anycity data synth")
 
     handler = _Handler(skip_corrupt, counter, train)

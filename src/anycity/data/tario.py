@@ -4,13 +4,15 @@ A webdataset sample of a trajectory window holds every view's image and depth, b
 only the views it selects. For local shard files :func:`tar_samples` yields samples whose members are
 :class:`Member` handles (``cameras.json`` is read eagerly); :func:`anycity.data.schema.member` reads the bytes
 with one ``pread`` (a seek and a read on Windows, which has no ``pread``) when a view is chosen. Remote URLs
-(``pipe:``, ``http://``, ...) go through webdataset's own streaming reader and carry bytes. Grouping into samples
+(``pipe:``, ``http://``, ``file:``...) are opened with webdataset's ``gopen`` and read as a tar stream
+(:func:`remote_members`), with the local reader's checks; their members carry bytes. Grouping into samples
 is webdataset's ``group_by_keys``.
 """
 
 from __future__ import annotations
 
 import os
+import re
 import tarfile
 import threading
 from collections.abc import Callable, Iterable, Iterator
@@ -69,8 +71,39 @@ class Member:
         return f"Member({self.name!r}, {self.size} bytes)"
 
 
+_SCHEME = re.compile(r"[A-Za-z][A-Za-z0-9+.-]+:")  # two letters or more: ``C:\\shards`` is a Windows path
+
+
+def is_url(spec: str) -> bool:
+    """Whether a shard spec is a URL webdataset opens (``http://``, ``pipe:cmd``, ``file:path``, ``s3://``...), not
+    a local path."""
+    return _SCHEME.match(spec) is not None
+
+
 def is_local(url: str) -> bool:
-    return "://" not in url and not url.startswith("pipe:") and Path(url).is_file()
+    return not is_url(url) and Path(url).is_file()
+
+
+_CURL_EXITS = {6: "host not found", 7: "could not connect", 18: "the transfer ended early (partial file)",
+               22: "the server answered with an HTTP error (e.g. 404: no such file)", 28: "timed out",
+               35: "TLS handshake failed", 56: "the connection broke while receiving"}
+
+
+def remote_error(url: str, exn: BaseException) -> str:
+    """One line for webdataset's exception while streaming remote shard ``url``: its args are ``(message, ...,
+    stream, url)`` with a curl or pipe command's exit status in the message, which printed as a tuple of objects."""
+    msg = str(exn.args[0]) if exn.args else str(exn)
+    status = re.search(r"exit (\d+) \(read\)", " ".join(map(str, exn.args)))
+    if status:
+        code = int(status.group(1))
+        curl = "curl" in " ".join(map(str, exn.args))
+        why = (f"curl exit {code}: {_CURL_EXITS[code]}" if curl and code in _CURL_EXITS
+               else f"{'curl' if curl else 'the pipe command'} exited with status {code}")
+    elif msg == "empty file":
+        why = "nothing was read (a missing file, a failed command or an empty response)"
+    else:
+        return f"shard {url}: {msg}; re-create the shard"
+    return f"shard {url}: {why}; check the URL and that the shard is there"
 
 
 def local_members(url: str) -> Iterator[dict]:
@@ -78,7 +111,8 @@ def local_members(url: str) -> Iterator[dict]:
     (bytes for small eager members). Raises ``tarfile.ReadError`` / ``ValueError`` on corrupt archives, and
     ``ValueError`` for a member that ends past the end of the file (truncated, or a header claiming an absurd size,
     which reading would allocate), and for an invalid header before the end of the file (a flipped bit there: tarfile
-    stops there quietly, which dropped the rest of the shard unnoticed)."""
+    stops there quietly, which dropped the rest of the shard unnoticed), and for a file that ends without the
+    end-of-archive block (cut just after a member: tarfile ends there quietly too)."""
     file = _File(url)
     end = os.fstat(file.fd).st_size
     with open(url, "rb") as f, tarfile.open(fileobj=f, mode="r:") as tf:
@@ -94,8 +128,12 @@ def local_members(url: str) -> Iterator[dict]:
             if m.name.endswith(EAGER_SUFFIXES):
                 data = data.read()
             yield {"fname": m.name, "data": data, "__url__": url, "url": url}  # url: webdataset's errors name it
-        # tarfile stops at the end-of-archive block (zeros) and, silently, at an invalid header
-        if tf.offset < end and file.read(tarfile.BLOCKSIZE, tf.offset).strip(b"\0"):
+        # tarfile stops at the end-of-archive block (zeros) and, silently, at an invalid header or at the end of
+        # the file: a shard cut just after a member (every writer ends a tar with zero blocks) lost its other members
+        if tf.offset >= end:
+            raise ValueError(f"shard {url}: ends after {end} bytes without the end-of-archive block (truncated: its "
+                             "remaining members are missing); re-create the shard")
+        if file.read(tarfile.BLOCKSIZE, tf.offset).strip(b"\0"):
             raise ValueError(f"shard {url}: invalid tar header at byte {tf.offset} (corrupt); re-create the shard")
 
 
@@ -176,6 +214,70 @@ class NoSampleGuard:
                          f"{self.build_why}")
 
 
+class _Recorded:
+    """A remote stream that counts the bytes read through it and keeps the last ``keep`` of them: what tarfile read
+    ahead of its last header, to check after the last member that the stream held a whole tar."""
+
+    def __init__(self, stream, keep: int = 1 << 16) -> None:
+        self.stream, self.keep, self.pos, self.tail = stream, keep, 0, b""
+
+    def read(self, size: int = -1) -> bytes:
+        data = self.stream.read(size)
+        self.pos += len(data)
+        self.tail = (self.tail + data)[-self.keep:]
+        return data
+
+    def block_at(self, offset: int) -> bytes:
+        """Up to one tar block of the stream at ``offset`` (at most ``keep`` bytes behind what was read), reading on
+        if needed; then drains the stream (so a command or download that failed says so)."""
+        held = self.tail[offset - (self.pos - len(self.tail)):]
+        while len(held) < tarfile.BLOCKSIZE and (more := self.read(1 << 16)):
+            held += more
+        while self.read(1 << 16):
+            pass
+        return held[:tarfile.BLOCKSIZE]
+
+
+def remote_members(url: str) -> Iterator[dict]:
+    """``{"fname", "data", "__url__", "url"}`` per regular member of a remote tar (``http://``, ``pipe:``,
+    ``file:``..., opened with webdataset's ``gopen``), ``data`` its bytes. Raises a one-line ``ValueError`` naming
+    the URL (:func:`remote_error`) where the stream fails, and, as :func:`local_members` does, where an uncompressed
+    tar ends without the end-of-archive block or at an invalid header (tarfile stops quietly at both)."""
+    from webdataset.gopen import gopen
+
+    stream = None
+    try:
+        stream = gopen(url, "rb")
+        rec = _Recorded(stream)
+        with tarfile.open(fileobj=rec, mode="r|*") as tf:
+            headers = 0
+            for m in tf:
+                headers += 1
+                if m.isfile():
+                    yield {"fname": m.name, "data": tf.extractfile(m).read(), "__url__": url, "url": url}
+            if headers and getattr(tf.fileobj, "comptype", "tar") == "tar":
+                block = rec.block_at(tf.offset)
+                if not block:
+                    raise ValueError(f"ends after {tf.offset} bytes without the end-of-archive block (truncated: its "
+                                     "remaining members are missing)")
+                if block.strip(b"\0"):
+                    raise ValueError(f"invalid tar header at byte {tf.offset} (corrupt)")
+        stream.close()  # a pipe's command or curl: its exit status
+    except Exception as e:
+        raise ValueError(remote_error(url, _closing_error(stream) or e)) from e
+
+
+def _closing_error(stream) -> BaseException | None:
+    """The error closing ``stream`` raises (a failed download or command says why there: curl's exit status, where
+    tarfile saw only an empty or short stream), or None."""
+    try:
+        if stream is not None:
+            stream.close()
+    except Exception as e:
+        return e
+    return None
+
+
 def tar_samples(src: Iterable[dict], handler: Callable[[BaseException], bool],
                 guard: NoSampleGuard | None = None) -> Iterator[dict]:
     """webdataset stage: shard dicts (``{"url": ...}``) -> samples, lazily for local files. ``guard`` hears of
@@ -187,15 +289,10 @@ def tar_samples(src: Iterable[dict], handler: Callable[[BaseException], bool],
             url = d["url"]
             if guard is not None:
                 guard.check()
-            if not is_local(url):
-                for m in tariterators.tar_file_expander(tariterators.url_opener([d], handler=handler),
-                                                        handler=handler):
-                    yield {**m, "url": m.get("__url__", url)}
-                continue
             n, why = 0, None
             before = guard.read.get(url, 0) if guard is not None else 0
             try:
-                for m in local_members(url):
+                for m in local_members(url) if is_local(url) else remote_members(url):
                     n += 1
                     yield m
             except (tarfile.TarError, OSError, ValueError) as e:
