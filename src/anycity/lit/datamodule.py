@@ -32,6 +32,7 @@ from anycity.data.pipeline import (
     make_pipeline,
     to_float32,
 )
+from anycity.data.tario import is_url
 from anycity.data.writer import read_index, shard_urls
 from anycity.structures import ViewBatch
 
@@ -44,7 +45,7 @@ def _expand(spec: str | list[str] | None, split: str) -> list[str]:
         return []
     if isinstance(spec, (list, tuple)):
         return [u for s in spec for u in _expand(s, split) or _no_shards(split, s, f"{split}_shards entry {s!r}")]
-    if "://" not in spec and Path(spec).is_dir():
+    if not is_url(spec) and Path(spec).is_dir():
         return shard_urls(spec, split)
     import webdataset as wds
 
@@ -237,7 +238,7 @@ class AerialDataModule(pl.LightningDataModule):
         if len(image_size) != 2 or min(image_size) < 8:
             raise ValueError(f"image_size: expected [H, W] with sides >= 8, got {image_size!r}")
         _check_epoch(epoch_samples if resampled else None, num_workers, batch_size)
-        if (isinstance(root, str) and predict_images is None and "://" not in root and "{" not in root
+        if (isinstance(root, str) and predict_images is None and not is_url(root) and "{" not in root
                 and not Path(root).exists()):
             # here, not when the first batch is read: before the run writes its config and logs (a predict from
             # photos reads no shards, so a config's root may point nowhere then)
@@ -341,9 +342,11 @@ class AerialDataModule(pl.LightningDataModule):
                              "convert --max_views)")
 
     def val_dataloader(self) -> DataLoader:
+        _warn_limit_per_rank(self.trainer, "limit_val_batches")
         return self._loader("val")
 
     def test_dataloader(self) -> DataLoader:
+        _warn_limit_per_rank(self.trainer, "limit_test_batches")
         return self._loader("test")
 
     def predict_dataloader(self) -> DataLoader:
@@ -440,10 +443,21 @@ def _check_photo_count(folder: str) -> None:
         list_photos(folder)
 
 
+def _warn_limit_per_rank(trainer, option: str) -> None:
+    """One line when a multi-process run limits evaluation to a count of batches: Lightning counts them per rank,
+    so the figures cover another set (and world-size times more views) than a one-process run's."""
+    limit, world = getattr(trainer, option, None), getattr(trainer, "world_size", 1)
+    if world > 1 and isinstance(limit, int) and not isinstance(limit, bool) and limit > 0:
+        rank_zero_warn(f"trainer.{option} {limit} counts batches per process: {world} processes score up to "
+                       f"{limit * world} batches, another set than one process's {limit}, so these figures compare "
+                       f"only with runs on {world} processes; set --trainer.{option} 1.0 (the whole set) for figures "
+                       "that do not depend on the number of processes")
+
+
 def _check_root_names_splits(root: str | None, split: str) -> None:
     """Refuse a ``root`` that is a shard file or pattern for an evaluation split: it names no split, so validation
     and testing would read the training shards."""
-    if isinstance(root, str) and ("://" in root or not Path(root).is_dir()):
+    if isinstance(root, str) and (is_url(root) or not Path(root).is_dir()):
         raise ValueError(f"{split} shards: data.root {root} is a shard file or pattern, not a folder with index.json, "
                          f"so it names no {split} set ({split} would read the training shards); pass "
                          f"--data.{split}_shards FOLDER_OR_PATTERN, or point data.root at a folder written by anycity "
@@ -455,7 +469,7 @@ def _shortest_train_sample(spec: str | list[str] | None) -> tuple[int, str] | No
     None when ``spec`` names no folder."""
     found = []
     for folder in spec if isinstance(spec, (list, tuple)) else [spec]:
-        if isinstance(folder, str) and "://" not in folder and Path(folder).is_dir():
+        if isinstance(folder, str) and not is_url(folder) and Path(folder).is_dir():
             views = [int(s["num_views"]) for s in read_index(folder).get("samples", []) if s.get("split") == "train"]
             found += [(min(views), folder)] if views else []
     return min(found, default=None)

@@ -3,6 +3,7 @@ import itertools
 import os
 import shutil
 import tarfile
+import warnings
 from pathlib import Path
 
 import pytest
@@ -264,6 +265,25 @@ def test_a_photo_folder_is_predicted_in_one_process(tmp_path):
         dm.predict_dataloader()
     dm.trainer = SimpleNamespace(world_size=1)
     assert len(list(dm.predict_dataloader())) == 1
+
+
+def test_a_batch_count_limit_under_several_processes_is_said(synth_root):
+    """Lightning's ``limit_val_batches: 2`` counts per rank: 2 processes scored 4 batches, another set than one
+    process's 2, and nothing said so (the best checkpoint is picked by those figures)."""
+    from types import SimpleNamespace
+
+    dm = AerialDataModule(root=str(synth_root), image_size=(16, 16), patch_size=8, num_workers=0)
+    for world, limit, said in ((2, 2, True), (1, 2, False), (2, 1.0, False), (2, 0, False), (4, 50, True)):
+        dm.trainer = SimpleNamespace(world_size=world, limit_val_batches=limit, limit_test_batches=limit)
+        for loader, option in ((dm.val_dataloader, "limit_val_batches"), (dm.test_dataloader, "limit_test_batches")):
+            with warnings.catch_warnings(record=True) as w:
+                warnings.simplefilter("always")
+                loader()
+            lines = [str(x.message) for x in w if "counts batches per process" in str(x.message)]
+            assert len(lines) == said, (world, limit, lines)
+            if said:
+                assert lines[0].startswith(f"trainer.{option} {limit} counts batches per process: {world} processes "
+                                           f"score up to {limit * world} batches") and "\n" not in lines[0]
 
 
 def test_a_resumed_run_sees_the_uninterrupted_stream_in_any_epoch(synth_root):
