@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import errno
+import ipaddress
 import math
 import socket
 import time
@@ -15,6 +16,7 @@ import numpy as np
 import torch
 from PIL import Image
 
+from anycity.atomic import atomic_path
 from anycity.export.cli import refuse_unknown_flags
 from anycity.viewer.scene import ViewScene, load_view_scene, ramp, splat_arrays
 
@@ -60,25 +62,82 @@ def scene_identity(path: str | Path) -> tuple[int, int] | None:
     return st.st_dev, st.st_ino
 
 
+MAX_RENDER_WIDTH = 4096
+"""Save render's widest image, px: the browser's aspect is clamped to [0.1, 10] and the width to this."""
+ASPECT_RANGE = (0.1, 10.0)
+
+
+def check_camera(wxyz, position, fov_y: float, aspect: float, height: int) -> None:
+    """One-line ``ValueError`` naming the value for a camera :func:`save_render` cannot render: ``fov_y`` (radians)
+    outside (0, pi), ``aspect`` not finite and > 0, ``height`` (px) not an integer >= 1, ``position [3]`` not
+    finite, ``wxyz [4]`` not finite or zero. A browser may send any of these (a 0 px tall panel, a NaN)."""
+    if isinstance(height, bool) or not isinstance(height, (int, np.integer)) or height < 1:
+        raise ValueError(f"image height {height!r} is not a whole number of pixels >= 1")
+    if not 0 < _number(fov_y) < math.pi:
+        raise ValueError(f"field of view {fov_y!r} is not in (0, pi) radians")
+    if not 0 < _number(aspect) < math.inf:
+        raise ValueError(f"aspect (width / height) {aspect!r} is not a finite number > 0")
+    for name, v, n in (("position", position, 3), ("rotation (wxyz)", wxyz, 4)):
+        a = np.asarray(v, dtype=np.float64)
+        if a.shape != (n,) or not np.isfinite(a).all() or not a.any():
+            what = f"{n} finite numbers" + (", not all 0" if n == 4 else "")
+            raise ValueError(f"camera {name} {a.tolist()} is not {what}")
+
+
+def _number(x) -> float:
+    """``x`` as a float, NaN when it is not a real number (so every range check fails on it)."""
+    try:
+        return float(x)
+    except (TypeError, ValueError):
+        return math.nan
+
+
+def render_width(height: int, aspect: float) -> int:
+    """The width (px) of a ``height`` px render at ``aspect`` (width / height): ``aspect`` clamped to
+    :data:`ASPECT_RANGE`, the width to [1, :data:`MAX_RENDER_WIDTH`], so no browser asks for a 48000 px image."""
+    aspect = min(max(aspect, ASPECT_RANGE[0]), ASPECT_RANGE[1])
+    return min(MAX_RENDER_WIDTH, max(1, round(height * aspect)))
+
+
 def save_render(scene: ViewScene, wxyz, position, fov_y: float, aspect: float, height: int = 480,
                 loaded: tuple[int, int] | None = None) -> Path:
-    """Our render of the viewer's current camera (as :func:`camera_w2c` takes it) at ``height`` px, written to
-    ``<scene folder>/view_renders/render_<time>[_N].png`` (never over an earlier one); returns the file.
+    """Our render of the viewer's current camera (as :func:`camera_w2c` takes it) at ``height`` px, ``aspect``
+    (width / height) clamped by :func:`render_width` (at most 4096 px wide), written to
+    ``<scene folder>/view_renders/render_<time>[_N].png``; returns the file. The name is reserved atomically, so
+    clicks at once (viser runs callbacks in threads) each get their own file, never over an earlier one.
+    A camera :func:`check_camera` refuses is a one-line ``ValueError``.
     ``loaded``: the :func:`scene_identity` taken when ``scene`` was loaded; a scene folder that has changed since
     (re-predicted, or moved aside while a re-predict runs) gets nothing, and ``FileNotFoundError`` says so."""
     if loaded is not None and scene_identity(scene.folder) != loaded:
         raise FileNotFoundError(f"{scene.folder}: the scene was replaced on disk (re-predicted?) since this viewer "
                                 f"loaded it; no render saved; restart anycity view {scene.folder} to load the new one")
-    w = max(1, round(height * aspect))
+    check_camera(wxyz, position, fov_y, aspect, height)
+    w = render_width(height, aspect)
     w2c, K = camera_w2c(wxyz, position, fov_y, w, height)
     out = scene.folder / "view_renders"
     out.mkdir(exist_ok=True)
-    stem = f"render_{time.strftime('%Y%m%d_%H%M%S')}"
-    f, n = out / f"{stem}.png", 1
-    while f.exists():
-        f, n = out / f"{stem}_{n}.png", n + 1
-    Image.fromarray(render_view(scene, w2c, K, w, height)).save(f)
+    img = Image.fromarray(render_view(scene, w2c, K, w, height))
+    f = _reserve_name(out, f"render_{time.strftime('%Y%m%d_%H%M%S')}")
+    try:
+        with atomic_path(f) as tmp:
+            img.save(tmp)
+    except BaseException:
+        f.unlink(missing_ok=True)
+        raise
     return f
+
+
+def _reserve_name(folder: Path, stem: str) -> Path:
+    """Create the first of ``folder/<stem>.png``, ``<stem>_1.png``, ... that does not exist (exclusively: of two
+    threads or processes, one gets each name), empty; returns it."""
+    n = 0
+    while True:
+        f = folder / (f"{stem}.png" if n == 0 else f"{stem}_{n}.png")
+        try:
+            with open(f, "xb"):
+                return f
+        except FileExistsError:
+            n += 1
 
 
 def frustum_shape(K: np.ndarray, width: int, height: int) -> tuple[float, float]:
@@ -209,15 +268,24 @@ def build_server(path: str | Path, host: str = "127.0.0.1", port: int = 8080, ca
 
     @button.on_click
     def _(event) -> None:
-        cam = event.client.camera
-        try:
-            f = save_render(scene, cam.wxyz, cam.position, cam.fov, cam.aspect, loaded=loaded)
-        except OSError as e:  # a callback's exception is a server-side traceback and nothing in the browser
-            info.content = _share_text(scene) + f"\n\nno render saved: {e}"
-            return
-        info.content = _share_text(scene) + f"\n\nsaved `{f}`"
+        info.content = _share_text(scene) + "\n\n" + save_click(scene, event.client.camera, loaded)
 
     return server, scene
+
+
+def save_click(scene: ViewScene, cam, loaded: tuple[int, int] | None) -> str:
+    """What the "Save render" button does for a client's camera ``cam`` (viser's ``CameraHandle``): the panel's line,
+    "saved `FILE`" or "no render saved: WHY". A callback's exception would be a traceback on the server's terminal
+    and nothing in the browser, so a refused camera or an unusable folder is that line instead."""
+    try:
+        try:
+            aspect = cam.aspect
+        except ZeroDivisionError:  # viser's width / height of a 0 px tall browser view
+            raise ValueError(f"the browser's view is {cam.image_width} x 0 px") from None
+        f = save_render(scene, cam.wxyz, cam.position, cam.fov, aspect, loaded=loaded)
+    except (OSError, ValueError) as e:
+        return f"no render saved: {e}"
+    return f"saved `{f}`"
 
 
 def _share_text(scene: ViewScene) -> str:
@@ -247,11 +315,30 @@ def _known(column: np.ndarray | None) -> bool:
 
 
 def _port(text: str) -> int:
-    """argparse type: a TCP port (a port out of range used to fail in viser's server thread and hang the command)."""
-    port = int(text)
+    """argparse type: a TCP port (a port out of range used to fail in viser's server thread and hang the command).
+    Not a number: argparse's "invalid int value" (it would name this function: "invalid _port value")."""
+    try:
+        port = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid int value: {text!r}") from None
     if not 0 <= port <= 65535:
         raise argparse.ArgumentTypeError(f"{port} is not a port (0 to 65535; 0 picks a free one)")
     return port
+
+
+def view_url(host: str, port: int) -> tuple[str, bool]:
+    """``(url, every_interface)``: the address to open for a server listening on ``host``:``port``. An IPv6
+    literal is bracketed (``http://[::1]:8080``); a wildcard host (``''``, ``0.0.0.0``, ``::``) serves every
+    interface (``every_interface`` True) and gives this machine's loopback (127.0.0.1, or ``[::1]`` for ``::``)."""
+    try:
+        ip = ipaddress.ip_address(host)
+    except ValueError:  # a name (localhost, a host name), or '' (every interface)
+        return (f"http://{host}:{port}", False) if host else (f"http://127.0.0.1:{port}", True)
+    every = ip.is_unspecified
+    if every:
+        ip = ipaddress.ip_address("::1" if ip.version == 6 else "127.0.0.1")
+    text = str(ip).replace("%", "%25")  # a scope id (fe80::1%eth0) is %25 in a URL (RFC 6874)
+    return f"http://{f'[{text}]' if ip.version == 6 else text}:{port}", every
 
 
 def view_main(argv: list[str]) -> int:
@@ -265,8 +352,11 @@ def view_main(argv: list[str]) -> int:
     p.add_argument("--no_cameras", "--no-cameras", action="store_true", help="hide the camera frustums")
     a = p.parse_args(refuse_unknown_flags(p, argv))
     server, scene = build_server(a.path, a.host, a.port, cameras=not a.no_cameras)
-    print(f"anycity view: {scene.gaussians.num_gaussians:,} Gaussians at http://{a.host}:{server.get_port()} "
-          "(Ctrl-C to stop)", flush=True)
+    url, every = view_url(a.host, server.get_port())
+    print(f"anycity view: {scene.gaussians.num_gaussians:,} Gaussians at {url} (Ctrl-C to stop)", flush=True)
+    if every:
+        note = f"--host {a.host!r} serves on all interfaces; from another machine, open this one's address"
+        print(f"anycity view: {note} at port {server.get_port()}", flush=True)
     try:
         while True:
             time.sleep(3600)
