@@ -16,6 +16,18 @@ import sys
 import warnings
 from pathlib import Path
 
+from anycity.cli_sources import (  # noqa: F401  (re-exported: anycity.cli's public checks)
+    LIGHTNING,
+    _init_params,
+    _model_class,
+    _option_values,
+    check_config_placement,
+    check_input_files,
+    check_model_class,
+    dropped_model_keys,
+    replaced_net_keys,
+)
+
 # Test-time settings: taken from the config files and the command line even when --ckpt_path holds other values
 # (LightningCLI otherwise re-applies every hyperparameter stored in the checkpoint over them).
 TEST_TIME_KEYS = ("eval_align", "eval_pose_align_steps", "eval_pose_align_lr", "eval_joint", "camera_refine_steps",
@@ -418,6 +430,12 @@ def _cli_class():
                 return
             now = self.config[f"{sub}.model.init_args"]
             net, ignored = merge_ckpt_net(asked_net, now.get("net"), now.get("preset", "tiny"))
+            from anycity.lit.scaffold import STAGE2_NET_KEYS, ScaffoldModule
+
+            if issubclass(_model_class(now_class) or type, ScaffoldModule):  # a Stage I network: no completion branch
+                ignored += [f"{k} {asked_net[k]!r} is not used (a Stage I network has no completion branch)"
+                            for k in STAGE2_NET_KEYS if k in net and asked_net.get(k) is not None]
+                net = {k: v for k, v in net.items() if k not in STAGE2_NET_KEYS}
             self.config[f"{sub}.model.init_args.net"] = net
             if ignored:
                 from lightning.pytorch.utilities import rank_zero_warn
@@ -437,6 +455,7 @@ def _cli_class():
             check_accelerator(config.get("trainer"))
             check_nodes(config.get("trainer"))
             check_run_folder(config.get("trainer"))
+            check_model_class(config.get("model.class_path"))
             if sub in ("validate", "test", "predict"):
                 require_weights(sub, config)
 
@@ -617,7 +636,6 @@ Options:
   --version      print anycity's version
 """
 
-LIGHTNING = ("fit", "validate", "test", "predict")
 # the top-level keys of a training command's config (`anycity fit --print_config`; tests/integration/test_front_door.py)
 SECTIONS = ("seed_everything", "trainer", "model", "data", "freeze", "previews", "progress", "export", "nonfinite",
             "ckpt_path", "weights_only")
@@ -671,14 +689,6 @@ def _candidates(message: str) -> list[str]:
     return sorted(set().union(*(_init_params(c) for c in classes)))
 
 
-def _init_params(cls: type) -> set[str]:
-    """The keyword arguments ``cls(...)`` takes: the ``__init__`` parameters of it and its bases."""
-    import inspect
-
-    return {p for k in inspect.getmro(cls) if "__init__" in vars(k)
-            for p in inspect.signature(k.__init__).parameters if p not in ("self", "args", "kwargs")}
-
-
 def _section_candidates(dotted: str) -> list[str] | None:
     """Valid keys beside ``dotted`` (``data.x``, ``trainer.x``, ``model[.init_args].net.x``), or None when the
     section is not one of those."""
@@ -708,15 +718,22 @@ def config_error(message: str, argv: list[str]) -> str:
     import difflib
     import re
 
-    refused = _refused_value(message, argv)
+    refused = _refused_value(message, argv) or _missing_model(message, argv) or _net_value_error(message)
     if refused:
         return refused
+    path = re.search(r"Expected a path but ([\w.]+) either not accessible or invalid", message)
+    if path and 'Parser key "model"' in message:  # a class that is not an AnyCityModule (PosePriorModule)
+        try:
+            check_model_class(path.group(1))
+        except ValueError as e:
+            return str(e)
     # a command-line option's key; not one whose class_path was refused (that is a value, named below)
     nested = [] if "has no attribute" in message else re.findall(r"NestedArg\(key='(\w+)'", message)
     bad = re.findall(r"Option '([\w.]+)' is not accepted", message) + nested
     bad += re.findall(r"[Kk]ey '([\w.]+)' is not expected", message)
-    # a key in a --config file ("nested key" in jsonargparse 4.39)
-    bad += re.findall(r"does not accept (?:option|nested key) '([\w.]+)'", message)
+    # a key in a --config file ("nested key" in jsonargparse 4.39); in a callback section, the section named apart
+    grouped = re.findall(r"Group '(\w+)' does not accept (?:option|nested key) '([\w.]+)'", message)
+    bad += [f"{g}.{k}" for g, k in grouped] or re.findall(r"does not accept (?:option|nested key) '([\w.]+)'", message)
     bad += re.findall(r"[Uu]nrecognized arguments: --([\w.]+)", message)  # capitalised in older releases
     from_top = bool(bad)  # each of these names the key from the config's top (model.init_args.x)
     unexpected = re.search(r"Unexpected keys: \{'(\w+)'", message)  # a typed dict's key (model.net) in a file
@@ -730,6 +747,9 @@ def config_error(message: str, argv: list[str]) -> str:
         return (_yaml_error(argv) if "Problems parsing config" in message else None) or \
             _class_path_hint(problem.group(0) if problem else _one_line(message).replace("\n", " "))
     section = bad[0].split(".")[0]
+    model_key = _model_section_key(bad[0], message, argv)
+    if model_key:
+        return model_key
     if from_top and "." in bad[0] and section not in SECTIONS:  # a misspelt section (modle:) is the key to name
         near = difflib.get_close_matches(section, SECTIONS, n=1, cutoff=0.6)
         return f"unknown section {section} (in {bad[0]})" + (f"; did you mean {near[0]}?" if near else
@@ -749,6 +769,70 @@ def config_error(message: str, argv: list[str]) -> str:
     what = f"unknown option {given}" if given else f"unknown key {bad[0]} in a --config file"
     command = argv[0] if argv and argv[0] in LIGHTNING else "COMMAND"
     return what + (f"; did you mean {hint}?" if hint else f"; see anycity {command} --help")
+
+
+def _model_section_key(bad: str, message: str, argv: list[str]) -> str | None:
+    """One line for a misspelt ``init_args``/``class_path`` under ``model`` (``model: {init_arg: ...}``,
+    ``--model.init_arg.lr``): jsonargparse names the key from ``model`` down, which read as an unknown top-level
+    section (``init_arg``). None for other keys."""
+    import difflib
+
+    if 'Parser key "model"' not in message:
+        return None
+    head, _, rest = bad.partition(".")
+    near = difflib.get_close_matches(head, ["init_args", "class_path"], n=1, cutoff=0.6)
+    if not near or near[0] == head:
+        return None
+    given = next((a.split("=")[0] for a in argv if a.split("=")[0] == f"--model.{bad}"), None)
+    if given:
+        return f"unknown option {given}; did you mean --model.{near[0]}{'.' + rest if rest else ''}?"
+    return f"unknown key model.{head} (in model.{bad}) in a --config file; did you mean model.{near[0]}?"
+
+
+def _missing_model(message: str, argv: list[str]) -> str | None:
+    """One line for "the following arguments are required: test.model" (a ``validate|test|predict`` given only a
+    ``--ckpt_path``): which config or class to pass. None for other errors."""
+    import re
+
+    m = re.search(r"arguments are required: (\w+)\.model\b", message)
+    if not m:
+        return None
+    ckpt = _option_values(argv, ("--ckpt_path",))
+    named = Path(ckpt[-1][1]) if ckpt else None
+    run = named.parent.parent / "config.yaml" if named and named.is_file() else None  # <run>/checkpoints/last.ckpt
+    config = run if run is not None and run.is_file() else "<run folder>/config.yaml"
+    return (f"anycity {m.group(1)}: no model given (no config named one); pass the run's config, -c {config}, or "
+            "the stage's class, --model anycity.lit.ScaffoldModule (Stage I) or --model anycity.lit.RefinementModule "
+            "(Stage II)")
+
+
+def _net_value_error(message: str) -> str | None:
+    """One line for a ``model.init_args.net`` value of the wrong type in a --config file (``inject_layers: 3``):
+    jsonargparse's message names ``net`` only ("Parser key "net": Does not validate against any of the Union
+    subtypes"). None for other errors, and where the key cannot be told."""
+    import ast
+    import dataclasses
+    import re
+
+    start = re.search(r'Parser key "net":', message)
+    if not start or "Unexpected keys" in message:
+        return None
+    values = []
+    for given in re.findall(r"Given value: (.*)$", message[start.end():], re.M):
+        try:
+            values.append(ast.literal_eval(given.strip()))
+        except (ValueError, SyntaxError):
+            values.append(given.strip())
+    net = next((v for v in values if isinstance(v, dict)), None)
+    bad = next((v for v in values if not isinstance(v, dict)), None)
+    key = next((k for k, v in (net or {}).items() if not isinstance(v, dict) and str(v) == str(bad)), None)
+    if key is None:
+        return None
+    from anycity.models.presets import NetConfig
+
+    kind = next((str(f.type) for f in dataclasses.fields(NetConfig) if f.name == key), "another type")
+    kind = kind.replace(" | None", " or null").replace("tuple[int, ...]", "a list of integers")
+    return f"model.init_args.net.{key} {net[key]!r}: not accepted; expected {kind} (in a --config file)"
 
 
 def _other_module_option(key: str, message: str, argv: list[str]) -> str | None:
@@ -854,85 +938,10 @@ def _class_path_hint(line: str) -> str:
         module = importlib.import_module(m.group(1).rpartition(".")[0])
     except ImportError:
         return line
-    near = difflib.get_close_matches(m.group(2), [n for n in dir(module) if not n.startswith("_")], n=1)
+    classes = [n for n in dir(module) if not n.startswith("_") and isinstance(getattr(module, n), type)
+               and n != "AnyCityModule"]  # a class, never a submodule (anycity.lit.scaffold); not the base class
+    near = difflib.get_close_matches(m.group(2), classes, n=1)
     return line + (f"; did you mean {module.__name__}.{near[0]}?" if near else "")
-
-
-def _option_values(args: list[str], names: tuple[str, ...]) -> list[tuple[str, str]]:
-    """``(option, value)`` for every ``--name value`` or ``--name=value`` of ``names`` in ``args``."""
-    out = []
-    for i, a in enumerate(args):
-        name, eq, value = a.partition("=")
-        if name in names and eq:
-            out.append((name, value))
-        elif a in names and i + 1 < len(args):
-            out.append((a, args[i + 1]))
-    return out
-
-
-def _missing_file(option: str, value: str, pattern: str, kind: str, elsewhere: str) -> FileNotFoundError:
-    """One line for a file option naming a path that is not a file: a folder's ``pattern`` files, else the nearest
-    ``pattern`` file beside it."""
-    import difflib
-
-    path = Path(value)
-    if path.is_dir():
-        inside = sorted(q.name for q in path.glob(pattern))
-        shown = ", ".join(inside[:4]) + (" ..." if len(inside) > 4 else "")
-        return FileNotFoundError(f"{option} {value} is a folder; pass one of its {kind} files"
-                                 + (f" ({shown})" if inside else ""))
-    beside = sorted(str(q) for q in path.parent.glob(pattern)) if path.parent.is_dir() else []
-    near = difflib.get_close_matches(str(path), beside, n=1, cutoff=0.6)
-    return FileNotFoundError(f"{option} {value}: no such file; " + (f"did you mean {near[0]}?" if near else elsewhere))
-
-
-def check_input_files(args: list[str]) -> None:
-    """Raise one line for a ``-c``/``--config`` or ``--ckpt_path`` file that does not exist, before Lightning's
-    imports (8 s on 2 cores) and before the run writes its config. A ``--config`` value that is not a path (inline
-    YAML such as ``--config '{trainer: {max_steps: 5}}'``, which jsonargparse reads) goes to the parser, and so do
-    Lightning's ``--ckpt_path`` names (last, best, hpc, registry, null) and URLs."""
-    for _, value in _option_values(args, ("-c", "--config")):
-        if not Path(value).is_file() and not any(ch in value for ch in ":{}\n"):
-            raise _missing_file("--config", value, "*.y*ml", "YAML",
-                                "check the path (anycity's own configs are in the configs/ folder of its repository)")
-    for option, value in _option_values(args, ("--ckpt_path",)):
-        named = value.lower() in ("last", "best", "hpc", "null", "none", "") or value.startswith("registry")
-        if not named and "://" not in value and not Path(value).is_file():
-            raise _missing_file(option, value, "*.ckpt", "checkpoint", "check the path (a run's checkpoints are in its "
-                                "checkpoints/ folder, e.g. runs/quickstart/stage1/checkpoints/last.ckpt)")
-
-
-def replaced_net_keys(args: list[str]) -> list[str]:
-    """One message per ``--config`` file whose ``model.init_args.net`` drops keys an earlier file set: jsonargparse
-    merges the files key by key, but a dict-valued key is replaced whole, so ``-c stage2.yaml -c mine.yaml`` with
-    ``net: {wan_lora_rank: 8}`` in ``mine.yaml`` silently builds the network without stage2.yaml's ``video_prior``
-    (and falls back to the preset's)."""
-    import yaml
-
-    out, earlier, source = [], None, None
-    for _, value in _option_values(args, ("-c", "--config")):
-        try:
-            cfg = yaml.safe_load(Path(value).read_text()) if Path(value).is_file() else None
-        except (OSError, yaml.YAMLError):
-            continue  # a missing file or broken YAML gets its own one-line error
-        model = cfg.get("model") if isinstance(cfg, dict) else None
-        init_args = model.get("init_args") if isinstance(model, dict) else None
-        if not isinstance(init_args, dict) or "net" not in init_args:
-            continue
-        net = init_args["net"]
-        later = net if isinstance(net, dict) else {}
-        # `completion` is the stage module's to set (Stage I drops the branch, Stage II builds it), and the wan_*
-        # keys mean nothing once the later file picks another prior (configs/debug/cpu_ddp.yaml on stage2.yaml)
-        moot = {"completion"} | ({k for k in earlier or {} if k.startswith("wan_")}
-                                 if str(later.get("video_prior", "small")).startswith(("small", "none")) else set())
-        dropped = [k for k in (earlier or {}) if k not in later and k not in moot]
-        if dropped:
-            out.append(f"--config {value}: its model.init_args.net replaces the one from {source} whole, so "
-                       f"{', '.join(dropped)} from {source} {'is' if len(dropped) == 1 else 'are'} not used; repeat "
-                       f"{'it' if len(dropped) == 1 else 'them'} in {value}, or set single keys with dotted "
-                       "overrides (--model.init_args.net.KEY VALUE), which merge")
-        earlier, source = (net if isinstance(net, dict) else None), value
-    return out
 
 
 def _dispatch(args: list[str], argv_given: bool) -> int:
@@ -965,7 +974,8 @@ def _dispatch(args: list[str], argv_given: bool) -> int:
         import argparse
 
         check_input_files(args)
-        replaced = replaced_net_keys(args)
+        check_config_placement(args)
+        replaced = replaced_net_keys(args) + dropped_model_keys(args)
         if replaced:
             from lightning.pytorch.utilities import rank_zero_warn
 

@@ -374,6 +374,16 @@ def test_a_pose_prior_the_checkpoint_was_trained_without_is_ignored_naming_it(ti
             "--ckpt_path", str(s2 / "checkpoints" / "last.ckpt")])])
 
 
+def test_a_stage1_checkpoint_read_with_a_wan_dir_runs_and_names_it_unused(tiny_shards, fitted, tmp_path):
+    """Stage I now refuses Stage II net keys; a machine-local wan_dir (a test-time key a config or the command line
+    gives, e.g. a Stage II config's) read with a Stage I checkpoint is dropped and named, not refused."""
+    with pytest.warns(UserWarning, match=r"wan_dir 'weights/Wan' is not used \(a Stage I network has no completion"):
+        cli = build_cli(["test", *_tiny_args(tiny_shards, tmp_path / "t", extra=[
+            *FAST_EVAL, "--model.init_args.net.wan_dir", "weights/Wan",
+            "--ckpt_path", str(fitted / "checkpoints" / "last.ckpt")])])
+    assert "wan_dir" not in cli.model.hparams.net and type(cli.model).__name__ == "ScaffoldModule"
+
+
 def test_a_resumed_fit_names_the_model_settings_it_keeps_from_its_checkpoint(tiny_shards, tmp_path):
     # Lightning rebuilds the module from the checkpoint's hyperparameters: a new lr (or Stage II's init_from, as a
     # resubmitted SLURM job passes) was silently not used

@@ -197,3 +197,39 @@ def test_the_slurm_launch_options_keep_the_run_folder(tiny_shards, tmp_path, mon
         cli = build_cli(["-c", str(CONFIGS / config), *CHEAP, *net, "--data.root", str(tiny_shards), *opts], run=False)
         for cb in cli.trainer.checkpoint_callbacks:
             assert cb._ModelCheckpoint__resolve_ckpt_dir(cli.trainer) == os.path.join("runs/job", "checkpoints")
+
+
+def test_debug_overlays_keep_out_of_the_recipes_run_folders():
+    """configs/debug/cpu.yaml ("to check a config end to end") wrote into runs/stage1 and moved the paper run's
+    checkpoints aside (checkpoints -> checkpoints.1). Each debug overlay that writes has its own folder, named by
+    default_root_dir and the logger alike; fast_dev_run writes nothing, and cpu_ddp.yaml keeps the paper folders on
+    purpose (docs/cluster.md chains stage1 -> stage2 through them), saying how to move it."""
+    import yaml
+
+    def trainer(rel):
+        return yaml.safe_load((CONFIGS / rel).read_text()).get("trainer") or {}
+
+    recipes = {trainer(rel).get("default_root_dir") for rel in ALL if not rel.startswith("debug/")} - {None}
+    for rel in (r for r in ALL if r.startswith("debug/")):
+        t = trainer(rel)
+        if rel == "debug/fast_dev_run.yaml":
+            assert t["fast_dev_run"] and "default_root_dir" not in t
+        elif rel == "debug/cpu_ddp.yaml":
+            assert "default_root_dir" not in t
+            assert "--trainer.default_root_dir DIR --trainer.logger.init_args.save_dir DIR" in \
+                (CONFIGS / rel).read_text()
+        else:
+            root = t.get("default_root_dir")
+            assert root and root not in recipes, rel
+            assert t["logger"]["init_args"]["save_dir"] == root, rel
+
+
+@pytest.mark.parametrize("base", ["quickstart.yaml", "stage1.yaml"])
+def test_scaffold_only_is_the_stage1_of_the_config_below_it(base, capsys, monkeypatch):
+    """Its `model: {init_args: {net: {completion: false}}}` replaced the base's whole net: on the quickstart the
+    ablation trained another network (camera_trunk_depth 2 -> 1). ScaffoldModule builds no completion branch anyway."""
+    monkeypatch.setattr("sys.argv", ["anycity"])
+    alone = _print_config(["-c", str(CONFIGS / base)], capsys)
+    ablation = _print_config(["-c", str(CONFIGS / base), "-c", str(CONFIGS / "ablations/scaffold_only.yaml")], capsys)
+    assert ablation["model"] == alone["model"]
+    assert ablation["trainer"]["default_root_dir"] == "runs/ablations/scaffold_only"

@@ -78,6 +78,7 @@ def export(src: str | Path, fmt: str, out: str | Path, overwrite: bool = False) 
     if fmt not in FORMATS:
         raise ValueError(f"--format: expected one of {', '.join(FORMATS)}, got {fmt!r}")
     out = Path(out)
+    check_out_keeps_inputs(src, out)  # whatever --overwrite says: it is for an earlier export, never the scene
     if out.exists() and not out.is_dir():
         raise FileExistsError(f"anycity export: {out} is a file, not a folder; pass --out NEW_DIR")
     filled = out.is_dir() and any(out.iterdir())
@@ -94,6 +95,31 @@ def export(src: str | Path, fmt: str, out: str | Path, overwrite: bool = False) 
     with staged_folder(out) as stage:
         target = _write(g, cams, src, fmt, stage)
     return out / target.relative_to(stage)
+
+
+# what an export writes in its --out folder (_write): these files, and anything under these folders
+_WRITTEN_FILES = ("scale.json", "scene.splat", "scene.ply", "points3D.ply", "transforms.json")
+_WRITTEN_DIRS = ("images", "sparse")
+
+
+def check_out_keeps_inputs(src: str | Path, out: str | Path) -> None:
+    """Refuse, in one line, an ``--out`` that is the scene folder ``--from`` reads (or the folder of a bare
+    ``.ply``), or in which the export would write over an input (its ``scene.ply``, ``cameras.json``, ``inputs/``
+    images): ``--from SCENE --out SCENE --overwrite`` replaced the predicted ``scene.ply`` with the export's."""
+    src = Path(src).resolve()
+    if not src.exists():
+        return  # load_scene says so
+    src_dir = src if src.is_dir() else src.parent
+    out = Path(out).resolve()
+    hint = f"pass another --out (the default is {src_dir / 'export_<format>'})"
+    if out == src_dir:
+        raise ValueError(f"--out {out} is the scene folder --from reads; the export would write over its files "
+                         f"(--overwrite or not); {hint}")
+    inputs = [src / "scene.ply", src / "cameras.json", src / "inputs"] if src.is_dir() else [src]
+    for f in inputs:
+        if f == out or out in f.parents and (f.parent == out and f.name in _WRITTEN_FILES or
+                                             f.relative_to(out).parts[0] in _WRITTEN_DIRS):
+            raise ValueError(f"--out {out}: the export would write over (or into) its input {f}; {hint}")
 
 
 def _write(g, cams: dict | None, src: Path, fmt: str, out: Path) -> Path:

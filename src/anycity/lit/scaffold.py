@@ -18,6 +18,37 @@ from anycity.losses import camera_loss, depth_z_loss, normal_loss, ray_anchor_lo
 from anycity.models.anycity import REFINEMENT_PREFIXES
 from anycity.structures import ViewBatch
 
+# NetConfig options of the completion branch and the priors it reads: Stage I builds none of them
+STAGE2_NET_KEYS = ("completion_dim", "completion_tokens", "completion_heads", "inject_layers", "video_prior",
+                   "prior_dim", "prior_depth", "prior_stride", "wan_dir", "wan_block", "wan_t_feat", "wan_lora_rank",
+                   "wan_empty_prompt", "refine_depth", "refine_cameras", "camera_video", "pose_prior", "pose_prior_mix")
+
+
+def stage2_net_keys(net: dict | None, preset: str) -> list[str]:
+    """The keys of ``net`` (``model.net`` overrides) that set a :data:`STAGE2_NET_KEYS` option to other than
+    ``preset``'s value: settings of the completion branch, which Stage I does not build."""
+    from anycity.models.presets import PRESETS
+
+    if not isinstance(net, dict) or preset not in PRESETS:
+        return []  # the network's own construction reports an unknown preset
+    norm = lambda v: tuple(v) if isinstance(v, list) else v  # noqa: E731  (YAML lists, stored tuples)
+    return [k for k in STAGE2_NET_KEYS if k in net and norm(net[k]) != norm(getattr(PRESETS[preset], k))]
+
+
+def check_no_stage2_net(init_args: dict) -> None:
+    """Refuse, in one line, Stage II options in a Stage I ``model.net`` (``init_args["net"]``, as ``completion:
+    true`` is): they would be stored and never used (``video_prior: wan2``, which Stage II refuses, was accepted). A
+    value equal to the preset's is accepted (``configs/debug/cpu_ddp.yaml`` sets ``video_prior: small`` for either
+    stage)."""
+    net = init_args.get("net")
+    keys = stage2_net_keys(net, init_args.get("preset", "tiny"))
+    if keys:
+        one = len(keys) == 1
+        given = ", ".join(f"model.net.{k} {net[k]!r}" for k in keys)
+        raise ValueError(f"{given}: {'a Stage II option' if one else 'Stage II options'} of the completion branch, "
+                         f"which Stage I (ScaffoldModule) does not build; drop {'it' if one else 'them'} from the "
+                         f"Stage I config (Stage II, RefinementModule, takes {'it' if one else 'them'})")
+
 
 class ScaffoldModule(AnyCityModule):
     """Stage I training of the scaffold network.
@@ -64,6 +95,7 @@ class ScaffoldModule(AnyCityModule):
         if (base.get("net") or {}).get("completion"):
             raise ValueError("model.net.completion: Stage I (ScaffoldModule) trains the scaffold only, got "
                              "completion=true; drop it (Stage II, RefinementModule, builds the completion branch)")
+        check_no_stage2_net(base)  # (the whole dict: jsonargparse reads a base.get("preset") here as its type)
         base["net"] = {**(base.get("net") or {}), "completion": False}
         super().__init__(**base)  # also records every argument, these and the base's, as hparams
         self.freeze_unsupervised_pose_token(camera_weight)

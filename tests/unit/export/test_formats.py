@@ -181,8 +181,8 @@ def test_ply_export_and_errors(tmp_path, capsys):
     # never silently over an earlier export or the scene itself: --overwrite writes into a folder that is not empty
     with pytest.raises(FileExistsError, match="o exists and is not empty; pass --overwrite"):
         export_main(["--from", str(d / "scene.ply"), "--format", "ply", "--out", str(tmp_path / "o")])
-    with pytest.raises(FileExistsError, match="pass --overwrite"):
-        export(d, "ply", d)  # the predict folder: its scene.ply holds the provenance columns
+    with pytest.raises(ValueError, match="is the scene folder --from reads"):  # not "pass --overwrite": that
+        export(d, "ply", d)  # replaced the predict folder's scene.ply (with its provenance columns)
     assert export_main(["--from", str(d / "scene.ply"), "--format", "splat", "--out", str(tmp_path / "o"),
                         "--overwrite"]) == 0
     assert (tmp_path / "o" / "scene.splat").is_file() and (tmp_path / "o" / "scene.ply").is_file()
