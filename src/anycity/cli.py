@@ -376,6 +376,8 @@ def _cli_class():
             import argparse
 
             sub = self.config.get("subcommand")
+            if sub and isinstance(self.config[sub].get("ckpt_path"), str):  # --ckpt_path=~/x: no shell expands it
+                self.config[f"{sub}.ckpt_path"] = str(Path(self.config[sub].ckpt_path).expanduser())
             if sub and self.config[sub].get("ckpt_path") == "last":  # the file, before the network is built
                 self.config[f"{sub}.ckpt_path"] = self._find_last(sub, configured_trainer(self.config[sub].trainer))
             ckpt = self.config[sub].get("ckpt_path") if sub else None

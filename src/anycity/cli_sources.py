@@ -58,7 +58,7 @@ def check_input_files(args: list[str]) -> None:
                                 "check the path (anycity's own configs are in the configs/ folder of its repository)")
     for option, value in _option_values(args, ("--ckpt_path",)):
         named = value.lower() in ("last", "best", "hpc", "null", "none", "") or value.startswith("registry")
-        if not named and "://" not in value and not Path(value).is_file():
+        if not named and "://" not in value and not Path(value).expanduser().is_file():
             raise _missing_file(option, value, "*.ckpt", "checkpoint", "check the path (a run's checkpoints are in its "
                                 "checkpoints/ folder, e.g. runs/quickstart/stage1/checkpoints/last.ckpt)")
 

@@ -7,6 +7,7 @@ that names the file. Lightning-free, so ``models/`` reads its weight files the s
 
 from __future__ import annotations
 
+import errno
 import os
 import pickle
 from pathlib import Path
@@ -37,6 +38,27 @@ def _safe_globals() -> list:
     return allowed
 
 
+def user_path(path: str | os.PathLike) -> Path:
+    """A path the user typed, ``~`` expanded (a shell leaves ``--x ~/w.pt`` alone after ``=`` and in YAML)."""
+    return Path(os.path.expanduser(os.fspath(path)))
+
+
+def missing_reason(path: str | os.PathLike) -> str | None:
+    """Why ``path`` cannot be opened as a file or folder, as the end of a sentence naming it: ``"is a symlink loop"``,
+    ``"is a broken symlink (to X)"`` or ``"not found"``; None when it exists."""
+    try:
+        os.stat(path)
+    except OSError as e:
+        if e.errno == errno.ELOOP:
+            return "is a symlink loop (a link that points back to itself); point it at the real file"
+        if os.path.islink(path):
+            return f"is a broken symlink (to {os.readlink(path)})"
+        return "not found"
+    except ValueError:  # an embedded NUL byte
+        return "not found"
+    return None
+
+
 def _first_line(e: BaseException) -> str:
     text = str(e).strip()
     lines = [ln for ln in text.splitlines() if "GLOBAL" in ln or ln.strip().startswith("Unsupported")]
@@ -48,13 +70,14 @@ def safe_torch_load(path: str | os.PathLike, map_location: Any = "cpu", *, mmap:
     """``torch.load(path, weights_only=True)`` with the checkpoint allow-list (``mmap``: memory-mapped when the
     file allows it, so a 5 GB file stays out of RAM). A file that tries to construct anything else (e.g. call
     ``os.system`` on unpickling) raises a one-line ``ValueError``, as does one that is truncated or not a torch
-    file; a missing path, or a folder, ``FileNotFoundError``. ``what`` names the file in the messages (e.g.
-    ``"net.pose_prior"``)."""
-    path = Path(path)
+    file; a missing path, a symlink loop, or a folder, ``FileNotFoundError``. ``~`` in ``path`` is expanded.
+    ``what`` names the file in the messages (e.g. ``"net.pose_prior"``)."""
+    path = user_path(path)
     if path.is_dir():  # e.g. a sharded (FSDP/DeepSpeed) checkpoint folder; FileNotFoundError, as callers catch that
         raise FileNotFoundError(f"{what} {path} is a folder; pass the checkpoint file")
     if not path.is_file():
-        raise FileNotFoundError(f"{what} not found: {path}")
+        why = missing_reason(path)
+        raise FileNotFoundError(f"{what} not found: {path}" if why in (None, "not found") else f"{what} {path} {why}")
 
     def unreadable(e: BaseException) -> ValueError:
         return ValueError(f"cannot read {what} {path}: {_first_line(e)}; the file is truncated or not a torch file "

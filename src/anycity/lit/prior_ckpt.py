@@ -18,6 +18,7 @@ from __future__ import annotations
 from torch import nn
 
 from anycity.models.pose_prior import rebuild_pose_prior
+from anycity.models.pretrained import check_video_prior_record
 from anycity.models.video_prior import DROPPED_VAE_MODULES
 
 PREFIX = "net.video_prior."
@@ -53,11 +54,14 @@ def forget_dropped_vae(net: nn.Module, checkpoint: dict) -> None:
             del sd[k]
 
 
-def restore_frozen_prior(net: nn.Module, checkpoint: dict) -> None:
+def restore_frozen_prior(net: nn.Module, checkpoint: dict, where: str = "checkpoint") -> None:
+    """Put the frozen prior's weights back (see the module docstring); one line naming ``where`` for a
+    ``video_prior`` record that is not ``{"dir": str, "sha256": str, "block": int}`` (a damaged checkpoint)."""
     forget_dropped_vae(net, checkpoint)
     ref = checkpoint.get("video_prior")
     if ref is None:
         return
+    check_video_prior_record(ref, where)
     prior = getattr(net, "video_prior", None)
     source = getattr(prior, "source", None)
     if source is None:
@@ -67,7 +71,7 @@ def restore_frozen_prior(net: nn.Module, checkpoint: dict) -> None:
     if sha != ref["sha256"]:
         raise ValueError(f"checkpoint: Wan prior mismatch: trained with {ref['dir']} (sha256 {ref['sha256'][:12]}), "
                          f"got {source['dir']} (sha256 {sha[:12]}); point net.wan_dir at the same weights")
-    if int(prior.block) != int(ref.get("block", prior.block)):
+    if ref.get("block") is not None and int(prior.block) != int(ref["block"]):
         raise ValueError(f"checkpoint: trained on Wan block {ref['block']}, this module cuts at block {prior.block}; "
                          f"set net.wan_block={ref['block']}")
     sd = checkpoint["state_dict"]

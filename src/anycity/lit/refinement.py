@@ -11,7 +11,6 @@ from __future__ import annotations
 import json
 import shlex
 from dataclasses import fields, replace
-from pathlib import Path
 from typing import Literal
 
 import torch
@@ -22,7 +21,7 @@ from anycity.geometry.pose_encoding import extri_intri_to_pose_encoding
 from anycity.lit.base import AnyCityModule, float32_outside_net
 from anycity.losses import camera_loss, d2s_loss, preservation_loss, regularizer_loss, rgb_loss
 from anycity.models.anycity import SCAFFOLD_PREFIXES
-from anycity.safe_load import safe_torch_load
+from anycity.safe_load import missing_reason, safe_torch_load, user_path
 from anycity.structures import RenderOutput, ViewBatch, Views
 
 # scaffold weights a Stage I checkpoint may lack: the centre offset came later, and its zero init is what an older
@@ -65,20 +64,32 @@ def decode_mismatch(stage1: dict, cfg) -> list[str]:
 
 def pretrained_scaffold_gaps(net: nn.Module, path: str, kind: str) -> list[str]:
     """Scaffold weights of ``net`` that the pretrained file ``path`` (layout ``kind``) does not fill: absent or of
-    another shape (the zero-initialised centre offset excepted). Reads names and shapes only."""
-    from anycity.models.pretrained import read_state_dict, remap_keys, weights_file
+    another shape (the zero-initialised centre offset excepted). Reads names and shapes only; an unreadable file
+    (a corrupt safetensors one included) is the one-line ``ValueError`` of :func:`read_state_dict`."""
+    from anycity.models.pretrained import read_shapes, remap_keys
 
-    path = weights_file(path)  # a folder: its one weights file, so a safetensors file is still read by names only
-    if path.suffix == ".safetensors" and path.is_file():
-        from safetensors import safe_open
-
-        with safe_open(str(path), framework="pt") as f:
-            shapes = {k: tuple(f.get_slice(k).get_shape()) for k in f.keys()}
-    else:  # memory-mapped: the tensors are not read
-        shapes = {k: tuple(v.shape) for k, v in read_state_dict(path).items()}
-    shapes = remap_keys(shapes, kind)
+    shapes = remap_keys(read_shapes(path), kind)  # a folder, or a sharded checkpoint: every file it names
     return sorted(k for k, v in net.state_dict().items() if k.startswith(SCAFFOLD_PREFIXES)
                   and not k.startswith(OPTIONAL_SCAFFOLD_PREFIXES) and shapes.get(k) != tuple(v.shape))
+
+
+def _refuse_other_stage(path: str, hp: dict) -> None:
+    """Refuse, as ``init_from``, a checkpoint whose ``hyper_parameters`` say it is not Stage I's: LightningCLI records
+    the module class as ``_class_path``; without it, a Stage II module's own arguments (``init_from``, ``d2s_weight``)
+    give it away. A Stage II checkpoint's scaffold fits, and its trained completion branch would be thrown away."""
+    name = str(hp.get("_class_path") or "").rpartition(".")[2]
+    if not name and ("init_from" in hp or "d2s_weight" in hp):
+        name = "RefinementModule"
+    if not name or name == "ScaffoldModule":
+        return
+    stage1 = hp.get("init_from") if isinstance(hp.get("init_from"), str) else None
+    fix = f"its own was {stage1}" if stage1 else "e.g. runs/stage1/checkpoints/last.ckpt"
+    if name == "RefinementModule":
+        raise ValueError(f"model.init_from: {path} is a Stage II (RefinementModule) checkpoint, not a Stage I one; to "
+                         f"continue that run pass it as --ckpt_path {path} (without init_from), or start Stage II "
+                         f"anew from the Stage I checkpoint ({fix})")
+    raise ValueError(f"model.init_from: {path} is a {name} checkpoint, not a Stage I (ScaffoldModule) one; pass the "
+                     f"Stage I checkpoint ({fix})")
 
 
 def far_index(views: Views, context: Views, k: int | None) -> Tensor | None:
@@ -196,9 +207,10 @@ class RefinementModule(AnyCityModule):
         if not self.hparams.init_from:
             if self.hparams.freeze_scaffold and (problem := self._random_scaffold()) is not None:
                 self._fresh_fit_problems.append(problem)
-        elif not Path(self.hparams.init_from).is_file():
+        elif not user_path(self.hparams.init_from).is_file():
+            why = missing_reason(user_path(self.hparams.init_from)) or "is not a file"
             self._fresh_fit_problems.append(FileNotFoundError(
-                f"model.init_from: {self.hparams.init_from} not found; pass the Stage I checkpoint (e.g. "
+                f"model.init_from: {self.hparams.init_from} {why}; pass the Stage I checkpoint (e.g. "
                 "runs/stage1/checkpoints/last.ckpt)"))
         else:  # loaded here, before the strategy wraps the model; a resumed fit's checkpoint then replaces it
             try:
@@ -247,12 +259,24 @@ class RefinementModule(AnyCityModule):
         exception is the zero-initialised centre offset, which Stage I checkpoints from before it lack. A completion
         branch an older Stage I checkpoint may hold (untrained) is not copied, so Stage II may use another video
         prior, or none."""
+        from anycity.models.pretrained import first_non_tensor, first_nonfinite
+
         # memory-mapped, tensors only: the weights are read on use and the optimiser state (2x the weights) never is
         ckpt = safe_torch_load(path, mmap=True, what="model.init_from")
+        if not isinstance(ckpt, dict):
+            raise ValueError(f"model.init_from: {path} holds a {type(ckpt).__name__}, not a checkpoint; pass the "
+                             "Stage I checkpoint (e.g. runs/stage1/checkpoints/last.ckpt)")
         state = ckpt.get("state_dict", ckpt)
         stage1_hp = ckpt.get("hyper_parameters") or {}
-        decode = (stage1_hp.get("net") or {}).get("focal_decode", "vggt")
         del ckpt
+        if not isinstance(state, dict) or not isinstance(stage1_hp, dict):
+            raise ValueError(f"model.init_from: {path} is damaged (its state_dict or hyper_parameters is not a dict); "
+                             "pass the Stage I checkpoint (e.g. runs/stage1/checkpoints/last.ckpt)")
+        _refuse_other_stage(path, stage1_hp)
+        if (bad := first_non_tensor(state)) is not None:
+            raise ValueError(f"model.init_from: {path} holds a {bad[1]} under the key {bad[0]!r}, not a tensor; the "
+                             "file is damaged: pass the Stage I checkpoint a fit wrote")
+        decode = (stage1_hp.get("net") or {}).get("focal_decode", "vggt")
         if decode != self.net.cfg.focal_decode:  # e.g. Stage I started from AnySplat: keep its camera decode
             self.net.cfg = replace(self.net.cfg, focal_decode=decode)
             self.hparams.net = {**(self.hparams.net or {}), "focal_decode": decode}
@@ -282,6 +306,9 @@ class RefinementModule(AnyCityModule):
             raise ValueError(f"model.init_from: {path} does not fit this network's scaffold: {'; '.join(problems)}; "
                              "give Stage II the Stage I network after its config: "
                              f"{stage1_net_flags(stage1_hp, self.hparams.net)}")
+        if (bad := first_nonfinite(theirs)) is not None:  # a frozen NaN scaffold: every Stage II step NaN
+            raise ValueError(f"model.init_from: {path} holds non-finite values (NaN or Inf) in net.{bad}; Stage I "
+                             "diverged before it was saved: pass an earlier Stage I checkpoint")
         self.net.load_state_dict(theirs, strict=False)
 
     # ----------------------------------------------------------------------------------------- checkpoints
@@ -292,10 +319,16 @@ class RefinementModule(AnyCityModule):
         save_pose_prior_meta(self.net, checkpoint)
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
+        """Put back the frozen prior's weights and rebuild the pose prior, then check every weight (keys, shapes,
+        tensors, finite) in one line naming the file, before Lightning's strict load."""
+        from anycity.lit.checkpoint_io import check_checkpoint_state, checkpoint_source, checkpoint_state
         from anycity.lit.prior_ckpt import restore_frozen_prior, restore_pose_prior
 
-        restore_frozen_prior(self.net, checkpoint)
+        source = checkpoint_source(self)
+        provided = list(checkpoint_state(checkpoint, source))  # the file's own; the frozen prior's are this net's
+        restore_frozen_prior(self.net, checkpoint, source)
         restore_pose_prior(self.net, checkpoint)
+        check_checkpoint_state(self, checkpoint, finite_keys=provided)
 
     # ----------------------------------------------------------------------------------------- training
     @float32_outside_net

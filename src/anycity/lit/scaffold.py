@@ -14,6 +14,7 @@ from torch import Tensor
 
 from anycity.geometry.pose_encoding import extri_intri_to_pose_encoding
 from anycity.lit.base import AnyCityModule, float32_outside_net
+from anycity.lit.checkpoint_io import check_checkpoint_state
 from anycity.losses import camera_loss, depth_z_loss, normal_loss, ray_anchor_loss, rgb_loss
 from anycity.models.anycity import REFINEMENT_PREFIXES
 from anycity.structures import ViewBatch
@@ -108,6 +109,7 @@ class ScaffoldModule(AnyCityModule):
         sd = checkpoint.get("state_dict", {})
         for k in [k for k in sd if k.startswith(tuple(f"net.{p}" for p in REFINEMENT_PREFIXES))]:
             del sd[k]
+        check_checkpoint_state(self, checkpoint)  # one line for a damaged file, not Lightning's 50-line load error
 
     @float32_outside_net
     def training_step(self, batch: ViewBatch, batch_idx: int) -> Tensor:

@@ -10,7 +10,10 @@ Key map (documented, nothing else is renamed):
   reported as unexpected. bf16 tensors are cast to the network's dtype. Only a file that has AnySplat's keys
   switches the network to AnySplat's focal decode; a VGGT-layout file (``aggregator.*`` at the top) is refused.
 
-``path`` may be a folder holding one weights file (e.g. a downloaded snapshot with its ``model.safetensors``).
+``path`` may be a folder holding one weights file (e.g. a downloaded snapshot with its ``model.safetensors``), or a
+sharded download (``model-0000k-of-0000n.safetensors`` + ``model.safetensors.index.json``): the folder, its index or
+any of its shards loads every shard the index lists. ``~`` is expanded. Wrapper prefixes (``module.``, ``model.``,
+torch.compile's ``_orig_mod.``, nested in any order) are stripped. A non-finite (NaN/Inf) tensor is refused.
 Tensors whose shape differs from the network's are skipped and listed (a mismatch never breaks the net).
 :meth:`LoadReport.require_backbone` (which the Lightning modules call) then insists on the whole aggregator, and
 names the real cause when the file has another layout (AnySplat's ``encoder.*`` read as VGGT, or an anycity
@@ -22,6 +25,8 @@ it trained, built from its own ``hyper_parameters``, which :func:`load_checkpoin
 
 from __future__ import annotations
 
+import json
+import re
 from collections import Counter
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -33,7 +38,7 @@ from torch import Tensor, nn
 from anycity.models.anycity import REFINEMENT_PREFIXES
 from anycity.models.pose_prior import rebuild_pose_prior
 from anycity.models.presets import build_network
-from anycity.safe_load import safe_torch_load
+from anycity.safe_load import missing_reason, safe_torch_load, user_path
 
 if TYPE_CHECKING:
     from anycity.models.anycity import AnyCityNet
@@ -42,6 +47,9 @@ KINDS = ("vggt", "anysplat")
 WEIGHT_SUFFIXES = (".safetensors", ".pt", ".pth", ".ckpt", ".bin")
 PREFERRED_NAMES = ("model.safetensors", "model.pt")  # what a VGGT / AnySplat download folder holds
 ANYSPLAT_PREFIXES = ("encoder.", "gaussian_param_head.")
+WRAPPER_PREFIXES = ("module.", "model.", "_orig_mod.")  # DDP, Lightning/AnySplat nesting, torch.compile
+SHARD_RE = re.compile(r"^(?P<stem>.+)-(?P<k>\d{5})-of-(?P<n>\d{5})\.(?P<ext>safetensors|bin|pt|pth)$")
+INDEX_SUFFIX = ".index.json"  # e.g. model.safetensors.index.json: {"weight_map": {key: shard file name}}
 # the first name part most keys the network has no place for share -> what the file really is
 LAYOUT_HINTS = {
     "encoder": "this is an AnySplat checkpoint: set model.init_args.pretrained_kind: anysplat",
@@ -108,17 +116,58 @@ class LoadReport:
                          f"{fix}")
 
 
+def _is_shard(path: Path) -> bool:
+    """``path`` is named as one of several shards (``...-00001-of-00002.safetensors``)."""
+    m = SHARD_RE.match(path.name)
+    return m is not None and int(m["n"]) > 1
+
+
+def _shard_index(shard: Path) -> Path | None:
+    """The ``*.index.json`` next to the shard ``shard`` that lists it; else the one that does not parse (its read
+    then says so), if any."""
+    damaged = None
+    for index in sorted(shard.parent.glob("*" + INDEX_SUFFIX)):
+        try:
+            if shard.name in (json.loads(index.read_text()).get("weight_map") or {}).values():
+                return index
+        except (OSError, ValueError, AttributeError, TypeError):
+            damaged = damaged or index
+    return damaged
+
+
+def _no_index(where: Path, shards: list[Path]) -> ValueError:
+    """One line for shards without the index that lists them: never load (or suggest) one shard alone, as each
+    holds only part of the network."""
+    m = SHARD_RE.match(shards[0].name)
+    what = (f"is shard {int(m['k'])} of {int(m['n'])} of a sharded checkpoint" if where.is_file() else
+            f"holds {len(shards)} of the {int(m['n'])} shards of a sharded checkpoint ({shards[0].name}, ...)")
+    return ValueError(f"pretrained weights: {where} {what}, and no {m['stem']}.{m['ext']}{INDEX_SUFFIX} next to it "
+                      "lists its shards; copy the whole download folder (every shard and its index) and pass the "
+                      "folder")
+
+
 def weights_file(path: str | Path) -> Path:
     """``path`` itself, or the one weights file in the folder ``path`` (``model.safetensors`` / ``model.pt`` when
-    the folder holds several files and exactly one of those). Raises one line when there is none or no one."""
-    path = Path(path)
+    the folder holds several files and exactly one of those), or the ``*.index.json`` of a sharded checkpoint (in the
+    folder ``path``, or next to the shard ``path``). Raises one line when there is none or no one."""
+    path = user_path(path)
     if not path.is_dir():
+        if _is_shard(path) and path.is_file():  # one shard: the rest of the network is in the others
+            index = _shard_index(path)
+            if index is None:
+                raise _no_index(path, [path])
+            return index
         return path
     found = sorted(p for p in path.iterdir() if p.is_file() and p.name.endswith(WEIGHT_SUFFIXES))
     named = [p for p in found if p.name in PREFERRED_NAMES]
+    indexes = sorted(path.glob("*" + INDEX_SUFFIX), key=lambda p: (".safetensors" not in p.name, p.name))
+    if len(named) != 1 and indexes:  # a sharded download; safetensors first when both formats are there
+        return indexes[0]
     pick = named if len(named) == 1 else found
-    if len(pick) == 1:
+    if len(pick) == 1 and not _is_shard(pick[0]):
         return pick[0]
+    if found and all(_is_shard(p) for p in found):
+        raise _no_index(path, found)
     if not found:
         raise FileNotFoundError(f"pretrained weights: {path} is a folder with no weights file "
                                 f"({', '.join('*' + s for s in WEIGHT_SUFFIXES)}) in it; pass the weights file")
@@ -126,13 +175,48 @@ def weights_file(path: str | Path) -> Path:
     raise ValueError(f"pretrained weights: {path} is a folder; pass the weights file inside it (candidates: {names})")
 
 
-def read_state_dict(path: str | Path) -> dict[str, Tensor]:
-    """A ``.pt``/``.pth``/``.ckpt`` (torch) or ``.safetensors`` file, or a folder holding one (:func:`weights_file`)
-    -> flat state dict (CPU)."""
-    path = weights_file(path)
+def _check_file(path: Path) -> None:
     if not path.is_file():
-        raise FileNotFoundError(f"pretrained weights: {path} not found; download VGGT-1B model.pt or an AnySplat "
-                                "checkpoint to a local path first (this loader never downloads)")
+        why = missing_reason(path) or "is not a file"
+        if why == "not found":
+            raise FileNotFoundError(f"pretrained weights: {path} not found; download VGGT-1B model.pt or an AnySplat "
+                                    "checkpoint to a local path first (this loader never downloads)")
+        raise FileNotFoundError(f"pretrained weights: {path} {why}")
+
+
+def _unreadable_safetensors(path: Path, e: BaseException) -> ValueError:
+    why = (str(e).strip().splitlines() or [type(e).__name__])[0]
+    return ValueError(f"cannot read pretrained weights {path}: {why}; the file looks truncated or corrupt "
+                      "(re-download it)")
+
+
+def shard_files(index: Path) -> dict[Path, list[str]]:
+    """The shard files a ``*.index.json`` lists (next to it), each with the keys it maps to that file; one line
+    naming ``index`` for an index that does not parse, or a shard that is not there."""
+    try:
+        weight_map = json.loads(index.read_text()).get("weight_map")
+    except (ValueError, AttributeError) as e:  # JSONDecodeError is a ValueError; AttributeError: not an object
+        raise ValueError(f"cannot read pretrained weights {index}: {_first(e)}; the index of a sharded checkpoint "
+                         "is damaged (re-download it)") from None
+    if not (isinstance(weight_map, dict) and weight_map
+            and all(isinstance(k, str) and isinstance(v, str) for k, v in weight_map.items())):
+        raise ValueError(f"cannot read pretrained weights {index}: no weight_map of key -> shard file in it; the "
+                         "index of a sharded checkpoint is damaged (re-download it)")
+    files: dict[Path, list[str]] = {}
+    for k, name in weight_map.items():
+        files.setdefault(index.parent / name, []).append(k)
+    absent = [f for f in files if not f.is_file()]
+    if absent:
+        raise FileNotFoundError(f"pretrained weights: {index} lists {len(files)} shards, {len(absent)} of which are "
+                                f"not in {index.parent} (e.g. {absent[0].name}); copy the whole download folder")
+    return files
+
+
+def _first(e: BaseException) -> str:
+    return (str(e).strip().splitlines() or [type(e).__name__])[0]
+
+
+def _read_one(path: Path) -> dict[str, Tensor]:
     if path.suffix == ".safetensors":
         from safetensors import SafetensorError
         from safetensors.torch import load_file
@@ -140,11 +224,99 @@ def read_state_dict(path: str | Path) -> dict[str, Tensor]:
         try:
             return load_file(str(path))
         except SafetensorError as e:
-            why = (str(e).strip().splitlines() or [type(e).__name__])[0]
-            raise ValueError(f"cannot read pretrained weights {path}: {why}; the file looks truncated or corrupt "
-                             "(re-download it)") from None
+            raise _unreadable_safetensors(path, e) from None
     obj = safe_torch_load(path, mmap=True, what="pretrained weights")  # mmap keeps a 5 GB file out of RAM
     return _state_dict_of(obj, path)
+
+
+def _sharded(index: Path, read) -> dict:
+    """``read(shard)`` of every shard ``index`` lists, merged; one line for a key the index maps to a shard that
+    does not hold it (an incomplete download)."""
+    out: dict = {}
+    for shard, keys in shard_files(index).items():
+        part = read(shard)
+        lost = [k for k in keys if k not in part]
+        if lost:
+            raise ValueError(f"pretrained weights: {index} maps {len(lost)} keys to {shard.name}, which lacks them "
+                             f"(e.g. {lost[0]}); the shard is incomplete or another model's (re-download it)")
+        out.update(part)
+    return out
+
+
+def read_state_dict(path: str | Path) -> dict[str, Tensor]:
+    """A ``.pt``/``.pth``/``.ckpt`` (torch) or ``.safetensors`` file, a folder holding one, or a sharded checkpoint
+    (:func:`weights_file`) -> flat state dict (CPU)."""
+    path = weights_file(path)
+    _check_file(path)
+    if path.name.endswith(INDEX_SUFFIX):
+        return _sharded(path, _read_one)
+    return _read_one(path)
+
+
+def _safetensors_shapes(path: Path) -> dict[str, tuple]:
+    from safetensors import SafetensorError, safe_open
+
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            return {k: tuple(f.get_slice(k).get_shape()) for k in f.keys()}
+    except SafetensorError as e:
+        raise _unreadable_safetensors(path, e) from None
+
+
+def read_shapes(path: str | Path) -> dict[str, tuple]:
+    """``{key: shape}`` of the weights file(s) :func:`read_state_dict` reads, without reading the tensors
+    (safetensors: the header; torch: memory-mapped). The same one-line errors."""
+    path = weights_file(path)
+    _check_file(path)
+
+    def one(f: Path) -> dict[str, tuple]:
+        if f.suffix == ".safetensors":
+            return _safetensors_shapes(f)
+        return {k: tuple(v.shape) for k, v in _read_one(f).items()}
+
+    return _sharded(path, one) if path.name.endswith(INDEX_SUFFIX) else one(path)
+
+
+def first_nonfinite(tensors) -> str | None:
+    """The first key of ``tensors`` (a dict, or ``(key, tensor)`` pairs) whose floating tensor holds a NaN or Inf;
+    one ``isfinite().all()`` per tensor."""
+    for k, v in (tensors.items() if isinstance(tensors, dict) else tensors):
+        if not (isinstance(v, Tensor) and v.is_floating_point()) or v.is_meta or v.numel() == 0:
+            continue
+        try:
+            ok = bool(torch.isfinite(v).all())
+        except (RuntimeError, TypeError, NotImplementedError):  # e.g. float8 on some builds
+            ok = bool(torch.isfinite(v.float()).all())
+        if not ok:
+            return k
+    return None
+
+
+def first_non_tensor(state: dict) -> tuple[object, str] | None:
+    """``(key, type name)`` of the first entry of ``state`` that is not a tensor under a string key, else None."""
+    return next(((k, type(v).__name__) for k, v in state.items() if not (isinstance(k, str) and isinstance(v, Tensor))),
+                None)
+
+
+def weight_problems(own: dict[str, Tensor], weights: dict, *, strict: bool = True,
+                    ignore: tuple[str, ...] = ()) -> list[str]:
+    """What keeps ``weights`` from loading into a module whose ``state_dict()`` is ``own``, as short phrases: a
+    non-tensor value, then (with ``strict``) missing and unexpected keys, then shapes. Keys starting with ``ignore``
+    may be missing. Empty when it loads."""
+    bad = first_non_tensor(weights)
+    if bad is not None:
+        return [f"it holds a {bad[1]} under the key {bad[0]!r}, not a tensor"]
+    missing = sorted(k for k in own if k not in weights and not k.startswith(ignore)) if strict else []
+    unexpected = sorted(k for k in weights if k not in own) if strict else []
+    shapes = [k for k in weights if k in own and tuple(weights[k].shape) != tuple(own[k].shape)]
+    out = [f"{len(ks)} {what} (e.g. {ks[0]})" for ks, what in
+           ((missing, "weights of the network are not in it"), (unexpected, "of its weights have no place"))
+           if ks]
+    if shapes:
+        k = shapes[0]
+        out.append(f"{len(shapes)} shapes differ (e.g. {k}: {list(weights[k].shape)} there, {list(own[k].shape)} "
+                   "here)")
+    return out
 
 
 def _state_dict_of(obj, source: str | Path) -> dict[str, Tensor]:
@@ -165,8 +337,10 @@ def _state_dict_of(obj, source: str | Path) -> dict[str, Tensor]:
 
 
 def _strip_wrappers(k: str) -> str:
-    for prefix in ("module.", "model."):
-        k = k[len(prefix):] if k.startswith(prefix) else k
+    """``k`` without its wrapper prefixes (:data:`WRAPPER_PREFIXES`), however nested (``model.module.``,
+    ``module._orig_mod.``, ...)."""
+    while k.startswith(WRAPPER_PREFIXES):
+        k = k[len(next(p for p in WRAPPER_PREFIXES if k.startswith(p))):]
     return k
 
 
@@ -194,7 +368,7 @@ def load_pretrained(net: nn.Module, path: str | Path | dict, kind: str = "vggt")
         source, raw = "the state dict", _state_dict_of(path, "the state dict")
     else:
         source = weights_file(path)
-        report.picked = str(source) if source != Path(path) else None
+        report.picked = str(source) if source != user_path(path) else None
         raw = read_state_dict(source)
     stripped = [_strip_wrappers(k) for k in raw]
     is_anysplat = any(k.startswith(ANYSPLAT_PREFIXES) for k in stripped)
@@ -218,6 +392,9 @@ def load_pretrained(net: nn.Module, path: str | Path | dict, kind: str = "vggt")
                          "copies nothing; build the network on a real device (cpu/cuda) first")
     if not usable:  # the network would stay as built (random) with nothing but a report saying so
         raise _nothing_loaded(source, sd, report, kind)
+    if (bad := first_nonfinite(usable)) is not None:  # NaN weights train NaN from the first step, saying nothing
+        raise ValueError(f"pretrained weights: {source} holds non-finite values (NaN or Inf) in {bad}; the file is "
+                         "damaged or was saved from a diverged run: re-download it")
     net.load_state_dict(usable, strict=False)
     if kind == "anysplat" and is_anysplat and hasattr(net, "cfg"):  # decode the cameras as the checkpoint trained
         net.cfg = replace(net.cfg, focal_decode="anysplat")
@@ -263,6 +440,20 @@ def checkpoint_network_options(hparams: dict, source: str | Path = "checkpoint")
     return preset, net
 
 
+def check_video_prior_record(ref, source: str = "checkpoint") -> dict:
+    """A checkpoint's ``video_prior`` record (``{"dir": str, "sha256": str, "block": int}``, written by
+    ``lit/prior_ckpt.drop_frozen_prior``; ``block`` may be absent in older ones) as it is; one line starting with
+    ``source`` (e.g. ``"checkpoint runs/x/last.ckpt"``) otherwise."""
+    ok = (isinstance(ref, dict) and isinstance(ref.get("dir"), str) and isinstance(ref.get("sha256"), str)
+          and (ref.get("block") is None or (isinstance(ref["block"], int) and not isinstance(ref["block"], bool))))
+    if not ok:
+        got = (f"a dict with keys {sorted(map(str, ref))}" if isinstance(ref, dict) else f"a {type(ref).__name__}")
+        raise ValueError(f"{source}: its video_prior record is {got}, not {{'dir': str, 'sha256': str, "
+                         "'block': int}; the checkpoint is damaged or was written by another anycity version: pass a "
+                         "checkpoint that this anycity version's fit wrote")
+    return ref
+
+
 def load_checkpoint(path: str | Path, *, map_location: str | torch.device = "cpu") -> AnyCityNet:
     """The trained network of an anycity training checkpoint (``anycity fit``'s ``last.ckpt``, Stage I or II) as a
     plain :class:`~anycity.models.anycity.AnyCityNet` in eval mode on ``map_location``, without Lightning.
@@ -288,10 +479,14 @@ def load_checkpoint(path: str | Path, *, map_location: str | torch.device = "cpu
         raise ValueError(f"checkpoint {path}: not an anycity training checkpoint ({what}, no state_dict); load "
                          "VGGT/AnySplat weights with load_pretrained(build_network(preset), path, kind=...)")
     preset, options = checkpoint_network_options(ckpt.get("hyper_parameters"), path)
-    if ckpt.get("video_prior"):
-        raise ValueError(f"checkpoint {path}: its Wan video prior is referenced ({ckpt['video_prior'].get('dir')}), "
+    if ckpt.get("video_prior") is not None:
+        ref = check_video_prior_record(ckpt["video_prior"], f"checkpoint {path}")
+        raise ValueError(f"checkpoint {path}: its Wan video prior is referenced ({ref['dir']}), "
                          "not stored in the file; load it with anycity.lit.RefinementModule.load_from_checkpoint"
                          "(path).net, which checks that folder")
+    if (bad := first_non_tensor(state)) is not None:
+        raise ValueError(f"checkpoint {path}: its state_dict holds a {bad[1]} under the key {bad[0]!r}, not a tensor; "
+                         "the file is damaged: pass a checkpoint that an anycity fit wrote")
     try:
         net = build_network(preset, **options)
     except ValueError as e:
@@ -305,17 +500,13 @@ def load_checkpoint(path: str | Path, *, map_location: str | torch.device = "cpu
 
 
 def _load_strict(net: nn.Module, weights: dict[str, Tensor], source: str | Path) -> None:
-    """``net.load_state_dict(weights)`` with every key and shape checked first: one line naming ``source``."""
-    own = net.state_dict()
-    missing = sorted(k for k in own if k not in weights)
-    unexpected = sorted(k for k in weights if k not in own)
-    shapes = [k for k in weights if k in own and weights[k].shape != own[k].shape]
-    problems = [f"{len(ks)} {what} (e.g. {ks[0]})" for ks, what in
-                ((missing, "weights of the network are not in it"), (unexpected, "of its weights have no place"),
-                 (shapes, "shapes differ")) if ks]
-    if not weights:
-        problems = ["it holds no 'net.*' weights"]
+    """``net.load_state_dict(weights)`` with every key, type and shape checked first, and every floating tensor
+    finite: one line naming ``source``."""
+    problems = weight_problems(net.state_dict(), weights) if weights else ["it holds no 'net.*' weights"]
     if problems:
         raise ValueError(f"checkpoint {source} does not fit the network its hyper_parameters describe: "
                          f"{'; '.join(problems)}; pass a checkpoint that this anycity version's fit wrote")
+    if (bad := first_nonfinite(weights)) is not None:
+        raise ValueError(f"checkpoint {source} holds non-finite values (NaN or Inf) in net.{bad}; the run diverged "
+                         "before it was saved, or the file is damaged: use an earlier checkpoint")
     net.load_state_dict(weights)

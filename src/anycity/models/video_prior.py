@@ -18,6 +18,7 @@ This is the only module under ``anycity`` that imports diffusers (lazily).
 
 from __future__ import annotations
 
+import json
 import math
 import os
 from pathlib import Path
@@ -29,7 +30,7 @@ from torch import Tensor, nn
 
 from anycity.atomic import atomic_write_bytes
 from anycity.models.layers import Block
-from anycity.safe_load import safe_torch_load
+from anycity.safe_load import missing_reason, safe_torch_load, user_path
 
 LORA_TARGETS = ("attn1.to_q", "attn1.to_k", "attn1.to_v", "attn1.to_out.0")
 EMPTY_PROMPT_FILE = "empty_prompt.pt"
@@ -137,16 +138,21 @@ def _first_line(e: BaseException) -> str:
 def _load_part(model_cls, root: Path, sub: str, ignore: tuple[str, ...] = (), **kwargs) -> nn.Module:
     """``model_cls.from_pretrained(root, subfolder=sub)`` from local files, refusing a folder without weights and
     one that lacks some of the model's weights (diffusers leaves those on the meta device, and the first forward
-    then fails naming nothing). Keys starting with ``ignore`` may be missing."""
+    then fails naming nothing). Keys starting with ``ignore`` may be missing. A file that does not parse (a damaged
+    ``*.index.json`` raises a bare ``JSONDecodeError`` in diffusers) is one line naming the folder."""
     folder = root / sub
     try:
         model, info = model_cls.from_pretrained(root, subfolder=sub, local_files_only=True, output_loading_info=True,
                                                 **kwargs)
-    except OSError as e:
-        if not any(folder.glob("diffusion_pytorch_model*")):
+    except (OSError, ValueError) as e:
+        if isinstance(e, OSError) and not any(folder.glob("diffusion_pytorch_model*")):
             raise FileNotFoundError(f"Wan weights: no {WEIGHTS_GLOB} in {folder}; copy {sub}/ of the Diffusers-format "
                                     "Wan folder in full (config.json and its weight files)") from e
-        raise OSError(f"Wan weights: cannot load {folder}: {_first_line(e)}; copy {sub}/ of the Diffusers-format "
+        why = _first_line(e)
+        if isinstance(e, json.JSONDecodeError):  # names no file: the shard index is the one JSON diffusers reads bare
+            index = sorted(p.name for p in folder.glob("*.index.json"))
+            why = f"{index[0] if len(index) == 1 else 'a JSON file in it'} is not valid JSON ({why})"
+        raise OSError(f"Wan weights: cannot load {folder}: {why}; copy {sub}/ of the Diffusers-format "
                       "Wan folder again") from e
     meta = [n for n, t in (*model.named_parameters(), *model.named_buffers()) if t.is_meta]
     missing = sorted(k for k in {*info["missing_keys"], *meta} if not k.startswith(ignore))
@@ -235,8 +241,11 @@ class WanVideoPrior(nn.Module):
     def from_pretrained(cls, root: str | Path, subfolder: str = "transformer", vae_subfolder: str = "vae",
                         dtype: torch.dtype = torch.bfloat16, empty_prompt_path: str | Path | None = None,
                         **kwargs) -> WanVideoPrior:
-        """Load from a local Diffusers-format folder (e.g. ``Wan2.2-TI2V-5B-Diffusers``); never downloads."""
-        root = Path(root)
+        """Load from a local Diffusers-format folder (e.g. ``Wan2.2-TI2V-5B-Diffusers``; ``~`` expanded); never
+        downloads."""
+        root = user_path(root)
+        if not root.is_dir() and (why := missing_reason(root)) not in (None, "not found"):
+            raise FileNotFoundError(f"Wan weights: {root} {why}")
         for sub in (subfolder, vae_subfolder):
             if not (root / sub / "config.json").is_file():
                 raise FileNotFoundError(f"Wan weights: {root / sub / 'config.json'} not found; point wan_dir at a "
@@ -255,7 +264,8 @@ class WanVideoPrior(nn.Module):
         if empty_prompt_path is None and (root / EMPTY_PROMPT_FILE).is_file():
             empty_prompt_path = root / EMPTY_PROMPT_FILE
         if empty_prompt_path is not None:
-            if not Path(empty_prompt_path).is_file():
+            empty_prompt_path = user_path(empty_prompt_path)
+            if not empty_prompt_path.is_file():
                 raise FileNotFoundError(f"empty_prompt_path: {empty_prompt_path} not found; precompute the umT5 "
                                         "embedding of '' as a [1, L, text_dim] tensor or pass None for zeros")
             prompt = _as_empty_prompt(safe_torch_load(empty_prompt_path, what="empty_prompt_path"),
@@ -318,16 +328,37 @@ class WanVideoPrior(nn.Module):
         save_file({k: v.detach().contiguous().cpu() for k, v in self.lora_state_dict().items()}, str(path))
 
     def load_lora(self, path: str | Path) -> None:
+        """Load the adapters :meth:`save_lora` wrote. Every adapter of this prior must be in the file, at its shape,
+        finite, and nothing else: one line naming the file otherwise (a truncated file included)."""
         from peft.utils import set_peft_model_state_dict
+        from safetensors import SafetensorError
         from safetensors.torch import load_file
 
-        if not Path(path).is_file():
-            raise FileNotFoundError(f"LoRA weights: {path} not found; save them with save_lora() first")
-        self.lora_state_dict()  # raises if no adapter was injected
-        result = set_peft_model_state_dict(self.transformer, load_file(str(path)))
+        from anycity.models.pretrained import first_nonfinite, weight_problems
+
+        path = user_path(path)
+        if not path.is_file():
+            why = missing_reason(path) or "is not a file"
+            raise FileNotFoundError(f"LoRA weights: {path} {why}; save them with save_lora() first")
+        own = self.lora_state_dict()  # raises if no adapter was injected
+        fix = "save them with save_lora() from a prior with the same LoRA rank, targets and Wan block"
+        try:
+            sd = load_file(str(path))
+        except SafetensorError as e:
+            raise ValueError(f"LoRA weights {path}: cannot read it ({_first_line(e)}); the file is truncated or not "
+                             f"a safetensors file: {fix}") from None
+        problems = weight_problems(own, sd)
+        if problems:
+            raise ValueError(f"LoRA weights {path} do not fit this prior's adapters: {'; '.join(problems)}; {fix}")
+        if (bad := first_nonfinite(sd)) is not None:
+            raise ValueError(f"LoRA weights {path} hold non-finite values (NaN or Inf) in {bad}; the run that saved "
+                             "them diverged: use an earlier file")
+        try:
+            result = set_peft_model_state_dict(self.transformer, sd)
+        except (RuntimeError, ValueError, KeyError) as e:
+            raise ValueError(f"LoRA weights {path}: {_first_line(e)}; {fix}") from None
         if getattr(result, "unexpected_keys", None):
-            raise ValueError(f"LoRA weights {path}: unexpected keys {result.unexpected_keys[:3]}...; "
-                             "was it saved with the same rank and targets?")
+            raise ValueError(f"LoRA weights {path}: unexpected keys {result.unexpected_keys[:3]}...; {fix}")
 
     # forward -----------------------------------------------------------------------------------------------
     def _noise(self, z: Tensor) -> Tensor:

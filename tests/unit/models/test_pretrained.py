@@ -419,7 +419,8 @@ def test_load_checkpoint_of_a_resized_stage1_weight_names_the_shape_in_one_line(
     ckpt["state_dict"]["net.aggregator.camera_token"] = torch.zeros(1, 2, 1, 32)  # the net's: [1, 2, 1, 64]
     torch.save(ckpt, path)
     with pytest.raises(ValueError, match=r"^checkpoint .*last.ckpt does not fit the network its hyper_parameters "
-                                         r"describe: 1 shapes differ \(e.g. aggregator.camera_token\); pass a") as e:
+                                         r"describe: 1 shapes differ \(e.g. aggregator.camera_token: \[1, 2, 1, 32\] "
+                                         r"there, \[1, 2, 1, 64\] here\); pass a") as e:
         load_checkpoint(path)
     assert "\n" not in str(e.value)
 
