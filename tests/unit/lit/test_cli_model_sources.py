@@ -155,3 +155,12 @@ def test_test_without_a_model_names_the_run_config_or_the_classes(tmp_path, caps
     assert "--model anycity.lit.ScaffoldModule (Stage I) or --model anycity.lit.RefinementModule (Stage II)" in err
     (tmp_path / "run" / "config.yaml").write_text("trainer: {}\n")
     assert f"-c {tmp_path / 'run' / 'config.yaml'}," in _one_line_error(["test", "--ckpt_path", str(ckpt)], capsys)
+
+
+def test_a_checkpoint_path_under_home_is_found(tmp_path, monkeypatch):
+    """``--ckpt_path=~/run.ckpt`` (no shell expands a ``~`` after ``=``) was "no such file" for a file that exists."""
+    monkeypatch.setenv("HOME", str(tmp_path))
+    (tmp_path / "run.ckpt").write_bytes(b"x")
+    cli.check_input_files(["test", "--ckpt_path=~/run.ckpt"])
+    with pytest.raises(FileNotFoundError, match="no such file"):
+        cli.check_input_files(["test", "--ckpt_path=~/other.ckpt"])
