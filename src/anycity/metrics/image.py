@@ -99,13 +99,15 @@ def _ssim_map(pred: Tensor, target: Tensor) -> Tensor:
         raise ValueError(f"ssim: images of {tuple(p.shape[-2:])} px have no pixel whose 11-px window fits; "
                          f"score images larger than {2 * b} px on each side")
     m, c, h, w = p.shape
-    x, y = p.reshape(m * c, 1, h, w), t.reshape(m * c, 1, h, w)
+    # in float64: SSIM subtracts E[x]^2 from E[x^2], and a CUDA convolution of float32 runs in TF32 by default
+    # (cudnn.allow_tf32), whose 10-bit inputs scored two identical 448 px images 0.994 (skimage: 1)
+    x, y = p.reshape(m * c, 1, h, w).double(), t.reshape(m * c, 1, h, w).double()
     mx, my, xx, yy, xy = _window_mean(torch.cat([x, y, x * x, y * y, x * y])).split(m * c)
     vx = (xx - mx * mx).clamp_min(0) * _SSIM_COV_NORM
     vy = (yy - my * my).clamp_min(0) * _SSIM_COV_NORM
     cxy = (xy - mx * my) * _SSIM_COV_NORM
     s = ((2 * mx * my + _SSIM_C1) * (2 * cxy + _SSIM_C2)) / ((mx * mx + my * my + _SSIM_C1) * (vx + vy + _SSIM_C2))
-    return s.reshape(m, c, h - 2 * b, w - 2 * b)
+    return s.reshape(m, c, h - 2 * b, w - 2 * b).to(p.dtype)
 
 
 def ssim(pred: Tensor, target: Tensor) -> Tensor:

@@ -232,3 +232,28 @@ def test_delta1_threshold_is_strict():
     gt = torch.tensor([4.0, 4.0]).reshape(1, 1, 1, 1, 2)
     pred = torch.tensor([5.0, 4.0]).reshape(1, 1, 1, 1, 2)
     assert depth_metrics(pred, gt)["delta1"].item() == 0.5
+
+
+def test_ssim_does_not_depend_on_the_convolution_precision(monkeypatch):
+    """On CUDA a float32 convolution runs in TF32 (10-bit inputs) by default; SSIM subtracts E[x]^2 from E[x^2], so
+    it scored two identical 448 px images 0.994. Emulated here: float32 convolutions round their inputs to 10 bits
+    (the old code scored this smooth image 0.988 against itself)."""
+    import torch.nn.functional as F
+
+    from anycity.metrics.image import ssim
+
+    real = F.conv2d
+
+    def tf32(t):
+        i = t.float().contiguous().view(torch.int32)
+        return ((i + 0x1000) & ~0x1FFF).view(torch.float32)  # round to nearest, 10-bit mantissa
+
+    def conv(x, w, *a, **k):
+        return real(tf32(x), tf32(w), *a, **k) if x.dtype == torch.float32 else real(x, w, *a, **k)
+
+    yy, xx = torch.meshgrid(torch.linspace(0, 1, 64), torch.linspace(0, 1, 64), indexing="ij")
+    img = (0.5 + 0.3 * torch.sin(6 * xx) * torch.cos(4 * yy))[None, None].expand(1, 3, 64, 64).clone()
+    exact = float(ssim(img, img * 0.9))
+    monkeypatch.setattr(F, "conv2d", conv)
+    assert float(ssim(img, img)) == pytest.approx(1.0, abs=1e-9)
+    assert float(ssim(img, img * 0.9)) == pytest.approx(exact, abs=1e-9)
