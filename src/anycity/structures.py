@@ -128,20 +128,28 @@ class Gaussians:
                 raise _shape_error("gaussians.valid", f"[B, N] = {(b, n)}", self.valid)
             if self.valid.dtype != torch.bool:
                 raise ValueError(f"gaussians.valid: expected dtype bool, got {self.valid.dtype}")
+        floats = []
         for f in fields(self):
             t = getattr(self, f.name)
             if t is not None:
                 if t.device != m.device:
                     raise ValueError(f"gaussians.{f.name}: on {t.device}, but means are on {m.device}")
-                if f.name != "opacities":  # checked below
-                    _check_finite(f"gaussians.{f.name}", t)
+                if f.name != "opacities" and t.is_floating_point():  # checked below
+                    floats.append((f.name, t))
+        # one host sync for every field (a render validates on each call; on a GPU each sync waits for the queued
+        # work): a sum is NaN or inf when any element is and costs a fifth of an elementwise test; min and max are
+        # NaN when any element is, so opacities in [0, 1] are finite too. A non-finite sum, which finite elements can
+        # also give by overflowing, or opacities out of [0, 1], are looked at closely.
+        stats = [t.detach().sum().float() for _, t in floats]
         if self.opacities.numel():
-            # one reduction per field and one host sync, as _check_finite's: min and max are NaN when any element is,
-            # so values in [0, 1] are finite too; anything else is looked at closely
             lo, hi = torch.aminmax(self.opacities.detach())
-            smin = self.scales.detach().amin()
-            dt = torch.promote_types(lo.dtype, smin.dtype)
-            lo, hi, smin = torch.stack([lo.to(dt), hi.to(dt), smin.to(dt)]).tolist()
+            stats += [lo.float(), hi.float(), self.scales.detach().amin().float()]
+        values = torch.stack(stats).tolist() if stats else []
+        for (name, t), total in zip(floats, values):
+            if not math.isfinite(total):
+                _check_finite(f"gaussians.{name}", t)
+        if self.opacities.numel():
+            lo, hi, smin = values[len(floats):]
             if not (lo >= 0 and hi <= 1):
                 _check_finite("gaussians.opacities", self.opacities)
                 raise ValueError(f"gaussians.opacities: expected values in [0, 1], got [{lo:.4g}, {hi:.4g}]; apply "

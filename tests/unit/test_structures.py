@@ -183,3 +183,16 @@ def test_gaussians_validate_keeps_zero_scales_and_zero_quaternions():
     g = Gaussians(**{**vars(gaussians()), "scales": torch.zeros(2, 5, 3), "quats": torch.zeros(2, 5, 4)})
     g.validate()
     Gaussians(**{**vars(gaussians()), "scales": torch.full((2, 5, 3), -0.0)}).validate()
+
+
+def test_gaussians_validate_waits_for_the_device_once(monkeypatch):
+    """Every render validates its Gaussians; on a GPU each read of a value waits for the queued work. The finiteness
+    of every field and the opacity and scale ranges come back in one read (there were five)."""
+    g = gaussians(2, 50)
+    g.valid = torch.ones(2, 50, dtype=torch.bool)
+    reads = []
+    for name in ("tolist", "item", "__bool__", "__float__"):
+        real = getattr(torch.Tensor, name)
+        monkeypatch.setattr(torch.Tensor, name, lambda t, *a, _real=real, _n=name: reads.append(_n) or _real(t, *a))
+    g.validate()
+    assert reads == ["tolist"]
