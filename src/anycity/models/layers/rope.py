@@ -25,42 +25,21 @@ class RoPE2D(nn.Module):
     def __init__(self, base: float = 100.0):
         super().__init__()
         self.base = float(base)
-        # cos/sin tables per positions tensor: one module serves every block, for q and k, so the tables of one
-        # forward were rebuilt 2 x 2 x depth times (3 to 7 % of a tiny Stage I step on CPU); bitwise the same
-        self._tables: dict[tuple, tuple[Tensor, ...]] = {}
 
-    def _angles(self, pos: Tensor, d: int, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
-        """``(cos, sin)`` ``[B, 1, N, d]`` of the angles of one coordinate's positions ``pos [B, N]``."""
-        inv_freq = 1.0 / self.base ** (torch.arange(0, d, 2, device=pos.device).float() / d)
+    def _rotate_1d(self, x: Tensor, pos: Tensor) -> Tensor:
+        d = x.shape[-1]
+        inv_freq = 1.0 / self.base ** (torch.arange(0, d, 2, device=x.device).float() / d)
         # angles (up to ~grid size radians) and their cos/sin in float32 at least, cast to x's dtype afterwards: a
         # bfloat16 angle of 30 rad is off by up to 0.06 rad. float32 and float64 inputs compute as before.
         angles = pos.to(inv_freq.dtype)[..., None] * inv_freq  # [B, N, d/2]
-        angles = angles.to(torch.promote_types(angles.dtype, dtype))
+        angles = angles.to(torch.promote_types(angles.dtype, x.dtype))
         angles = torch.cat([angles, angles], dim=-1)[:, None]  # [B, 1, N, d]
-        return angles.cos().to(dtype), angles.sin().to(dtype)
-
-    def _tables_of(self, pos: Tensor, d: int, dtype: torch.dtype) -> tuple[Tensor, ...]:
-        """``(cos_y, sin_y, cos_x, sin_x)`` for positions ``pos [B, N, 2]`` and halves of width ``d``, kept while
-        ``pos`` is the same unchanged tensor (its identity and version; the entry holds it, so the id is not reused
-        meanwhile): the aggregator passes one positions tensor to every frame block and one to every global block."""
-        key = (id(pos), pos._version, d, dtype, pos.device)
-        hit = self._tables.get(key)
-        if hit is not None and hit[0] is pos:
-            return hit[1:]
-        tables = (*self._angles(pos[..., 0], d, dtype), *self._angles(pos[..., 1], d, dtype))
-        if len(self._tables) >= 4:  # a forward uses two positions tensors (frame, global)
-            self._tables.clear()
-        self._tables[key] = (pos, *tables)
-        return tables
-
-    @staticmethod
-    def _rotate_1d(x: Tensor, cos: Tensor, sin: Tensor) -> Tensor:
+        cos, sin = angles.cos().to(x.dtype), angles.sin().to(x.dtype)
         x1, x2 = x.chunk(2, dim=-1)
         return x * cos + torch.cat([-x2, x1], dim=-1) * sin
 
     def forward(self, x: Tensor, pos: Tensor) -> Tensor:
         if x.shape[-1] % 4:
             raise ValueError(f"RoPE2D: head_dim must be divisible by 4, got {x.shape[-1]}")
-        cos_y, sin_y, cos_x, sin_x = self._tables_of(pos, x.shape[-1] // 2, x.dtype)
         y_half, x_half = x.chunk(2, dim=-1)
-        return torch.cat([self._rotate_1d(y_half, cos_y, sin_y), self._rotate_1d(x_half, cos_x, sin_x)], dim=-1)
+        return torch.cat([self._rotate_1d(y_half, pos[..., 0]), self._rotate_1d(x_half, pos[..., 1])], dim=-1)
