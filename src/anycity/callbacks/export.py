@@ -12,7 +12,7 @@ import torch
 from lightning.pytorch.callbacks import BasePredictionWriter
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 
-from anycity.atomic import publish, staged_folder
+from anycity.atomic import staged_folder
 from anycity.export import save_cameras, save_ply
 from anycity.export.ply import PLY_MAX_SH_DEGREE
 from anycity.export.provenance import provenance, summary
@@ -159,8 +159,11 @@ class PredictionExport(BasePredictionWriter):
         h, w = images.shape[-2:]
         scenes = prediction.get("scene") or [f"scene_{batch_idx:04d}_{i}" for i in range(w2c.shape[0])]
         g, prov = self._exported(prediction)
+        from anycity.city.scene import remove_leftovers
+
         for i, name in enumerate(scenes):
             folder = self._sample_folder(trainer, name)
+            remove_leftovers(folder)  # a killed chunked run's spill and renders, unless a live run holds them
             names = batch.get("names") if isinstance(batch, dict) else None  # a photo folder's file names
             # staged: a failure or a kill part-way leaves no scene folder (a scene.ply without its cameras.json)
             with staged_folder(folder) as stage:
@@ -223,12 +226,10 @@ class PredictionExport(BasePredictionWriter):
             self._bar.close()
             self._bar = None
             self._city = None
-            try:
-                self.city_report = city.finish(folder)
+            try:  # the renders go in while the run still holds its lock: no other run takes them for a killed one's
+                self.city_report = city.finish(folder, also={views_dir / kind: folder / kind
+                                                             for kind in ("renders", "inputs")})
                 _warn_non_square_pixels(folder.name, torch.stack([city.K[v] for v in sorted(city.K)]))
-                for kind in ("renders", "inputs"):
-                    if (views_dir / kind).is_dir():
-                        publish(views_dir / kind, folder / kind)
             finally:
                 self._city_scene = None
                 shutil.rmtree(views_dir, ignore_errors=True)
@@ -321,7 +322,9 @@ def _views_dir(folder: Path, fresh: bool = False) -> Path:
     """Where a chunked scene's renders and inputs wait until the scene is written: the hidden
     ``.<scene>.anycity_city_views/`` beside the scene folder (on its filesystem, so that they move in by a rename).
     ``fresh``: emptied first (a killed run's, with a warning)."""
-    views = folder.parent / f".{folder.name}.anycity_city_views"
+    from anycity.city.scene import views_dir
+
+    views = views_dir(folder)
     if fresh and views.exists():
         warnings.warn(f"{views}: removing the renders an interrupted run left", stacklevel=3)
         shutil.rmtree(views)

@@ -38,6 +38,7 @@ from anycity.export.cameras import save_cameras
 from anycity.structures import Gaussians
 
 WORK_SUFFIX = ".anycity_city_work"
+VIEWS_SUFFIX = ".anycity_city_views"
 _HELD: dict[str, int] = {}  # spill folder -> descriptor holding its lock, for this process's ChunkedScenes
 
 
@@ -47,6 +48,40 @@ def work_dir(folder: str | Path) -> Path:
     and a killed run's spill must stay where the next run of the scene finds and removes it."""
     folder = Path(folder)
     return folder.parent / f".{folder.name}{WORK_SUFFIX}"
+
+
+def views_dir(folder: str | Path) -> Path:
+    """Where a chunked scene's renders and inputs wait until the scene is written: the hidden
+    ``<parent>/.<name>.anycity_city_views`` beside the scene folder (its filesystem: they move in by a rename). It has
+    no lock of its own: the run's lock on :func:`work_dir` covers it."""
+    folder = Path(folder)
+    return folder.parent / f".{folder.name}{VIEWS_SUFFIX}"
+
+
+def remove_leftovers(folder: str | Path) -> list[Path]:
+    """Remove the :func:`work_dir` and :func:`views_dir` that a killed chunked run of the scene ``folder`` left, each
+    with a warning, for a run that writes ``folder`` in one pass (a chunked run removes them as it starts, in
+    :class:`ChunkedScene` and the exporter). A work folder another run holds (its ``flock``, this process's own
+    unfinished scene included) is a live run's: both stay. Returns the folders removed."""
+    work, views = work_dir(folder), views_dir(folder)
+    removed = []
+    if work.exists():
+        try:
+            fd = _lock(work)
+        except BlockingIOError:  # a chunked run of this scene still writing it: its spill and renders stay
+            return removed
+        try:
+            warnings.warn(f"{work}: removing the spill folder an interrupted run left", stacklevel=2)
+            shutil.rmtree(work, ignore_errors=True)
+            removed.append(work)
+        finally:
+            if fd is not None:
+                os.close(fd)
+    if views.exists():  # without a work folder no run is writing it (a live run locks its work folder first)
+        warnings.warn(f"{views}: removing the renders an interrupted run left", stacklevel=2)
+        shutil.rmtree(views, ignore_errors=True)
+        removed.append(views)
+    return removed
 
 
 def grid_pixels(h: int, w: int, per_side: int = 8) -> Tensor:
@@ -124,11 +159,14 @@ class ChunkedScene:
             atomic_write_bytes(path, buf.getbuffer())  # a full disk: OSError naming the file and the bytes
             self.spilled[k] = path
 
-    def finish(self, folder: str | Path, width: int | None = None, height: int | None = None) -> dict:
+    def finish(self, folder: str | Path, width: int | None = None, height: int | None = None,
+               also: dict[Path, Path] | None = None) -> dict:
         """Align, merge and write ``folder/{scene.ply, cameras.json, chunks.json}``; returns the report.
 
         Nothing is left in ``folder`` when it fails: the files are written in full and fsynced in
-        :func:`work_dir` (the scene's filesystem), then renamed into place.
+        :func:`work_dir` (the scene's filesystem), then renamed into place. ``also``: ``{source: destination}``
+        files or folders (the exporter's :func:`views_dir` renders) published after them, while the run still holds
+        its lock, so that no other run takes them for a killed run's.
         """
         folder = Path(folder)
         stage = work_dir(folder)  # the spill folder itself when ``out`` is ``folder``
@@ -146,6 +184,9 @@ class ChunkedScene:
                 atomic_write_bytes(stage / "chunks.json", json.dumps(report, indent=1).encode())
             for name in ("cameras.json", "chunks.json"):
                 publish(stage / name, folder / name)
+            for src, dst in (also or {}).items():
+                if Path(src).exists():
+                    publish(Path(src), Path(dst))
             self.w2c = w2c
             return report
         finally:

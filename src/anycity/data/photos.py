@@ -14,6 +14,7 @@ import os
 import stat
 import warnings
 from collections import Counter
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import NamedTuple
 
@@ -21,6 +22,7 @@ import cv2
 import numpy as np
 import torch
 
+from anycity.data import imagecheck
 from anycity.data.imagecheck import (
     check_image_file,
     exif_orientation,
@@ -38,6 +40,17 @@ PHOTO_SUFFIXES = (*JPEG_SUFFIXES, ".png", ".webp")
 # its orientation tag is applied differs between OpenCV and Pillow versions (OpenCV 5.0 refuses an oriented TIFF).
 SIDECAR_SUFFIXES = (".xmp", ".aae", ".srt", ".mrk", ".txt", ".json", ".csv")
 MAX_VIEWS = 64  # views of one forward pass; more photos are reconstructed in chunks (anycity.city)
+# Near-copies (one shot saved twice: a JPEG re-saved at q80, a .jpg and a .png export) are told by the rms difference
+# of 32x32 greyscale thumbnails (0..255) of photos of one size. Measured (stop 58): one shot re-encoded gives at most
+# 3.04 (48x48 synthetic photos re-saved at JPEG q80; q60 4.68; WebP q80 2.36; a .png of a .jpg 0.77, the .jpg
+# decoded at 1/8 by libjpeg), 0.8 on real 960-px photos at any quality down to q40; consecutive photos give at least
+# 12.68 (a 200-view synthetic orbit, 1.8 degrees apart; 14.77 on its first 40), 32.8 on real_aerial's two scenes (45.6
+# on boruszyn_kap). The threshold sits 2x above the first and 2.1x below the second.
+# A featureless thumbnail (standard deviation under NEAR_COPY_FLAT: blank sky, a lens cap, or the grey libjpeg fills
+# a damaged JPEG's missing data with) is not compared: two of one colour are not told apart from a copy.
+NEAR_COPY_SIDE = 32
+NEAR_COPY_RMS = 6.0
+NEAR_COPY_FLAT = 1.0
 
 
 def _is_photo(path: Path) -> bool:
@@ -135,6 +148,64 @@ def _check_regular(path: Path) -> None:
         kind = "folder" if stat.S_ISDIR(mode) else "FIFO (named pipe)" if stat.S_ISFIFO(mode) else "special file"
         raise ValueError(f"predict_images: {path} is a {kind}, not a photo file; remove it from the folder or rename "
                          "it so that it does not end like a photo")
+
+
+def near_copies(files: list[Path], headers: dict[Path, PhotoHeader], block: int = 1024) -> list[tuple[Path, Path]]:
+    """Pairs of ``files`` that look like one shot saved twice: of one size as shown (``headers``, see
+    :func:`photo_header`), with :data:`NEAR_COPY_SIDE`-px greyscale thumbnails less than :data:`NEAR_COPY_RMS` apart
+    (rms, 0..255); featureless ones (:data:`NEAR_COPY_FLAT`) are not compared. Each photo of a size shared with
+    another is decoded once, a JPEG at up to 1/8 of its size by libjpeg, over threads; the thumbnails are compared
+    all at once, ``block`` rows per matrix product. A photo that does not decode is passed over (its loading says
+    so, naming it)."""
+    by_size: dict[tuple[int, int], list[Path]] = {}
+    for p in files:
+        by_size.setdefault(headers[p][:2], []).append(p)
+    pairs = []
+    for same in by_size.values():
+        if len(same) < 2:
+            continue
+        with ThreadPoolExecutor(min(8, os.cpu_count() or 1)) as pool:  # OpenCV decodes without the GIL
+            thumbs = list(pool.map(lambda p: _thumbnail(p, headers[p]), same))
+        kept = [(p, t) for p, t in zip(same, thumbs) if t is not None and t.std() >= NEAR_COPY_FLAT]
+        if len(kept) < 2:
+            continue
+        named = [p for p, _ in kept]
+        T = torch.from_numpy(np.stack([t for _, t in kept]).reshape(len(kept), -1)).float()
+        T = T - T.mean(0)  # smaller numbers: the float32 products stay within 0.02 of the rms squared
+        sq, d = (T * T).sum(1), T.shape[1]
+        for s in range(0, len(named), block):
+            d2 = (sq[s:s + block, None] + sq[None] - 2 * T[s:s + block] @ T.T) / d  # mean squared difference
+            i, j = torch.nonzero(d2 < NEAR_COPY_RMS ** 2, as_tuple=True)
+            pairs += [(named[a], named[b]) for a, b in zip((i + s).tolist(), j.tolist()) if a < b]
+    return pairs
+
+
+def _thumbnail(path: Path, header: PhotoHeader) -> np.ndarray | None:
+    """``path`` as a :data:`NEAR_COPY_SIDE`-px square greyscale thumbnail as shown (uint8), None when it does not
+    decode. A JPEG is decoded at 1/2, 1/4 or 1/8 when its sides divide (else the last block row would shift it)."""
+    h, w = header.h, header.w
+    r = jpeg_reduction(h, w, 2 * NEAR_COPY_SIDE, 2 * NEAR_COPY_SIDE) if path.suffix.lower() in JPEG_SUFFIXES else 1
+    flag = {1: cv2.IMREAD_GRAYSCALE, 2: cv2.IMREAD_REDUCED_GRAYSCALE_2, 4: cv2.IMREAD_REDUCED_GRAYSCALE_4,
+            8: cv2.IMREAD_REDUCED_GRAYSCALE_8}[r]
+    grey = imagecheck.read_image(path, flag | cv2.IMREAD_IGNORE_ORIENTATION)
+    if grey is None or grey.ndim != 2 or grey.size == 0:
+        return None
+    grey = oriented(grey, header.orientation)
+    return cv2.resize(grey, (NEAR_COPY_SIDE, NEAR_COPY_SIDE), interpolation=cv2.INTER_AREA)
+
+
+def _warn_near_copies(folder: Path, files: list[Path], headers: dict[Path, PhotoHeader]) -> None:
+    """One warning naming each pair of :func:`near_copies` (both are kept: only byte-for-byte copies are left out)."""
+    from anycity.city.plan import natural_key
+
+    key = lambda p: natural_key(p.name)  # noqa: E731
+    pairs = sorted((tuple(sorted(pair, key=key)) for pair in near_copies(files, headers)),
+                   key=lambda pair: (key(pair[0]), key(pair[1])))
+    if pairs:
+        shown = ", ".join(f"{a.name} ~ {b.name}" for a, b in pairs[:5]) + (" ..." if len(pairs) > 5 else "")
+        warnings.warn(f"predict_images: {len(pairs)} pair(s) of photos in {folder} look like one shot saved twice "
+                      f"({shown}); both are used, as two views with no parallax between them (read as a flat "
+                      "place): remove one of each pair if it is a copy", stacklevel=3)
 
 
 class PhotoHeader(NamedTuple):
@@ -289,6 +360,7 @@ class PhotoFolder:
         self.folder = Path(folder)
         files = list_photos(self.folder)
         self._headers = {f: photo_header(f) for f in files}  # read once: load reuses them
+        _warn_near_copies(self.folder, files, self._headers)
         idx, self.ordered_by = order_photos(files, order, [self._headers[f].time for f in files])
         self.files = [files[i] for i in idx]
         self.names = [f.name for f in self.files]

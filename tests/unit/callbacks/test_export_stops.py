@@ -11,6 +11,7 @@ import torch
 from helpers.city import oracle_chunk_prediction
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 
+from anycity.atomic import HAS_FLOCK
 from anycity.callbacks import PredictionExport
 from anycity.city import plan_chunks
 from anycity.structures import Gaussians
@@ -154,3 +155,66 @@ def test_a_killed_runs_renders_are_not_published_with_the_next_city(tmp_path):
     assert "flight/renders/099.png" not in left
     assert len([p for p in left if p.startswith("flight/renders/")]) == 12
     assert not [p for p in left if not p.startswith("flight")]  # the views folder went too
+
+
+def _one_pass(cb, trainer, scene: str = "flight") -> None:
+    """A photo folder that fits one pass (no ``"chunk"``): two views of a few Gaussians."""
+    from anycity.structures import RenderOutput
+
+    n, v, h, w = 6, 2, 8, 8
+    g = Gaussians(torch.rand(1, n, 3) + torch.tensor([0, 0, 3.0]), torch.tensor([1.0, 0, 0, 0]).expand(1, n, 4),
+                  torch.full((1, n, 3), 0.05), torch.full((1, n), 0.5), torch.zeros(1, n, 1, 3))
+    imgs = torch.rand(1, v, 3, h, w)
+    pred = {"gaussians": g, "w2c": torch.eye(4).expand(1, v, 4, 4), "scene": [scene], "images": imgs,
+            "K": torch.tensor([[8.0, 0, 4], [0, 8, 4], [0, 0, 1]]).expand(1, v, 3, 3),
+            "renders": RenderOutput(rgb=imgs, depth=torch.ones(1, v, 1, h, w), alpha=torch.ones(1, v, 1, h, w))}
+    cb.write_on_batch_end(trainer, None, pred, None, {"scene": [scene], "names": [["a.jpg", "b.jpg"]]}, 0)
+
+
+def _killed_runs_leftovers(tmp_path):
+    """What a chunked run of ``flight`` killed part-way leaves: its spill folder and its renders folder."""
+    work = tmp_path / "out" / ".flight.anycity_city_work"
+    views = tmp_path / "out" / ".flight.anycity_city_views" / "renders"
+    work.mkdir(parents=True)
+    (work / "chunk_00000.pt").write_bytes(b"a killed run's chunk")
+    views.mkdir(parents=True)
+    (views / "000.png").write_bytes(b"stale")
+    return work, views.parent
+
+
+def test_a_one_pass_rerun_removes_what_a_killed_chunked_run_left(tmp_path):
+    """A killed chunked run's spill and renders stayed forever when the next run of the scene fitted one pass
+    (rerun with a larger --data.predict_chunk_size): only a chunked run looked for them."""
+    work, views = _killed_runs_leftovers(tmp_path)
+    cb = PredictionExport(out_dir=str(tmp_path / "out"), save_renders=False, smooth_3d=0)
+    trainer = SimpleNamespace(log_dir=None, default_root_dir=str(tmp_path), global_rank=0)
+    cb.on_predict_start(trainer, None)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        _one_pass(cb, trainer)
+    said = [str(w.message) for w in caught if "interrupted run" in str(w.message)]
+    assert said == [f"{work}: removing the spill folder an interrupted run left",
+                    f"{views}: removing the renders an interrupted run left"]
+    assert _left(tmp_path) == ["flight", "flight/cameras.json", "flight/scene.ply"]
+
+
+@pytest.mark.skipif(not HAS_FLOCK, reason="needs flock (POSIX)")
+def test_a_one_pass_run_leaves_the_spill_of_a_live_chunked_run_of_the_scene(tmp_path):
+    """A chunked run of the scene still writing holds its spill folder's lock: a one-pass run must not take its
+    spill and renders for a killed run's."""
+    import fcntl
+    import os
+
+    work, views = _killed_runs_leftovers(tmp_path)
+    fd = os.open(work, os.O_RDONLY)  # the live run's lock (another open file: flock conflicts within a process too)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        cb = PredictionExport(out_dir=str(tmp_path / "out"), save_renders=False, smooth_3d=0)
+        trainer = SimpleNamespace(log_dir=None, default_root_dir=str(tmp_path), global_rank=0)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            _one_pass(cb, trainer)
+        assert not [w for w in caught if "interrupted run" in str(w.message)]
+        assert (work / "chunk_00000.pt").is_file() and (views / "renders" / "000.png").is_file()
+    finally:
+        os.close(fd)

@@ -530,3 +530,82 @@ def test_a_folder_name_too_long_for_the_outputs_is_shortened_with_a_hash(tmp_pat
         assert len(scene_name(tmp_path / cjk).encode()) <= MAX_SCENE_NAME_BYTES
     assert scene_name(tmp_path / ("a" * 200)) == "a" * 200  # at the limit: kept
     (tmp_path / f".{short}.anycity_city_work.partial.kept-123456-abcdef01").mkdir()  # the longest sibling fits
+
+
+def _orbit_photos(d, views: int = 12):
+    """The first ``views`` photos (48x48 JPEGs) of a 200-view synthetic orbit: consecutive views 1.8 degrees apart,
+    as close as the closest pair of the 200 (rms of their thumbnails: 14.8 at the least, against 6 for a copy)."""
+    import torch
+
+    from anycity.data.raycast import SceneTensors, fov_intrinsics
+    from anycity.data.synthetic import HFOV_DEG, make_city, render_view, trajectory
+
+    rng = np.random.default_rng([1, 0])
+    city = make_city(rng)
+    w2c, _ = trajectory("orbit", 200, city, rng)
+    K, scene = torch.as_tensor(fov_intrinsics(48, 48, HFOV_DEG), dtype=torch.float32), SceneTensors(city)
+    d.mkdir()
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # many small ops, as the synth command renders them: threads cost more than they give
+    try:
+        for i in range(views):
+            rgb = render_view(scene, torch.as_tensor(w2c[i], dtype=torch.float32), K, 48, 48)["rgb"].numpy()
+            cv2.imwrite(str(d / f"v{i:02d}.jpg"), (rgb[..., ::-1] * 255 + 0.5).astype(np.uint8))
+    finally:
+        torch.set_num_threads(threads)
+
+
+def test_one_shot_saved_twice_is_named_in_a_warning_and_both_are_kept(tmp_path):
+    """A JPEG re-saved at q80, or a .jpg and a .png export of one photo, went in as two views without a word (only
+    byte-for-byte copies were caught): two views with no parallax. Consecutive views of an orbit are not named."""
+    import warnings
+
+    from PIL import Image
+
+    from anycity.data.photos import PhotoFolder
+
+    d = tmp_path / "orbit"
+    _orbit_photos(d)
+    with warnings.catch_warnings(record=True) as w:
+        warnings.simplefilter("always")
+        assert len(PhotoFolder(d, (48, 48), patch=8)) == 12
+    assert [str(m.message) for m in w] == []  # consecutive views are not copies
+    Image.open(d / "v03.jpg").save(d / "v03_q80.jpg", quality=80)
+    Image.open(d / "v07.jpg").save(d / "v07.png")
+    with warnings.catch_warnings(record=True) as w:
+        warnings.simplefilter("always")
+        photos = PhotoFolder(d, (48, 48), patch=8)
+    assert [str(m.message) for m in w] == [
+        f"predict_images: 2 pair(s) of photos in {d} look like one shot saved twice (v03.jpg ~ v03_q80.jpg, "
+        "v07.jpg ~ v07.png); both are used, as two views with no parallax between them (read as a flat place): "
+        "remove one of each pair if it is a copy"]
+    assert len(photos) == 14 and {"v03_q80.jpg", "v07.png"} <= set(photos.names)
+
+
+def test_the_near_copy_check_compares_thumbnails_of_one_size_all_at_once(tmp_path):
+    """Photos of another size are not decoded for it, featureless ones (a damaged JPEG's grey) are not compared, and
+    a shot turned by its EXIF orientation matches its upright export."""
+    from PIL import Image
+
+    import anycity.data.imagecheck as imagecheck
+    from anycity.data.photos import near_copies, photo_header
+
+    d = tmp_path / "f"
+    img = cv2.resize(np.random.default_rng(0).integers(0, 255, (6, 8, 3), dtype=np.uint8), (64, 48),
+                     interpolation=cv2.INTER_CUBIC)
+    exif = Image.Exif()
+    exif[0x0112] = 6  # stored 64 wide, shown 48 wide and 64 high
+    d.mkdir()
+    Image.fromarray(img).save(d / "turned.jpg", quality=95, exif=exif)
+    Image.fromarray(np.rot90(img, -1)).save(d / "upright.png")
+    Image.fromarray(np.full((64, 48, 3), 90, np.uint8)).save(d / "grey1.png")
+    Image.fromarray(np.full((64, 48, 3), 90, np.uint8)).save(d / "grey2.jpg")
+    _write(d, "other.jpg", 40, 40, 1)
+    files = sorted(d.iterdir())
+    decoded = []
+    real = imagecheck.read_image
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(imagecheck, "read_image", lambda p, flag: decoded.append(p.name) or real(p, flag))
+        pairs = near_copies(files, {f: photo_header(f) for f in files})
+    assert [(a.name, b.name) for a, b in pairs] == [("turned.jpg", "upright.png")]
+    assert sorted(decoded) == ["grey1.png", "grey2.jpg", "turned.jpg", "upright.png"]  # not other.jpg, alone
