@@ -244,13 +244,11 @@ def check_config_placement(args: list[str]) -> None:
 
 def _is_stage_module(cls: type) -> bool:
     """A concrete stage module: a subclass of :class:`~anycity.lit.AnyCityModule` with its own ``training_step``
-    (ScaffoldModule, RefinementModule, or a subclass of one)."""
-    from lightning.pytorch import LightningModule
-
+    (ScaffoldModule, RefinementModule, or a subclass of one); the base class has Lightning's, which trains nothing."""
     from anycity.lit import AnyCityModule
 
     return (isinstance(cls, type) and issubclass(cls, AnyCityModule)
-            and getattr(cls, "training_step", None) is not LightningModule.training_step)
+            and getattr(cls, "training_step", None) is not AnyCityModule.training_step)
 
 
 def check_model_class(class_path) -> None:

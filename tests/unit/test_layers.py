@@ -21,7 +21,8 @@ RANK = {
     "data": 5,  # the photo loader orders photos with anycity.city.plan
     "callbacks": 6,
     "lit": 7,
-    "cli": 8,
+    "cli_sources": 8,  # the command line read before the parse
+    "cli": 9,
 }
 # third-party package -> the modules (or packages) that may import it; LAZY: only inside a function there, so that
 # importing the module works without the package (an optional extra) or stays fast (the front door)
