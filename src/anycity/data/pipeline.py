@@ -217,13 +217,9 @@ class SampleBuilder:
         # a NaN camera/depth never reaches the loss; images (from uint8) and normals (from uint8, or from the depth
         # and K checked here) cannot be non-finite, and checking them was a third of the build at 448 px. Checked on
         # one thread too: torch's intra-op threads made it half the build's time with num_workers 0
-        if self._in_worker:
+        with contextlib.nullcontext() if self._in_worker else single_thread():
             out = self._build(sample)
             check_finite(out, sample_where(sample), skip=("images", "normal"))
-        else:
-            with single_thread():
-                out = self._build(sample)
-                check_finite(out, sample_where(sample), skip=("images", "normal"))
         self._built += 1  # only a sample that reaches a batch counts (see train_context_count)
         return out
 
