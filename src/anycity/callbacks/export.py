@@ -322,13 +322,11 @@ def _views_dir(folder: Path, fresh: bool = False) -> Path:
     """Where a chunked scene's renders and inputs wait until the scene is written: the hidden
     ``.<scene>.anycity_city_views/`` beside the scene folder (on its filesystem, so that they move in by a rename).
     ``fresh``: emptied first (a killed run's, with a warning)."""
-    from anycity.city.scene import views_dir
+    from anycity.city.scene import drop_views, views_dir
 
-    views = views_dir(folder)
-    if fresh and views.exists():
-        warnings.warn(f"{views}: removing the renders an interrupted run left", stacklevel=3)
-        shutil.rmtree(views)
-    return views
+    if fresh:
+        drop_views(folder, strict=True)
+    return views_dir(folder)
 
 
 def _shares(prov: dict, valid, scene: slice, rows) -> tuple[dict[str, float], int]:

@@ -77,11 +77,21 @@ def remove_leftovers(folder: str | Path) -> list[Path]:
         finally:
             if fd is not None:
                 os.close(fd)
-    if views.exists():  # without a work folder no run is writing it (a live run locks its work folder first)
-        warnings.warn(f"{views}: removing the renders an interrupted run left", stacklevel=2)
-        shutil.rmtree(views, ignore_errors=True)
+    if drop_views(folder):  # without a work folder no run is writing it (a live run locks its work folder first)
         removed.append(views)
     return removed
+
+
+def drop_views(folder: str | Path, strict: bool = False) -> bool:
+    """Remove, with a warning, the :func:`views_dir` renders an interrupted run of the scene ``folder`` left; whether
+    there were any. The caller knows that no live run holds them. ``strict``: a removal that fails raises (a chunked
+    run is about to write its own renders there)."""
+    views = views_dir(folder)
+    if not views.exists():
+        return False
+    warnings.warn(f"{views}: removing the renders an interrupted run left", stacklevel=3)
+    shutil.rmtree(views, ignore_errors=not strict)
+    return True
 
 
 def grid_pixels(h: int, w: int, per_side: int = 8) -> Tensor:
